@@ -1,0 +1,262 @@
+//! The probe technique: a source, a relay and a sink that carry pattern-filled messages
+//! through a topology and measure it — throughput, per-hop latency, age of scene time at
+//! the sink, order and integrity — the way iperf qualifies a link. Users run it to qualify
+//! a placement or a link profile before running a lighting technique on it, and the
+//! runtime's and transport's tests use it as their synthetic pipeline.
+
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+use cloudlight_runtime::clock::now_unix_ns;
+use cloudlight_runtime::{
+    EdgeSettings, Input, NextTick, Policy, Stage, StageCtx, StageKind, StageRegistry, StageSetup,
+};
+use hdrhistogram::Histogram;
+use serde::Deserialize;
+
+use crate::wire::ProbeMsg;
+
+/// Technique name of the probe stages.
+pub const TECHNIQUE: &str = "probe";
+
+/// Parameters of `probe_source`.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SourceParams {
+    /// Messages per second; absent: as fast as the edges accept them.
+    pub rate_hz: Option<f64>,
+    /// Payload bytes per message.
+    #[serde(default = "default_payload")]
+    pub payload_bytes: usize,
+    /// Stop after this many messages; absent: until the run stops.
+    pub count: Option<u64>,
+}
+
+fn default_payload() -> usize {
+    64
+}
+
+/// Emits `ProbeMsg`s on `out`, at a fixed rate or as fast as backpressure allows.
+pub struct ProbeSource {
+    params: SourceParams,
+    sent: u64,
+    started: Option<Instant>,
+}
+
+#[async_trait::async_trait]
+impl Stage for ProbeSource {
+    async fn on_tick(&mut self, ctx: &mut StageCtx) -> anyhow::Result<NextTick> {
+        if self.params.count.is_some_and(|c| self.sent >= c) || ctx.is_stopping() {
+            return Ok(NextTick::Never);
+        }
+        let started = *self.started.get_or_insert_with(Instant::now);
+        let msg = ProbeMsg::new(ctx.seed(), self.sent, self.params.payload_bytes);
+        let t = ctx.scene_time_s();
+        ctx.send("out", t, msg).await?;
+        self.sent += 1;
+        ctx.report(serde_json::json!({ "sent": self.sent }));
+        if self.params.count.is_some_and(|c| self.sent >= c) {
+            return Ok(NextTick::Never);
+        }
+        Ok(match self.params.rate_hz {
+            None => NextTick::Now,
+            Some(hz) => {
+                let due = started + Duration::from_secs_f64(self.sent as f64 / hz);
+                NextTick::After(due.saturating_duration_since(Instant::now()))
+            }
+        })
+    }
+}
+
+/// Parameters of `probe_relay`.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RelayParams {
+    /// Service time to emulate per message, milliseconds.
+    #[serde(default)]
+    pub work_ms: f64,
+    /// Fail (return an error) on the message after this many: fault injection for failure
+    /// handling experiments.
+    pub fail_after: Option<u64>,
+}
+
+/// Forwards each message from `in` to `out`, keeping its scene time.
+pub struct ProbeRelay {
+    params: RelayParams,
+    handled: u64,
+}
+
+#[async_trait::async_trait]
+impl Stage for ProbeRelay {
+    async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
+        if self.params.fail_after.is_some_and(|n| self.handled >= n) {
+            anyhow::bail!(
+                "injected failure after {} messages (fail_after)",
+                self.handled
+            );
+        }
+        let msg = input.get::<ProbeMsg>()?;
+        if self.params.work_ms > 0.0 {
+            tokio::time::sleep(Duration::from_secs_f64(self.params.work_ms / 1000.0)).await;
+        }
+        ctx.send("out", msg.scene_time_s, msg.body.clone()).await?;
+        self.handled += 1;
+        Ok(())
+    }
+}
+
+/// Parameters of `probe_sink`.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SinkParams {
+    /// Service time to emulate per message, milliseconds.
+    #[serde(default)]
+    pub work_ms: f64,
+}
+
+/// Receives messages and reports count, order, integrity, hop latency and scene-time age.
+pub struct ProbeSink {
+    params: SinkParams,
+    received: u64,
+    bytes: u64,
+    out_of_order: u64,
+    corrupt: u64,
+    last_index: HashMap<String, u64>,
+    hop_latency_us: Histogram<u64>,
+    age_us: Histogram<u64>,
+}
+
+impl ProbeSink {
+    fn report(&self) -> serde_json::Value {
+        let q = |h: &Histogram<u64>, q: f64| {
+            if h.is_empty() {
+                0.0
+            } else {
+                h.value_at_quantile(q) as f64 / 1000.0
+            }
+        };
+        serde_json::json!({
+            "received": self.received,
+            "bytes": self.bytes,
+            "out_of_order": self.out_of_order,
+            "corrupt": self.corrupt,
+            "hop_latency_ms_p50": q(&self.hop_latency_us, 0.5),
+            "hop_latency_ms_p99": q(&self.hop_latency_us, 0.99),
+            "age_ms_p50": q(&self.age_us, 0.5),
+            "age_ms_p99": q(&self.age_us, 0.99),
+        })
+    }
+}
+
+#[async_trait::async_trait]
+impl Stage for ProbeSink {
+    async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
+        let msg = input.get::<ProbeMsg>()?;
+        let now = now_unix_ns();
+        self.received += 1;
+        self.bytes += msg.body.payload.len() as u64;
+        if let Some(&last) = self.last_index.get(input.from())
+            && msg.body.index <= last
+        {
+            self.out_of_order += 1;
+        }
+        self.last_index
+            .insert(input.from().to_string(), msg.body.index);
+        if !msg.body.is_intact(ctx.seed()) {
+            self.corrupt += 1;
+            tracing::warn!(
+                stage = ctx.name(),
+                index = msg.body.index,
+                "corrupt probe payload"
+            );
+        }
+        let _ = self
+            .hop_latency_us
+            .record((now.saturating_sub(msg.produced_unix_ns) / 1000).max(1));
+        let age_s = (ctx.clock().scene_time_at_s(now) - msg.scene_time_s).max(0.0);
+        let _ = self.age_us.record(((age_s * 1e6) as u64).max(1));
+        if self.params.work_ms > 0.0 {
+            tokio::time::sleep(Duration::from_secs_f64(self.params.work_ms / 1000.0)).await;
+        }
+        if self.received % 64 == 1 {
+            ctx.report(self.report());
+        }
+        Ok(())
+    }
+
+    async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
+        ctx.report(self.report());
+        Ok(())
+    }
+}
+
+/// Default settings of probe inputs: block, 8 deep (nothing lost, so counts can be checked).
+pub const PROBE_EDGE: EdgeSettings = EdgeSettings {
+    capacity: 8,
+    policy: Policy::Block,
+};
+
+fn histogram() -> Histogram<u64> {
+    Histogram::new(3).expect("3 significant digits is valid")
+}
+
+/// Registers `probe_source`, `probe_relay` and `probe_sink`.
+pub fn register(registry: &mut StageRegistry) {
+    registry.register(
+        StageKind::new(
+            "probe_source",
+            TECHNIQUE,
+            "emits pattern-filled messages at `rate_hz` (or as fast as edges allow)",
+            |s: &StageSetup| {
+                let params: SourceParams = s.params()?;
+                if params.rate_hz.is_some_and(|r| !(r > 0.0 && r.is_finite())) {
+                    anyhow::bail!("rate_hz must be a positive number");
+                }
+                Ok(Box::new(ProbeSource {
+                    params,
+                    sent: 0,
+                    started: None,
+                }))
+            },
+        )
+        .output::<ProbeMsg>("out")
+        .params::<SourceParams>(),
+    );
+    registry.register(
+        StageKind::new(
+            "probe_relay",
+            TECHNIQUE,
+            "forwards messages, optionally after `work_ms`",
+            |s| {
+                Ok(Box::new(ProbeRelay {
+                    params: s.params()?,
+                    handled: 0,
+                }))
+            },
+        )
+        .input::<ProbeMsg>("in", PROBE_EDGE)
+        .output::<ProbeMsg>("out")
+        .params::<RelayParams>(),
+    );
+    registry.register(
+        StageKind::new(
+            "probe_sink",
+            TECHNIQUE,
+            "counts, checks and times received messages",
+            |s| {
+                Ok(Box::new(ProbeSink {
+                    params: s.params()?,
+                    received: 0,
+                    bytes: 0,
+                    out_of_order: 0,
+                    corrupt: 0,
+                    last_index: HashMap::new(),
+                    hop_latency_us: histogram(),
+                    age_us: histogram(),
+                }))
+            },
+        )
+        .input::<ProbeMsg>("in", PROBE_EDGE)
+        .params::<SinkParams>(),
+    );
+}

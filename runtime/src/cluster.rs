@@ -1,0 +1,537 @@
+//! Running a [`Plan`]: build and start every stage instance, run until the duration ends,
+//! a stop is requested, the pipeline finishes by itself or a stage fails, then drain and stop.
+//!
+//! Failure policy (no restarts): the first stage that returns an error or panics fails the
+//! run. Its name and error are reported, every edge is closed (so producers blocked on it
+//! wake up), every other stage is stopped, and `metrics.json` is still written with status
+//! `failed`. A normal end drains first: sources stop ticking, queued messages are handled,
+//! and only then are actors stopped (each gets `on_stop`).
+
+use std::future::Future;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use ractor::{Actor, ActorRef};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+
+use crate::actor::{
+    InputEdge, Names, RunEvent, RunSupervisor, StageActor, StageArgs, StageMsg, SupervisorState,
+};
+use crate::clock::SceneClock;
+use crate::control::RunControl;
+use crate::edge::Edge;
+use crate::metrics::{EdgeSnapshot, MetricsSnapshot, RunStatus, StageMetrics};
+use crate::stage::{InstanceInfo, OutputPort, StageCtx, StageRegistry, StageSetup};
+use crate::topology::Plan;
+
+/// A callback given each periodic metrics snapshot.
+pub type ProgressFn = Arc<dyn Fn(&MetricsSnapshot) + Send + Sync>;
+
+/// How a run is carried out.
+#[derive(Clone)]
+pub struct RunOptions {
+    /// Run length; `None` uses the topology's `duration_s`, and without one the run lasts
+    /// until stopped, failed or finished by itself.
+    pub duration: Option<Duration>,
+    /// Folder for `metrics.json` (created if missing); `None` writes nothing.
+    pub out_dir: Option<PathBuf>,
+    /// Run only the instances placed on this node.
+    pub only_node: Option<String>,
+    /// How often metrics are snapshotted (written and passed to `on_progress`).
+    pub metrics_interval: Duration,
+    /// How long a normal end waits for queued messages to be handled.
+    pub drain_timeout: Duration,
+    /// Called with every periodic snapshot (for progress display).
+    pub on_progress: Option<ProgressFn>,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        RunOptions {
+            duration: None,
+            out_dir: None,
+            only_node: None,
+            metrics_interval: Duration::from_secs(2),
+            drain_timeout: Duration::from_secs(10),
+            on_progress: None,
+        }
+    }
+}
+
+/// Why a run ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EndReason {
+    /// The run length elapsed.
+    Duration,
+    /// A stop was requested (Ctrl-C).
+    Stopped,
+    /// Every stage stopped ticking and every message was handled.
+    Finished,
+    /// A stage failed.
+    Failed,
+}
+
+/// What a run leaves behind.
+#[derive(Clone, Debug)]
+pub struct RunReport {
+    /// Why it ended.
+    pub end: EndReason,
+    /// Final metrics.
+    pub metrics: MetricsSnapshot,
+    /// Messages still in the pipeline when actors were stopped (0 after a clean drain).
+    pub undrained: i64,
+    /// Instances whose actors terminated.
+    pub stopped: Vec<String>,
+    /// Instances started.
+    pub started: usize,
+    /// Where `metrics.json` was written.
+    pub metrics_path: Option<PathBuf>,
+}
+
+/// Why a run could not start or did not end cleanly.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// `only_node` names no node of the topology.
+    #[error("node `{0}` is not in the topology")]
+    UnknownNode(String),
+    /// An edge crosses to another node, which needs the transport.
+    #[error(
+        "edge `{0}` crosses between nodes; running a single node with cut edges needs the UDP transport, which is not implemented yet"
+    )]
+    NeedsTransport(String),
+    /// A stage could not be built or its `on_start` failed.
+    #[error("cannot start stage `{stage}`: {error}")]
+    Start {
+        /// Instance name.
+        stage: String,
+        /// Why.
+        error: String,
+    },
+    /// A stage failed while running; the run was stopped.
+    #[error("stage `{stage}` failed: {error}")]
+    StageFailed {
+        /// Instance name.
+        stage: String,
+        /// The error, with its causes.
+        error: String,
+        /// What the run left behind.
+        report: Box<RunReport>,
+    },
+    /// The output folder could not be written.
+    #[error("cannot write run output: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+struct Running {
+    name: String,
+    kind: String,
+    node: String,
+    actor: ActorRef<StageMsg>,
+    handle: JoinHandle<()>,
+    metrics: Arc<StageMetrics>,
+}
+
+struct EdgeRun {
+    edge: Arc<Edge>,
+    cut: bool,
+}
+
+/// A started cluster: every local stage instance is running.
+pub struct Cluster {
+    plan: Plan,
+    options: RunOptions,
+    clock: SceneClock,
+    control: Arc<RunControl>,
+    stages: Vec<Running>,
+    edges: Vec<EdgeRun>,
+    events: mpsc::UnboundedReceiver<RunEvent>,
+    supervisor: (ActorRef<()>, JoinHandle<()>),
+    started: Instant,
+}
+
+impl Cluster {
+    /// Builds and starts every instance of the plan (or of `options.only_node`), waits until
+    /// all have run `on_start`, then gives each its first tick.
+    pub async fn start(
+        plan: &Plan,
+        registry: &StageRegistry,
+        options: RunOptions,
+    ) -> Result<Cluster, RunError> {
+        let plan = plan.clone();
+        if let Some(n) = &options.only_node
+            && plan.topology.node(n).is_none()
+        {
+            return Err(RunError::UnknownNode(n.clone()));
+        }
+        let only_node = options.only_node.clone();
+        let local = |i: usize| {
+            only_node
+                .as_ref()
+                .is_none_or(|n| &plan.instances[i].node == n)
+        };
+        let control = Arc::new(RunControl::default());
+        let clock = SceneClock::starting_now(plan.topology.scene_start_s, plan.topology.time_scale);
+
+        let mut edges = Vec::new();
+        for e in &plan.edges {
+            match (local(e.from), local(e.to)) {
+                (true, true) => edges.push(Some(EdgeRun {
+                    edge: Edge::new(e.name.clone(), e.settings, control.clone()),
+                    cut: e.cut,
+                })),
+                (false, false) => edges.push(None),
+                _ => return Err(RunError::NeedsTransport(e.name.clone())),
+            }
+        }
+
+        let (tx, events) = mpsc::unbounded_channel();
+        let names: Names = Arc::default();
+        let supervisor = Actor::spawn(
+            None,
+            RunSupervisor,
+            SupervisorState {
+                names: names.clone(),
+                events: tx,
+            },
+        )
+        .await
+        .map_err(|e| RunError::Start {
+            stage: "<supervisor>".into(),
+            error: e.to_string(),
+        })?;
+
+        let mut cluster = Cluster {
+            plan: plan.clone(),
+            options,
+            clock,
+            control: control.clone(),
+            stages: Vec::new(),
+            edges: Vec::new(),
+            events,
+            supervisor,
+            started: Instant::now(),
+        };
+        for (idx, inst) in plan.instances.iter().enumerate() {
+            if !local(idx) {
+                continue;
+            }
+            let kind = registry.get(&inst.kind).expect("plan checked every kind");
+            let info = InstanceInfo {
+                name: Arc::from(inst.name.as_str()),
+                stage: inst.stage.clone(),
+                kind: inst.kind.clone(),
+                node: inst.node.clone(),
+                replica: inst.replica,
+                replicas: inst.replicas,
+            };
+            let decl = plan
+                .topology
+                .stage(&inst.stage)
+                .expect("instances come from stages");
+            let setup = StageSetup {
+                info: info.clone(),
+                scene: plan.topology.scene.clone(),
+                seed: plan.topology.seed,
+                params: decl.params.clone(),
+            };
+            let fail = |error: String| RunError::Start {
+                stage: inst.name.clone(),
+                error,
+            };
+            let stage = match kind.build(&setup) {
+                Ok(s) => s,
+                Err(e) => {
+                    cluster.abort().await;
+                    return Err(fail(format!("{e:#}")));
+                }
+            };
+            let outputs = kind
+                .outputs
+                .iter()
+                .map(|port| OutputPort {
+                    name: port.name,
+                    ty: port.ty,
+                    edges: plan
+                        .edges
+                        .iter()
+                        .zip(&edges)
+                        .filter(|(e, _)| e.from == idx && e.from_port == port.name)
+                        .filter_map(|(_, r)| r.as_ref().map(|r| r.edge.clone()))
+                        .collect(),
+                    next_seq: 0,
+                })
+                .collect();
+            let inputs = plan
+                .edges
+                .iter()
+                .zip(&edges)
+                .filter(|(e, _)| e.to == idx)
+                .filter_map(|(e, r)| {
+                    r.as_ref().map(|r| InputEdge {
+                        edge: r.edge.clone(),
+                        port: Arc::from(e.to_port),
+                        from: Arc::from(plan.instances[e.from].name.as_str()),
+                    })
+                })
+                .collect();
+            let metrics = Arc::new(StageMetrics::default());
+            let ctx = StageCtx {
+                info,
+                seed: plan.topology.seed,
+                clock,
+                control: control.clone(),
+                outputs,
+                metrics: metrics.clone(),
+                blocked: Duration::ZERO,
+            };
+            let spawned = Actor::spawn_linked(
+                None,
+                StageActor,
+                StageArgs { stage, ctx, inputs },
+                cluster.supervisor.0.get_cell(),
+            )
+            .await;
+            match spawned {
+                Ok((actor, handle)) => {
+                    names
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .insert(actor.get_id(), Arc::from(inst.name.as_str()));
+                    cluster.stages.push(Running {
+                        name: inst.name.clone(),
+                        kind: inst.kind.clone(),
+                        node: inst.node.clone(),
+                        actor,
+                        handle,
+                        metrics,
+                    });
+                }
+                Err(e) => {
+                    cluster.abort().await;
+                    return Err(fail(e.to_string()));
+                }
+            }
+        }
+        cluster.edges = edges.into_iter().flatten().collect();
+        cluster.started = Instant::now();
+        for s in &cluster.stages {
+            let _ = s.actor.cast(StageMsg::Tick);
+        }
+        tracing::info!(
+            stages = cluster.stages.len(),
+            edges = cluster.edges.len(),
+            "cluster started"
+        );
+        Ok(cluster)
+    }
+
+    /// The run-wide scene clock.
+    pub fn clock(&self) -> SceneClock {
+        self.clock
+    }
+
+    /// Current metrics.
+    pub fn snapshot(&self, status: RunStatus, failure: Option<String>) -> MetricsSnapshot {
+        let elapsed_s = self.started.elapsed().as_secs_f64();
+        let edges = self
+            .edges
+            .iter()
+            .map(|r| {
+                let c = r.edge.counters();
+                let bytes = c.bytes.load(std::sync::atomic::Ordering::Relaxed);
+                EdgeSnapshot {
+                    name: r.edge.name().to_string(),
+                    policy: r.edge.settings().policy.to_string(),
+                    capacity: r.edge.settings().capacity,
+                    cut: r.cut,
+                    messages: c.messages.load(std::sync::atomic::Ordering::Relaxed),
+                    bytes,
+                    dropped: c.dropped.load(std::sync::atomic::Ordering::Relaxed),
+                    depth: r.edge.depth(),
+                    max_depth: c.max_depth.load(std::sync::atomic::Ordering::Relaxed),
+                    mbps: if elapsed_s > 0.0 {
+                        bytes as f64 * 8.0 / elapsed_s / 1e6
+                    } else {
+                        0.0
+                    },
+                }
+            })
+            .collect();
+        let stages = self
+            .stages
+            .iter()
+            .map(|s| s.metrics.snapshot(&s.name, &s.kind, &s.node))
+            .collect();
+        MetricsSnapshot {
+            status,
+            elapsed_s,
+            scene_time_s: self.clock.scene_time_s(),
+            failure,
+            edges,
+            stages,
+        }
+    }
+
+    fn metrics_path(&self) -> Option<PathBuf> {
+        self.options
+            .out_dir
+            .as_ref()
+            .map(|d| d.join("metrics.json"))
+    }
+
+    fn write_metrics(&self, snap: &MetricsSnapshot) -> std::io::Result<()> {
+        if let Some(path) = self.metrics_path() {
+            if let Some(dir) = path.parent() {
+                std::fs::create_dir_all(dir)?;
+            }
+            snap.write_json(&path)?;
+        }
+        Ok(())
+    }
+
+    /// Runs until the duration ends, `stop` resolves, the pipeline finishes or a stage
+    /// fails; then drains (unless failed), stops every actor and writes final metrics.
+    pub async fn run(mut self, stop: impl Future<Output = ()>) -> Result<RunReport, RunError> {
+        let duration =
+            self.options
+                .duration
+                .or(self.plan.topology.duration_s.map(Duration::from_secs_f64));
+        let deadline = duration.map(|d| tokio::time::Instant::now() + d);
+        let mut failure: Option<(String, String)> = None;
+        let mut metrics_tick = tokio::time::interval(self.options.metrics_interval);
+        metrics_tick.tick().await;
+        let mut poll = tokio::time::interval(Duration::from_millis(10));
+        tokio::pin!(stop);
+        self.write_metrics(&self.snapshot(RunStatus::Running, None))?;
+        let mut end = loop {
+            tokio::select! {
+                _ = async { match deadline { Some(d) => tokio::time::sleep_until(d).await, None => std::future::pending().await } } => break EndReason::Duration,
+                _ = &mut stop => break EndReason::Stopped,
+                Some(ev) = self.events.recv() => {
+                    if let RunEvent::Failed { stage, error } = ev {
+                        failure = Some((stage.to_string(), error));
+                        break EndReason::Failed;
+                    }
+                }
+                _ = metrics_tick.tick() => {
+                    let snap = self.snapshot(RunStatus::Running, None);
+                    self.write_metrics(&snap)?;
+                    if let Some(p) = &self.options.on_progress { p(&snap); }
+                }
+                _ = poll.tick() => {
+                    if self.control.is_finished() { break EndReason::Finished; }
+                }
+            }
+        };
+        tracing::info!(?end, "run ending");
+        self.control.begin_stopping();
+        if end != EndReason::Failed {
+            // Drain: sources no longer tick; let every queued message be handled.
+            let drain_deadline = tokio::time::Instant::now() + self.options.drain_timeout;
+            loop {
+                if self.control.is_drained() {
+                    break;
+                }
+                if tokio::time::Instant::now() >= drain_deadline {
+                    tracing::warn!(pending = self.control.pending(), "drain timed out");
+                    break;
+                }
+                tokio::select! {
+                    Some(ev) = self.events.recv() => {
+                        if let RunEvent::Failed { stage, error } = ev {
+                            failure = Some((stage.to_string(), error));
+                            end = EndReason::Failed;
+                            break;
+                        }
+                    }
+                    _ = poll.tick() => {}
+                }
+            }
+        }
+        let undrained = self.control.pending();
+        if let Some((stage, error)) = &failure {
+            tracing::error!(%stage, %error, "stage failed; stopping the run");
+        }
+        let stopped = self.stop_all().await;
+        let (status, fail_text) = match &failure {
+            Some((stage, error)) => (
+                RunStatus::Failed,
+                Some(format!("stage `{stage}` failed: {error}")),
+            ),
+            None => (RunStatus::Finished, None),
+        };
+        let metrics = self.snapshot(status, fail_text);
+        self.write_metrics(&metrics)?;
+        let report = RunReport {
+            end,
+            metrics,
+            undrained,
+            stopped,
+            started: self.stages.len(),
+            metrics_path: self.metrics_path(),
+        };
+        self.supervisor.0.stop(None);
+        match failure {
+            Some((stage, error)) => Err(RunError::StageFailed {
+                stage,
+                error,
+                report: Box::new(report),
+            }),
+            None => Ok(report),
+        }
+    }
+
+    /// Closes every edge and stops every actor; returns the instances that terminated.
+    async fn stop_all(&mut self) -> Vec<String> {
+        if self.control.pending() != 0 {
+            // Producers may be blocked on consumers that will never run again.
+            for e in &self.edges {
+                e.edge.close();
+            }
+        }
+        for s in &self.stages {
+            s.actor.stop(None);
+        }
+        let mut stopped = Vec::new();
+        for s in &mut self.stages {
+            match tokio::time::timeout(Duration::from_secs(5), &mut s.handle).await {
+                Ok(_) => stopped.push(s.name.clone()),
+                Err(_) => {
+                    tracing::warn!(stage = %s.name, "did not stop within 5 s; killing it");
+                    s.actor.kill();
+                    if tokio::time::timeout(Duration::from_secs(1), &mut s.handle)
+                        .await
+                        .is_ok()
+                    {
+                        stopped.push(s.name.clone());
+                    }
+                }
+            }
+        }
+        for e in &self.edges {
+            e.edge.close();
+        }
+        stopped
+    }
+
+    async fn abort(&mut self) {
+        self.control.begin_stopping();
+        self.stop_all().await;
+        self.supervisor.0.stop(None);
+    }
+}
+
+/// Starts `plan` and runs it to the end (see [`Cluster::run`]).
+pub async fn run(
+    plan: &Plan,
+    registry: &StageRegistry,
+    options: RunOptions,
+    stop: impl Future<Output = ()>,
+) -> Result<RunReport, RunError> {
+    Cluster::start(plan, registry, options)
+        .await?
+        .run(stop)
+        .await
+}

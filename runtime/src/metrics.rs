@@ -1,0 +1,236 @@
+//! Run metrics: counters per edge and per stage instance, snapshots written as
+//! `metrics.json`, and the summary table printed at the end of a run.
+//!
+//! Per edge: messages, bytes (encoded size; on an in-process edge this is what the message
+//! would cost if the edge were cut), drops, depth and maximum depth, Mbps. Per stage: messages
+//! handled, ticks, busy time per handler call (p50/p99/mean; time spent waiting on a full
+//! `block` edge is excluded and reported apart as `blocked_s`), and a free-form report that
+//! the stage publishes (age of indirect light, photons stored, ...).
+
+use std::path::Path;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
+
+use comfy_table::{Table, presets::UTF8_FULL_CONDENSED};
+use hdrhistogram::Histogram;
+use serde::{Deserialize, Serialize};
+
+/// Live counters of one stage instance.
+#[derive(Debug)]
+pub struct StageMetrics {
+    handled: AtomicU64,
+    ticks: AtomicU64,
+    blocked_ns: AtomicU64,
+    busy_us: Mutex<Histogram<u64>>,
+    report: Mutex<Option<serde_json::Value>>,
+}
+
+impl Default for StageMetrics {
+    fn default() -> Self {
+        StageMetrics {
+            handled: AtomicU64::new(0),
+            ticks: AtomicU64::new(0),
+            blocked_ns: AtomicU64::new(0),
+            busy_us: Mutex::new(Histogram::new(3).expect("3 significant digits is valid")),
+            report: Mutex::new(None),
+        }
+    }
+}
+
+impl StageMetrics {
+    pub(crate) fn record(&self, tick: bool, busy: Duration, blocked: Duration) {
+        if tick {
+            self.ticks.fetch_add(1, Ordering::Relaxed);
+        } else {
+            self.handled.fetch_add(1, Ordering::Relaxed);
+        }
+        self.blocked_ns
+            .fetch_add(blocked.as_nanos() as u64, Ordering::Relaxed);
+        let us = (busy.as_micros() as u64).max(1);
+        let mut h = self.busy_us.lock().unwrap_or_else(|e| e.into_inner());
+        // Auto-resizing histogram: recording cannot fail for a positive value.
+        let _ = h.record(us);
+    }
+
+    pub(crate) fn set_report(&self, value: serde_json::Value) {
+        *self.report.lock().unwrap_or_else(|e| e.into_inner()) = Some(value);
+    }
+
+    /// Messages handled so far.
+    pub fn handled(&self) -> u64 {
+        self.handled.load(Ordering::Relaxed)
+    }
+
+    pub(crate) fn snapshot(&self, name: &str, kind: &str, node: &str) -> StageSnapshot {
+        let h = self.busy_us.lock().unwrap_or_else(|e| e.into_inner());
+        let ms = |us: u64| us as f64 / 1000.0;
+        let calls = h.len();
+        StageSnapshot {
+            name: name.to_string(),
+            kind: kind.to_string(),
+            node: node.to_string(),
+            handled: self.handled(),
+            ticks: self.ticks.load(Ordering::Relaxed),
+            busy_p50_ms: if calls > 0 {
+                ms(h.value_at_quantile(0.5))
+            } else {
+                0.0
+            },
+            busy_p99_ms: if calls > 0 {
+                ms(h.value_at_quantile(0.99))
+            } else {
+                0.0
+            },
+            busy_mean_ms: if calls > 0 { h.mean() / 1000.0 } else { 0.0 },
+            blocked_s: self.blocked_ns.load(Ordering::Relaxed) as f64 * 1e-9,
+            report: self
+                .report
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
+        }
+    }
+}
+
+/// One edge at one moment.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct EdgeSnapshot {
+    /// `producer.port -> consumer.port`.
+    pub name: String,
+    /// `block` or `latest`.
+    pub policy: String,
+    /// Capacity of the edge.
+    pub capacity: usize,
+    /// Whether producer and consumer sit on different nodes.
+    pub cut: bool,
+    /// Messages accepted.
+    pub messages: u64,
+    /// Encoded bytes accepted.
+    pub bytes: u64,
+    /// Messages dropped by `latest`.
+    pub dropped: u64,
+    /// Messages queued at the snapshot.
+    pub depth: usize,
+    /// Largest queue length seen.
+    pub max_depth: u64,
+    /// Mean megabits per second over the run so far.
+    pub mbps: f64,
+}
+
+/// One stage instance at one moment.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct StageSnapshot {
+    /// Instance name (`stage` or `stage[i]` for replicas).
+    pub name: String,
+    /// Stage kind.
+    pub kind: String,
+    /// Node the instance runs on.
+    pub node: String,
+    /// Input messages handled.
+    pub handled: u64,
+    /// Ticks run.
+    pub ticks: u64,
+    /// Median busy time per handler call, milliseconds.
+    pub busy_p50_ms: f64,
+    /// 99th percentile busy time per handler call, milliseconds.
+    pub busy_p99_ms: f64,
+    /// Mean busy time per handler call, milliseconds.
+    pub busy_mean_ms: f64,
+    /// Total time spent waiting on full `block` edges, seconds.
+    pub blocked_s: f64,
+    /// What the stage itself reports (technique-specific).
+    pub report: Option<serde_json::Value>,
+}
+
+/// Where a run stands.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum RunStatus {
+    /// Still running.
+    Running,
+    /// Drained and stopped normally.
+    Finished,
+    /// Stopped because a stage failed.
+    Failed,
+}
+
+/// Everything `metrics.json` holds.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct MetricsSnapshot {
+    /// Where the run stands.
+    pub status: RunStatus,
+    /// Wall seconds since the run started.
+    pub elapsed_s: f64,
+    /// Scene time at the snapshot, seconds.
+    pub scene_time_s: f64,
+    /// The failure that stopped the run, if any.
+    pub failure: Option<String>,
+    /// Every edge of the nodes run in this process.
+    pub edges: Vec<EdgeSnapshot>,
+    /// Every stage instance of the nodes run in this process.
+    pub stages: Vec<StageSnapshot>,
+}
+
+impl MetricsSnapshot {
+    /// Writes the snapshot as pretty JSON, atomically (temporary file, then rename).
+    pub fn write_json(&self, path: &Path) -> std::io::Result<()> {
+        let tmp = path.with_extension("json.tmp");
+        std::fs::write(&tmp, serde_json::to_vec_pretty(self)?)?;
+        std::fs::rename(tmp, path)
+    }
+
+    /// The summary tables printed at the end of a run.
+    pub fn table(&self) -> String {
+        let mut stages = Table::new();
+        stages.load_preset(UTF8_FULL_CONDENSED).set_header([
+            "stage",
+            "kind",
+            "node",
+            "handled",
+            "ticks",
+            "busy p50 ms",
+            "busy p99 ms",
+            "blocked s",
+        ]);
+        for s in &self.stages {
+            stages.add_row([
+                s.name.clone(),
+                s.kind.clone(),
+                s.node.clone(),
+                s.handled.to_string(),
+                s.ticks.to_string(),
+                format!("{:.3}", s.busy_p50_ms),
+                format!("{:.3}", s.busy_p99_ms),
+                format!("{:.3}", s.blocked_s),
+            ]);
+        }
+        let mut edges = Table::new();
+        edges.load_preset(UTF8_FULL_CONDENSED).set_header([
+            "edge",
+            "policy/cap",
+            "cut",
+            "messages",
+            "MB",
+            "Mbps",
+            "dropped",
+            "max depth",
+        ]);
+        for e in &self.edges {
+            edges.add_row([
+                e.name.clone(),
+                format!("{}/{}", e.policy, e.capacity),
+                if e.cut { "yes" } else { "no" }.to_string(),
+                e.messages.to_string(),
+                format!("{:.3}", e.bytes as f64 / 1e6),
+                format!("{:.3}", e.mbps),
+                e.dropped.to_string(),
+                e.max_depth.to_string(),
+            ]);
+        }
+        format!(
+            "run {:?} after {:.2} s (scene time {:.2} s)\n{stages}\n{edges}",
+            self.status, self.elapsed_s, self.scene_time_s
+        )
+    }
+}

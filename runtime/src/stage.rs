@@ -1,0 +1,435 @@
+//! What a stage is: the [`Stage`] behaviour a pipeline stage implements, the [`StageCtx`] it
+//! sends through, the [`StageKind`] that declares its typed ports and builds it, and the
+//! [`StageRegistry`] of kinds a topology may name.
+//!
+//! A stage is a thin shell: receive → call a kernel → send downstream. It never knows whether
+//! its edges are in-process or cut, or on which node its neighbours run.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use serde::de::DeserializeOwned;
+
+use crate::clock::{SceneClock, now_unix_ns};
+use crate::codec::CodecError;
+use crate::control::RunControl;
+use crate::edge::{Delivery, Edge, EdgeClosed, EdgeSettings};
+use crate::message::{AnyMessage, Message, MessageType, Stamped};
+use crate::metrics::StageMetrics;
+
+/// When a stage wants its next [`Stage::on_tick`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NextTick {
+    /// As soon as the stage's other messages allow.
+    Now,
+    /// After this long.
+    After(Duration),
+    /// Never again: the stage only reacts to inputs from now on.
+    Never,
+}
+
+/// The behaviour of a pipeline stage. One value per stage instance; the runtime calls it from
+/// one actor, one call at a time.
+///
+/// Every stage gets one tick when the run starts; sources keep ticking by returning
+/// [`NextTick::Now`] or [`NextTick::After`]. Returning an error fails the stage, which stops
+/// the run (see the crate documentation).
+#[async_trait::async_trait]
+pub trait Stage: Send + 'static {
+    /// Called once before any message or tick.
+    async fn on_start(&mut self, _ctx: &mut StageCtx) -> anyhow::Result<()> {
+        Ok(())
+    }
+
+    /// Called at start and then as the previous call asked.
+    async fn on_tick(&mut self, _ctx: &mut StageCtx) -> anyhow::Result<NextTick> {
+        Ok(NextTick::Never)
+    }
+
+    /// Called for each message taken from one of the stage's input edges.
+    async fn on_input(&mut self, _ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
+        anyhow::bail!(
+            "stage has no inputs but got a message on `{}`",
+            input.port()
+        )
+    }
+
+    /// Called once when the stage stops after a drained run.
+    async fn on_stop(&mut self, _ctx: &mut StageCtx) -> anyhow::Result<()> {
+        Ok(())
+    }
+}
+
+/// A message delivered to a stage on one input port.
+pub struct Input {
+    port: Arc<str>,
+    from: Arc<str>,
+    delivery: Delivery,
+}
+
+impl Input {
+    pub(crate) fn new(port: Arc<str>, from: Arc<str>, delivery: Delivery) -> Self {
+        Input {
+            port,
+            from,
+            delivery,
+        }
+    }
+
+    /// Input port the message arrived on.
+    pub fn port(&self) -> &str {
+        &self.port
+    }
+
+    /// Instance that produced it.
+    pub fn from(&self) -> &str {
+        &self.from
+    }
+
+    /// Time the message waited in the edge's queue.
+    pub fn waited(&self) -> Duration {
+        self.delivery.waited()
+    }
+
+    /// The message as a `Stamped<T>`; errors if the port carries another type.
+    pub fn get<T: Message>(&self) -> anyhow::Result<Arc<Stamped<T>>> {
+        let any: AnyMessage = self.delivery.message().clone();
+        any.downcast::<Stamped<T>>().map_err(|_| {
+            anyhow::anyhow!(
+                "input `{}` does not carry {}",
+                self.port,
+                std::any::type_name::<T>()
+            )
+        })
+    }
+}
+
+/// Why a send failed.
+#[derive(Debug, thiserror::Error)]
+pub enum SendError {
+    /// The stage's kind declares no such output.
+    #[error("no output port `{0}`")]
+    UnknownPort(String),
+    /// The value is not of the port's declared type.
+    #[error("output `{port}` carries {expected}, not {got}")]
+    WrongType {
+        /// Port name.
+        port: String,
+        /// Declared type.
+        expected: &'static str,
+        /// Type sent.
+        got: &'static str,
+    },
+    /// A consumer stopped.
+    #[error(transparent)]
+    Closed(#[from] EdgeClosed),
+    /// The message could not be measured/encoded.
+    #[error(transparent)]
+    Codec(#[from] CodecError),
+}
+
+pub(crate) struct OutputPort {
+    pub(crate) name: &'static str,
+    pub(crate) ty: MessageType,
+    pub(crate) edges: Vec<Arc<Edge>>,
+    pub(crate) next_seq: u64,
+}
+
+/// Identity of a stage instance in a run.
+#[derive(Clone, Debug)]
+pub struct InstanceInfo {
+    /// Instance name: the stage's name, or `stage[i]` for replica `i`.
+    pub name: Arc<str>,
+    /// Name of the stage declaration.
+    pub stage: String,
+    /// Stage kind.
+    pub kind: String,
+    /// Node it runs on.
+    pub node: String,
+    /// Replica index, 0 for unreplicated stages.
+    pub replica: usize,
+    /// Replica count of its stage.
+    pub replicas: usize,
+}
+
+/// What a stage uses while it runs: its identity, the clock, and its outputs.
+pub struct StageCtx {
+    pub(crate) info: InstanceInfo,
+    pub(crate) seed: u64,
+    pub(crate) clock: SceneClock,
+    pub(crate) control: Arc<RunControl>,
+    pub(crate) outputs: Vec<OutputPort>,
+    pub(crate) metrics: Arc<StageMetrics>,
+    pub(crate) blocked: Duration,
+}
+
+impl StageCtx {
+    /// Identity of this instance.
+    pub fn info(&self) -> &InstanceInfo {
+        &self.info
+    }
+
+    /// Instance name.
+    pub fn name(&self) -> &str {
+        &self.info.name
+    }
+
+    /// The run's seed, mixed with nothing: combine it with the replica index yourself.
+    pub fn seed(&self) -> u64 {
+        self.seed
+    }
+
+    /// The run-wide scene clock.
+    pub fn clock(&self) -> &SceneClock {
+        &self.clock
+    }
+
+    /// Scene time now, seconds.
+    pub fn scene_time_s(&self) -> f64 {
+        self.clock.scene_time_s()
+    }
+
+    /// True once the run is draining: sources should stop producing.
+    pub fn is_stopping(&self) -> bool {
+        self.control.is_stopping()
+    }
+
+    /// Publishes this stage's own figures into the run's metrics (replaces the last report).
+    pub fn report(&self, value: serde_json::Value) {
+        self.metrics.set_report(value);
+    }
+
+    /// Sends `body`, computed for `scene_time_s`, to every consumer of output `port`. Under
+    /// `block` this waits for room; the wait is not counted as busy time.
+    pub async fn send<T: Message>(
+        &mut self,
+        port: &str,
+        scene_time_s: f64,
+        body: T,
+    ) -> Result<(), SendError> {
+        let out = self
+            .outputs
+            .iter_mut()
+            .find(|p| p.name == port)
+            .ok_or_else(|| SendError::UnknownPort(port.to_string()))?;
+        if out.ty != MessageType::of::<T>() {
+            return Err(SendError::WrongType {
+                port: port.to_string(),
+                expected: out.ty.name(),
+                got: std::any::type_name::<T>(),
+            });
+        }
+        let msg: AnyMessage = Arc::new(Stamped {
+            scene_time_s,
+            produced_unix_ns: now_unix_ns(),
+            seq: out.next_seq,
+            body,
+        });
+        out.next_seq += 1;
+        if out.edges.is_empty() {
+            return Ok(());
+        }
+        let bytes = out.ty.wire_len(&msg)?;
+        let start = Instant::now();
+        for edge in &out.edges {
+            edge.push(msg.clone(), bytes).await?;
+        }
+        self.blocked += start.elapsed();
+        Ok(())
+    }
+}
+
+/// A port of a stage kind.
+#[derive(Clone, Debug)]
+pub struct PortSpec {
+    /// Port name, unique among the kind's inputs (or outputs).
+    pub name: &'static str,
+    /// Message type carried.
+    pub ty: MessageType,
+    /// Default capacity and policy of edges into this port (inputs only).
+    pub default: Option<EdgeSettings>,
+}
+
+/// Everything a stage kind's constructor gets.
+#[derive(Clone, Debug)]
+pub struct StageSetup {
+    /// Identity of the instance being built.
+    pub info: InstanceInfo,
+    /// Scene named by the topology.
+    pub scene: String,
+    /// Run seed.
+    pub seed: u64,
+    /// The stage's `params` table from the topology.
+    pub params: toml::Table,
+}
+
+impl StageSetup {
+    /// Parses the `params` table into the kind's parameter type.
+    pub fn params<P: DeserializeOwned>(&self) -> anyhow::Result<P> {
+        parse_params(&self.params).map_err(|e| anyhow::anyhow!("{}: params: {e}", self.info.name))
+    }
+}
+
+fn parse_params<P: DeserializeOwned>(table: &toml::Table) -> Result<P, String> {
+    toml::Value::Table(table.clone())
+        .try_into()
+        .map_err(|e: toml::de::Error| e.message().to_string())
+}
+
+type Builder = Arc<dyn Fn(&StageSetup) -> anyhow::Result<Box<dyn Stage>> + Send + Sync>;
+type ParamCheck = Arc<dyn Fn(&toml::Table) -> Result<(), String> + Send + Sync>;
+
+/// A kind of stage: its name, the technique it belongs to, its typed ports, how its
+/// parameters are checked and how an instance is built.
+#[derive(Clone)]
+pub struct StageKind {
+    /// Name used by `kind = "..."` in topology files.
+    pub name: String,
+    /// Technique it belongs to (`photons`, `voxels`, `irradiance`, `probe`, ...).
+    pub technique: String,
+    /// One line for `--help` style listings.
+    pub summary: String,
+    /// Input ports.
+    pub inputs: Vec<PortSpec>,
+    /// Output ports.
+    pub outputs: Vec<PortSpec>,
+    check: ParamCheck,
+    build: Builder,
+}
+
+impl fmt::Debug for StageKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("StageKind")
+            .field("name", &self.name)
+            .field("inputs", &self.inputs)
+            .field("outputs", &self.outputs)
+            .finish()
+    }
+}
+
+impl StageKind {
+    /// A kind without ports or parameters; add them with the builder methods.
+    pub fn new(
+        name: &str,
+        technique: &str,
+        summary: &str,
+        build: impl Fn(&StageSetup) -> anyhow::Result<Box<dyn Stage>> + Send + Sync + 'static,
+    ) -> Self {
+        StageKind {
+            name: name.to_string(),
+            technique: technique.to_string(),
+            summary: summary.to_string(),
+            inputs: Vec::new(),
+            outputs: Vec::new(),
+            check: Arc::new(|t| match t.keys().next() {
+                None => Ok(()),
+                Some(k) => Err(format!("unknown parameter `{k}` (this kind takes none)")),
+            }),
+            build: Arc::new(build),
+        }
+    }
+
+    /// Declares an input port carrying `T`, with the default settings of edges into it.
+    pub fn input<T: Message>(mut self, name: &'static str, default: EdgeSettings) -> Self {
+        self.inputs.push(PortSpec {
+            name,
+            ty: MessageType::of::<T>(),
+            default: Some(default),
+        });
+        self
+    }
+
+    /// Declares an output port carrying `T`.
+    pub fn output<T: Message>(mut self, name: &'static str) -> Self {
+        self.outputs.push(PortSpec {
+            name,
+            ty: MessageType::of::<T>(),
+            default: None,
+        });
+        self
+    }
+
+    /// Declares the parameter type: `params` tables are checked by deserializing into `P`
+    /// (use `#[serde(deny_unknown_fields)]` so that misspelt keys are errors).
+    pub fn params<P: DeserializeOwned>(mut self) -> Self {
+        self.check = Arc::new(|t| parse_params::<P>(t).map(|_| ()));
+        self
+    }
+
+    /// Checks a `params` table.
+    pub fn check_params(&self, params: &toml::Table) -> Result<(), String> {
+        (self.check)(params)
+    }
+
+    /// Builds an instance.
+    pub fn build(&self, setup: &StageSetup) -> anyhow::Result<Box<dyn Stage>> {
+        (self.build)(setup)
+    }
+
+    /// Input port by name, or the only input when `name` is `None`.
+    pub fn find_input(&self, name: Option<&str>) -> Result<&PortSpec, String> {
+        find_port(&self.inputs, name, "input")
+    }
+
+    /// Output port by name, or the only output when `name` is `None`.
+    pub fn find_output(&self, name: Option<&str>) -> Result<&PortSpec, String> {
+        find_port(&self.outputs, name, "output")
+    }
+}
+
+fn find_port<'a>(
+    ports: &'a [PortSpec],
+    name: Option<&str>,
+    what: &str,
+) -> Result<&'a PortSpec, String> {
+    let names = || {
+        let v: Vec<_> = ports.iter().map(|p| p.name).collect();
+        if v.is_empty() {
+            "none".to_string()
+        } else {
+            v.join(", ")
+        }
+    };
+    match name {
+        Some(n) => ports
+            .iter()
+            .find(|p| p.name == n)
+            .ok_or_else(|| format!("no {what} port `{n}` (it has: {})", names())),
+        None if ports.len() == 1 => Ok(&ports[0]),
+        None => Err(format!(
+            "name the {what} port as `stage.port` (it has: {})",
+            names()
+        )),
+    }
+}
+
+/// The stage kinds a topology may name.
+#[derive(Clone, Debug, Default)]
+pub struct StageRegistry {
+    kinds: BTreeMap<String, StageKind>,
+}
+
+impl StageRegistry {
+    /// An empty registry.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds a kind; a later kind of the same name replaces the earlier one.
+    pub fn register(&mut self, kind: StageKind) -> &mut Self {
+        self.kinds.insert(kind.name.clone(), kind);
+        self
+    }
+
+    /// Kind by name.
+    pub fn get(&self, name: &str) -> Option<&StageKind> {
+        self.kinds.get(name)
+    }
+
+    /// Every kind, by name.
+    pub fn kinds(&self) -> impl Iterator<Item = &StageKind> {
+        self.kinds.values()
+    }
+}

@@ -1,0 +1,288 @@
+//! Topology files: where each stage instance runs, how edges are set, and what the links
+//! between nodes look like.
+//!
+//! [`Topology::parse`] reads the TOML text (every problem is a [`Diagnostic`] naming file,
+//! line and key); [`Plan::build`] checks it against a [`crate::StageRegistry`] (kinds, ports,
+//! message types, replica wiring) and expands replicas into instances and edges. The format is
+//! documented in the repository README.
+
+mod parse;
+mod plan;
+
+use std::fmt;
+use std::net::SocketAddr;
+use std::ops::Range;
+use std::path::Path;
+
+pub use plan::{EdgePlan, InstancePlan, Plan};
+
+use crate::edge::Policy;
+
+/// One problem found in a topology file.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Diagnostic {
+    /// File name as given.
+    pub file: String,
+    /// 1-based line.
+    pub line: usize,
+    /// 1-based column.
+    pub column: usize,
+    /// Dotted key path, e.g. `stage[1].replicas`.
+    pub key: String,
+    /// What is wrong.
+    pub message: String,
+}
+
+impl fmt::Display for Diagnostic {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{}:{}:{}: `{}`: {}",
+            self.file, self.line, self.column, self.key, self.message
+        )
+    }
+}
+
+/// Every problem found in a topology file.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub struct TopologyErrors(pub Vec<Diagnostic>);
+
+impl fmt::Display for TopologyErrors {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for d in &self.0 {
+            writeln!(f, "{d}")?;
+        }
+        write!(
+            f,
+            "{} problem{} found",
+            self.0.len(),
+            if self.0.len() == 1 { "" } else { "s" }
+        )
+    }
+}
+
+pub(crate) fn unreadable(file: &str, e: std::io::Error) -> TopologyErrors {
+    TopologyErrors(vec![Diagnostic {
+        file: file.to_string(),
+        line: 0,
+        column: 0,
+        key: String::new(),
+        message: format!("cannot read: {e}"),
+    }])
+}
+
+/// Maps byte offsets to lines and columns of one file.
+#[derive(Clone, Debug)]
+pub struct SourceMap {
+    file: String,
+    line_starts: Vec<usize>,
+}
+
+impl SourceMap {
+    fn new(file: &str, text: &str) -> Self {
+        let line_starts = std::iter::once(0)
+            .chain(text.match_indices('\n').map(|(i, _)| i + 1))
+            .collect();
+        SourceMap {
+            file: file.to_string(),
+            line_starts,
+        }
+    }
+
+    /// The file name.
+    pub fn file(&self) -> &str {
+        &self.file
+    }
+
+    /// A diagnostic at byte span `span`.
+    pub fn diag(&self, span: &Range<usize>, key: &str, message: impl Into<String>) -> Diagnostic {
+        let line = self
+            .line_starts
+            .partition_point(|&s| s <= span.start)
+            .max(1);
+        Diagnostic {
+            file: self.file.clone(),
+            line,
+            column: span.start - self.line_starts[line - 1] + 1,
+            key: key.to_string(),
+            message: message.into(),
+        }
+    }
+}
+
+/// A node: one process of the cluster with one UDP address.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NodeDecl {
+    /// Unique node name.
+    pub name: String,
+    /// UDP address of the node's transport.
+    pub address: SocketAddr,
+    /// Where it is declared.
+    pub span: Range<usize>,
+}
+
+/// A stage declaration (expanded into `replicas` instances).
+#[derive(Clone, Debug, PartialEq)]
+pub struct StageDecl {
+    /// Unique stage name.
+    pub name: String,
+    /// Stage kind, looked up in the registry.
+    pub kind: String,
+    /// Node of each replica (length = replicas).
+    pub nodes: Vec<String>,
+    /// Kind-specific parameters.
+    pub params: toml::Table,
+    /// Where it is declared.
+    pub span: Range<usize>,
+    /// Path of this declaration in the file, e.g. `stage[2]`.
+    pub key: String,
+}
+
+impl StageDecl {
+    /// Number of instances.
+    pub fn replicas(&self) -> usize {
+        self.nodes.len()
+    }
+}
+
+/// One end of an edge: `stage` or `stage.port`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PortRef {
+    /// Stage name.
+    pub stage: String,
+    /// Port name; `None` means the stage's only port on that side.
+    pub port: Option<String>,
+}
+
+impl fmt::Display for PortRef {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match &self.port {
+            Some(p) => write!(f, "{}.{p}", self.stage),
+            None => f.write_str(&self.stage),
+        }
+    }
+}
+
+/// An edge declaration between two stages' ports.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EdgeDecl {
+    /// Producer side.
+    pub from: PortRef,
+    /// Consumer side.
+    pub to: PortRef,
+    /// Capacity, if set here.
+    pub capacity: Option<usize>,
+    /// Policy, if set here.
+    pub policy: Option<Policy>,
+    /// Where it is declared.
+    pub span: Range<usize>,
+    /// Path in the file, e.g. `edge[0]`.
+    pub key: String,
+}
+
+/// How one direction of a link between two nodes behaves (used by the transport's emulator).
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct LinkProfile {
+    /// One-way latency, milliseconds.
+    pub latency_ms: f64,
+    /// Jitter (standard deviation added to latency), milliseconds.
+    pub jitter_ms: f64,
+    /// Bandwidth cap in megabits per second; `None` is uncapped.
+    pub bandwidth_mbps: Option<f64>,
+    /// Packet loss probability in [0, 1].
+    pub loss: f64,
+    /// Packet duplication probability in [0, 1].
+    pub duplicate: f64,
+    /// Probability in [0, 1] that a packet is held back and delivered out of order.
+    pub reorder: f64,
+}
+
+/// A link profile from one node to another.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinkDecl {
+    /// Sending node.
+    pub from: String,
+    /// Receiving node.
+    pub to: String,
+    /// Its behaviour.
+    pub profile: LinkProfile,
+    /// Where it is declared.
+    pub span: Range<usize>,
+}
+
+/// Defaults for edges that set no capacity or policy (over the ports' own defaults).
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct EdgeDefaults {
+    /// Default capacity.
+    pub capacity: Option<usize>,
+    /// Default policy.
+    pub policy: Option<Policy>,
+}
+
+/// A parsed topology file.
+#[derive(Clone, Debug)]
+pub struct Topology {
+    /// Line/column lookup for diagnostics.
+    pub source: SourceMap,
+    /// Techniques the file runs.
+    pub techniques: Vec<String>,
+    /// Where the techniques are named.
+    pub techniques_span: Range<usize>,
+    /// Scene name or path (`cornell`, `city:N`, a glTF file).
+    pub scene: String,
+    /// Run seed.
+    pub seed: u64,
+    /// How long `run` lasts by default, seconds; `None` runs until stopped or finished.
+    pub duration_s: Option<f64>,
+    /// Scene time at the start of the run, seconds.
+    pub scene_start_s: f64,
+    /// Scene seconds per wall second.
+    pub time_scale: f64,
+    /// Edge defaults.
+    pub defaults: EdgeDefaults,
+    /// Nodes.
+    pub nodes: Vec<NodeDecl>,
+    /// Stages.
+    pub stages: Vec<StageDecl>,
+    /// Edges.
+    pub edges: Vec<EdgeDecl>,
+    /// Link profiles, one per direction.
+    pub links: Vec<LinkDecl>,
+}
+
+impl Topology {
+    /// Parses topology text; `file` names it in diagnostics. All problems are reported.
+    pub fn parse(file: &str, text: &str) -> Result<Topology, TopologyErrors> {
+        let (topology, diags) = parse::parse(file, text);
+        if diags.is_empty() {
+            Ok(topology)
+        } else {
+            Err(TopologyErrors(diags))
+        }
+    }
+
+    /// Reads and parses a topology file.
+    pub fn load(path: &Path) -> Result<Topology, TopologyErrors> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|e| unreadable(&file, e))?;
+        Self::parse(&file, &text)
+    }
+
+    /// Node by name.
+    pub fn node(&self, name: &str) -> Option<&NodeDecl> {
+        self.nodes.iter().find(|n| n.name == name)
+    }
+
+    /// Stage by name.
+    pub fn stage(&self, name: &str) -> Option<&StageDecl> {
+        self.stages.iter().find(|s| s.name == name)
+    }
+
+    /// Link profile from `from` to `to`, if one is declared.
+    pub fn link(&self, from: &str, to: &str) -> Option<&LinkProfile> {
+        self.links
+            .iter()
+            .find(|l| l.from == from && l.to == to)
+            .map(|l| &l.profile)
+    }
+}

@@ -1,0 +1,745 @@
+//! TOML text → [`Topology`], collecting every problem instead of stopping at the first.
+//!
+//! The walker reads `toml`'s spanned document (`DeTable`), so every key and value keeps its
+//! byte span and each diagnostic names its line. Keys not read by the walker are reported as
+//! unknown. Checks that need only the file (names, addresses, numbers, references between
+//! nodes, stages and links) live here; checks against stage kinds live in `plan`.
+
+use std::collections::HashSet;
+use std::net::SocketAddr;
+use std::ops::Range;
+
+use toml::Spanned;
+use toml::de::{DeTable, DeValue};
+
+use super::{
+    Diagnostic, EdgeDecl, EdgeDefaults, LinkDecl, LinkProfile, NodeDecl, PortRef, SourceMap,
+    StageDecl, Topology,
+};
+use crate::edge::Policy;
+
+type Value<'i> = Spanned<DeValue<'i>>;
+
+struct Walker {
+    map: SourceMap,
+    diags: Vec<Diagnostic>,
+}
+
+impl Walker {
+    fn err(&mut self, span: &Range<usize>, key: &str, message: impl Into<String>) {
+        let d = self.map.diag(span, key, message);
+        self.diags.push(d);
+    }
+}
+
+/// A table being read: remembers which keys were used so the rest can be reported.
+struct Tbl<'t, 'i> {
+    table: &'t DeTable<'i>,
+    span: Range<usize>,
+    path: String,
+    used: HashSet<&'t str>,
+}
+
+impl<'t, 'i> Tbl<'t, 'i> {
+    fn new(table: &'t DeTable<'i>, span: Range<usize>, path: String) -> Self {
+        Tbl {
+            table,
+            span,
+            path,
+            used: HashSet::new(),
+        }
+    }
+
+    fn key(&self, k: &str) -> String {
+        if self.path.is_empty() {
+            k.to_string()
+        } else {
+            format!("{}.{k}", self.path)
+        }
+    }
+
+    fn get(&mut self, k: &'t str) -> Option<&'t Value<'i>> {
+        self.used.insert(k);
+        self.table.get(k)
+    }
+
+    fn finish(&self, w: &mut Walker, allowed: &[&str]) {
+        for (k, _) in self.table.iter() {
+            if !self.used.contains(k.get_ref().as_ref()) {
+                let key = self.key(k.get_ref());
+                w.err(
+                    &k.span(),
+                    &key,
+                    format!("unknown key (expected one of: {})", allowed.join(", ")),
+                );
+            }
+        }
+    }
+
+    fn missing(&self, w: &mut Walker, k: &str) {
+        let key = self.key(k);
+        w.err(&self.span, &key, "missing required key");
+    }
+
+    fn string(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<String>> {
+        let v = self.get(k)?;
+        match v.get_ref() {
+            DeValue::String(s) => Some(Spanned::new(v.span(), s.to_string())),
+            other => {
+                w.err(
+                    &v.span(),
+                    &self.key(k),
+                    format!("expected a string, found {}", kind(other)),
+                );
+                None
+            }
+        }
+    }
+
+    fn req_string(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<String>> {
+        if self.table.get(k).is_none() {
+            self.missing(w, k);
+        }
+        self.string(w, k)
+    }
+
+    fn float(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<f64>> {
+        let v = self.get(k)?;
+        let parsed = match v.get_ref() {
+            DeValue::Float(f) => f.as_str().parse::<f64>().ok(),
+            DeValue::Integer(i) => i64::from_str_radix(i.as_str(), i.radix())
+                .ok()
+                .map(|i| i as f64),
+            other => {
+                w.err(
+                    &v.span(),
+                    &self.key(k),
+                    format!("expected a number, found {}", kind(other)),
+                );
+                return None;
+            }
+        };
+        match parsed {
+            Some(f) if f.is_finite() => Some(Spanned::new(v.span(), f)),
+            _ => {
+                w.err(&v.span(), &self.key(k), "expected a finite number");
+                None
+            }
+        }
+    }
+
+    fn uint(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<u64>> {
+        let v = self.get(k)?;
+        match v.get_ref() {
+            DeValue::Integer(i) => match u64::from_str_radix(i.as_str(), i.radix()) {
+                Ok(n) => Some(Spanned::new(v.span(), n)),
+                Err(_) => {
+                    w.err(
+                        &v.span(),
+                        &self.key(k),
+                        format!("expected a non-negative integer, found {i}"),
+                    );
+                    None
+                }
+            },
+            other => {
+                w.err(
+                    &v.span(),
+                    &self.key(k),
+                    format!("expected an integer, found {}", kind(other)),
+                );
+                None
+            }
+        }
+    }
+
+    fn strings(&mut self, w: &mut Walker, k: &'t str) -> Option<Vec<Spanned<String>>> {
+        let v = self.get(k)?;
+        let DeValue::Array(items) = v.get_ref() else {
+            w.err(
+                &v.span(),
+                &self.key(k),
+                format!("expected an array of strings, found {}", kind(v.get_ref())),
+            );
+            return None;
+        };
+        let mut out = Vec::new();
+        for (i, item) in items.iter().enumerate() {
+            match item.get_ref() {
+                DeValue::String(s) => out.push(Spanned::new(item.span(), s.to_string())),
+                other => w.err(
+                    &item.span(),
+                    &format!("{}[{i}]", self.key(k)),
+                    format!("expected a string, found {}", kind(other)),
+                ),
+            }
+        }
+        Some(out)
+    }
+
+    /// An array of tables (`[[k]]`), as (index, table) pairs.
+    fn tables(&mut self, w: &mut Walker, k: &'t str) -> Vec<(Tbl<'t, 'i>, Range<usize>)> {
+        let Some(v) = self.get(k) else {
+            return Vec::new();
+        };
+        let DeValue::Array(items) = v.get_ref() else {
+            w.err(
+                &v.span(),
+                &self.key(k),
+                format!(
+                    "expected an array of tables (write `[[{k}]]`), found {}",
+                    kind(v.get_ref())
+                ),
+            );
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        for (i, item) in items.iter().enumerate() {
+            let path = format!("{}[{i}]", self.key(k));
+            match item.get_ref() {
+                DeValue::Table(t) => out.push((Tbl::new(t, item.span(), path), item.span())),
+                other => w.err(
+                    &item.span(),
+                    &path,
+                    format!("expected a table, found {}", kind(other)),
+                ),
+            }
+        }
+        out
+    }
+
+    fn table(&mut self, w: &mut Walker, k: &'t str) -> Option<Tbl<'t, 'i>> {
+        let v = self.get(k)?;
+        match v.get_ref() {
+            DeValue::Table(t) => Some(Tbl::new(t, v.span(), self.key(k))),
+            other => {
+                w.err(
+                    &v.span(),
+                    &self.key(k),
+                    format!("expected a table, found {}", kind(other)),
+                );
+                None
+            }
+        }
+    }
+}
+
+fn kind(v: &DeValue<'_>) -> &'static str {
+    match v {
+        DeValue::String(_) => "a string",
+        DeValue::Integer(_) => "an integer",
+        DeValue::Float(_) => "a float",
+        DeValue::Boolean(_) => "a boolean",
+        DeValue::Datetime(_) => "a datetime",
+        DeValue::Array(_) => "an array",
+        DeValue::Table(_) => "a table",
+    }
+}
+
+/// Converts a spanned TOML value into a plain `toml::Value` (for stage parameters).
+fn plain(v: &DeValue<'_>) -> Option<toml::Value> {
+    Some(match v {
+        DeValue::String(s) => toml::Value::String(s.to_string()),
+        DeValue::Integer(i) => {
+            toml::Value::Integer(i64::from_str_radix(i.as_str(), i.radix()).ok()?)
+        }
+        DeValue::Float(f) => toml::Value::Float(f.as_str().parse().ok()?),
+        DeValue::Boolean(b) => toml::Value::Boolean(*b),
+        DeValue::Datetime(d) => toml::Value::Datetime(*d),
+        DeValue::Array(a) => toml::Value::Array(
+            a.iter()
+                .map(|x| plain(x.get_ref()))
+                .collect::<Option<_>>()?,
+        ),
+        DeValue::Table(t) => toml::Value::Table(
+            t.iter()
+                .map(|(k, v)| Some((k.get_ref().to_string(), plain(v.get_ref())?)))
+                .collect::<Option<_>>()?,
+        ),
+    })
+}
+
+fn valid_name(s: &str) -> bool {
+    !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+fn check_name(w: &mut Walker, name: &Spanned<String>, key: &str) {
+    if !valid_name(name.get_ref()) {
+        w.err(
+            &name.span(),
+            key,
+            format!(
+                "`{}` is not a valid name (use letters, digits, `_` and `-`)",
+                name.get_ref()
+            ),
+        );
+    }
+}
+
+const TOP_KEYS: &[&str] = &[
+    "techniques",
+    "technique",
+    "scene",
+    "seed",
+    "duration_s",
+    "scene_start_s",
+    "time_scale",
+    "defaults",
+    "node",
+    "stage",
+    "edge",
+    "link",
+];
+
+pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
+    let mut w = Walker {
+        map: SourceMap::new(file, text),
+        diags: Vec::new(),
+    };
+    let mut topo = Topology {
+        source: w.map.clone(),
+        techniques: Vec::new(),
+        techniques_span: 0..0,
+        scene: "cornell".into(),
+        seed: 0,
+        duration_s: None,
+        scene_start_s: 0.0,
+        time_scale: 1.0,
+        defaults: EdgeDefaults::default(),
+        nodes: Vec::new(),
+        stages: Vec::new(),
+        edges: Vec::new(),
+        links: Vec::new(),
+    };
+    let (root, errors) = DeTable::parse_recoverable(text);
+    if !errors.is_empty() {
+        for e in errors {
+            let span = e.span().unwrap_or(0..0);
+            let msg = e.message().trim().to_string();
+            w.err(&span, "<syntax>", format!("invalid TOML: {msg}"));
+        }
+        return (topo, w.diags);
+    }
+    let mut top = Tbl::new(root.get_ref(), root.span(), String::new());
+
+    // Techniques and scene.
+    match (
+        top.table.get("techniques").is_some(),
+        top.table.get("technique").is_some(),
+    ) {
+        (true, true) => {
+            let span = top
+                .table
+                .get("technique")
+                .map(|v| v.span())
+                .unwrap_or_default();
+            w.err(
+                &span,
+                "technique",
+                "give either `technique` or `techniques`, not both",
+            );
+        }
+        (false, false) => w.err(
+            &(0..0),
+            "techniques",
+            "missing required key (e.g. `techniques = [\"photons\"]`)",
+        ),
+        _ => {}
+    }
+    if let Some(list) = top.strings(&mut w, "techniques") {
+        if list.is_empty() {
+            let span = top
+                .table
+                .get("techniques")
+                .map(|v| v.span())
+                .unwrap_or_default();
+            w.err(&span, "techniques", "names no technique");
+        }
+        topo.techniques_span = top
+            .table
+            .get("techniques")
+            .map(|v| v.span())
+            .unwrap_or_default();
+        topo.techniques = list.into_iter().map(|s| s.into_inner()).collect();
+    }
+    if let Some(t) = top.string(&mut w, "technique") {
+        topo.techniques_span = t.span();
+        topo.techniques = vec![t.into_inner()];
+    }
+    if let Some(s) = top.string(&mut w, "scene") {
+        topo.scene = s.into_inner();
+    }
+    if let Some(s) = top.uint(&mut w, "seed") {
+        topo.seed = s.into_inner();
+    }
+    if let Some(d) = top.float(&mut w, "duration_s") {
+        if *d.get_ref() <= 0.0 {
+            w.err(&d.span(), "duration_s", "must be > 0");
+        }
+        topo.duration_s = Some(d.into_inner());
+    }
+    if let Some(s) = top.float(&mut w, "scene_start_s") {
+        topo.scene_start_s = s.into_inner();
+    }
+    if let Some(s) = top.float(&mut w, "time_scale") {
+        if *s.get_ref() <= 0.0 {
+            w.err(&s.span(), "time_scale", "must be > 0");
+        }
+        topo.time_scale = s.into_inner();
+    }
+    if let Some(mut d) = top.table(&mut w, "defaults") {
+        topo.defaults = EdgeDefaults {
+            capacity: capacity(&mut w, &mut d),
+            policy: policy(&mut w, &mut d),
+        };
+        d.finish(&mut w, &["capacity", "policy"]);
+    }
+
+    parse_nodes(&mut w, &mut top, &mut topo);
+    parse_stages(&mut w, &mut top, &mut topo);
+    parse_edges(&mut w, &mut top, &mut topo);
+    parse_links(&mut w, &mut top, &mut topo);
+    top.finish(&mut w, TOP_KEYS);
+    w.diags.sort_by_key(|d| (d.line, d.column));
+    (topo, w.diags)
+}
+
+fn capacity(w: &mut Walker, t: &mut Tbl<'_, '_>) -> Option<usize> {
+    let c = t.uint(w, "capacity")?;
+    if *c.get_ref() == 0 {
+        w.err(&c.span(), &t.key("capacity"), "must be at least 1");
+        return None;
+    }
+    Some(*c.get_ref() as usize)
+}
+
+fn policy(w: &mut Walker, t: &mut Tbl<'_, '_>) -> Option<Policy> {
+    let p = t.string(w, "policy")?;
+    match p.get_ref().parse() {
+        Ok(p) => Some(p),
+        Err(e) => {
+            w.err(&p.span(), &t.key("policy"), e);
+            None
+        }
+    }
+}
+
+fn parse_nodes(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
+    let mut addresses: Vec<(SocketAddr, String)> = Vec::new();
+    for (mut t, span) in top.tables(w, "node") {
+        let name = t.req_string(w, "name");
+        let address = t.req_string(w, "address");
+        t.finish(w, &["name", "address"]);
+        let Some(name) = name else { continue };
+        check_name(w, &name, &t.key("name"));
+        if topo.node(name.get_ref()).is_some() {
+            w.err(
+                &name.span(),
+                &t.key("name"),
+                format!("duplicate node name `{}`", name.get_ref()),
+            );
+            continue;
+        }
+        let Some(address) = address else { continue };
+        let Ok(addr) = address.get_ref().parse::<SocketAddr>() else {
+            w.err(
+                &address.span(),
+                &t.key("address"),
+                format!(
+                    "`{}` is not an IP:port address (e.g. 127.0.0.1:7100)",
+                    address.get_ref()
+                ),
+            );
+            continue;
+        };
+        if addr.port() != 0 {
+            if let Some((_, other)) = addresses.iter().find(|(a, _)| *a == addr) {
+                w.err(
+                    &address.span(),
+                    &t.key("address"),
+                    format!("address {addr} is already used by node `{other}`"),
+                );
+            }
+            addresses.push((addr, name.get_ref().clone()));
+        }
+        topo.nodes.push(NodeDecl {
+            name: name.into_inner(),
+            address: addr,
+            span,
+        });
+    }
+}
+
+fn parse_stages(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
+    for (mut t, span) in top.tables(w, "stage") {
+        let name = t.req_string(w, "name");
+        let kind_name = t.req_string(w, "kind");
+        let node = t.string(w, "node");
+        let nodes = t.strings(w, "nodes");
+        let replicas = t.uint(w, "replicas");
+        let params = t.get("params");
+        t.finish(w, &["name", "kind", "node", "nodes", "replicas", "params"]);
+        let (Some(name), Some(kind_name)) = (name, kind_name) else {
+            continue;
+        };
+        check_name(w, &name, &t.key("name"));
+        if topo.stage(name.get_ref()).is_some() {
+            w.err(
+                &name.span(),
+                &t.key("name"),
+                format!("duplicate stage name `{}`", name.get_ref()),
+            );
+            continue;
+        }
+        if let Some(r) = &replicas
+            && *r.get_ref() == 0
+        {
+            w.err(
+                &r.span(),
+                &t.key("replicas"),
+                "replica count must be at least 1",
+            );
+            continue;
+        }
+        let placed: Vec<Spanned<String>> = match (node, nodes) {
+            (Some(_), Some(_)) => {
+                w.err(
+                    &span,
+                    &t.key("node"),
+                    "give either `node` or `nodes`, not both",
+                );
+                continue;
+            }
+            (None, None) => {
+                w.err(
+                    &span,
+                    &t.key("node"),
+                    format!(
+                        "stage `{}` is not placed: give `node = \"...\"` or `nodes = [...]`",
+                        name.get_ref()
+                    ),
+                );
+                continue;
+            }
+            (Some(n), None) => {
+                let count = replicas.as_ref().map_or(1, |r| *r.get_ref() as usize);
+                vec![n; count]
+            }
+            (None, Some(list)) => {
+                if list.is_empty() {
+                    w.err(&span, &t.key("nodes"), "lists no node");
+                    continue;
+                }
+                if let Some(r) = &replicas
+                    && *r.get_ref() as usize != list.len()
+                {
+                    w.err(
+                        &r.span(),
+                        &t.key("replicas"),
+                        format!(
+                            "replicas = {} but `nodes` lists {} nodes (one per replica)",
+                            r.get_ref(),
+                            list.len()
+                        ),
+                    );
+                    continue;
+                }
+                list
+            }
+        };
+        let mut ok = true;
+        for n in &placed {
+            if topo.node(n.get_ref()).is_none() {
+                w.err(
+                    &n.span(),
+                    &t.key("node"),
+                    format!("unknown node `{}`", n.get_ref()),
+                );
+                ok = false;
+                break;
+            }
+        }
+        let params = match params {
+            None => toml::Table::new(),
+            Some(v) => match plain(v.get_ref()) {
+                Some(toml::Value::Table(p)) => p,
+                _ => {
+                    w.err(
+                        &v.span(),
+                        &t.key("params"),
+                        format!("expected a table, found {}", kind(v.get_ref())),
+                    );
+                    ok = false;
+                    toml::Table::new()
+                }
+            },
+        };
+        if ok {
+            topo.stages.push(StageDecl {
+                name: name.into_inner(),
+                kind: kind_name.into_inner(),
+                nodes: placed.into_iter().map(|n| n.into_inner()).collect(),
+                params,
+                span,
+                key: t.path.clone(),
+            });
+        }
+    }
+}
+
+fn port_ref(
+    w: &mut Walker,
+    t: &mut Tbl<'_, '_>,
+    k: &'static str,
+    topo: &Topology,
+) -> Option<PortRef> {
+    let s = t.req_string(w, k)?;
+    let (stage, port) = match s.get_ref().split_once('.') {
+        Some((st, p)) => (st.to_string(), Some(p.to_string())),
+        None => (s.get_ref().clone(), None),
+    };
+    if stage.is_empty() || port.as_deref() == Some("") {
+        w.err(
+            &s.span(),
+            &t.key(k),
+            format!("`{}` is not `stage` or `stage.port`", s.get_ref()),
+        );
+        return None;
+    }
+    if topo.stage(&stage).is_none() {
+        w.err(&s.span(), &t.key(k), format!("unknown stage `{stage}`"));
+        return None;
+    }
+    Some(PortRef { stage, port })
+}
+
+fn parse_edges(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
+    for (mut t, span) in top.tables(w, "edge") {
+        let from = port_ref(w, &mut t, "from", topo);
+        let to = port_ref(w, &mut t, "to", topo);
+        let capacity = capacity(w, &mut t);
+        let policy = policy(w, &mut t);
+        t.finish(w, &["from", "to", "capacity", "policy"]);
+        if let (Some(from), Some(to)) = (from, to) {
+            topo.edges.push(EdgeDecl {
+                from,
+                to,
+                capacity,
+                policy,
+                span,
+                key: t.path.clone(),
+            });
+        }
+    }
+}
+
+fn parse_links(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
+    for (mut t, span) in top.tables(w, "link") {
+        let between = t.strings(w, "between");
+        let from = t.string(w, "from");
+        let to = t.string(w, "to");
+        let mut profile = LinkProfile::default();
+        let mut ok = true;
+        for (k, slot, max) in [
+            ("latency_ms", &mut profile.latency_ms, f64::INFINITY),
+            ("jitter_ms", &mut profile.jitter_ms, f64::INFINITY),
+            ("loss", &mut profile.loss, 1.0),
+            ("duplicate", &mut profile.duplicate, 1.0),
+            ("reorder", &mut profile.reorder, 1.0),
+        ] {
+            if let Some(v) = t.float(w, k) {
+                if *v.get_ref() < 0.0 || *v.get_ref() > max {
+                    let range = if max.is_finite() { "in [0, 1]" } else { ">= 0" };
+                    w.err(
+                        &v.span(),
+                        &t.key(k),
+                        format!("must be {range}, got {}", v.get_ref()),
+                    );
+                    ok = false;
+                }
+                *slot = v.into_inner();
+            }
+        }
+        if let Some(b) = t.float(w, "bandwidth_mbps") {
+            if *b.get_ref() <= 0.0 {
+                w.err(
+                    &b.span(),
+                    &t.key("bandwidth_mbps"),
+                    "must be > 0 (leave it out for no cap)",
+                );
+                ok = false;
+            }
+            profile.bandwidth_mbps = Some(b.into_inner());
+        }
+        t.finish(
+            w,
+            &[
+                "between",
+                "from",
+                "to",
+                "latency_ms",
+                "jitter_ms",
+                "bandwidth_mbps",
+                "loss",
+                "duplicate",
+                "reorder",
+            ],
+        );
+        let pairs: Vec<(Spanned<String>, Spanned<String>)> = match (between, from, to) {
+            (Some(b), None, None) if b.len() == 2 => {
+                vec![(b[0].clone(), b[1].clone()), (b[1].clone(), b[0].clone())]
+            }
+            (Some(_), None, None) => {
+                w.err(&span, &t.key("between"), "must name exactly two nodes");
+                continue;
+            }
+            (None, Some(f), Some(to)) => vec![(f, to)],
+            _ => {
+                w.err(
+                    &span,
+                    &t.key("between"),
+                    "give `between = [a, b]` (both directions) or `from` and `to` (one direction)",
+                );
+                continue;
+            }
+        };
+        for (f, to) in pairs {
+            for n in [&f, &to] {
+                if topo.node(n.get_ref()).is_none() {
+                    w.err(
+                        &n.span(),
+                        &t.path,
+                        format!("unknown node `{}`", n.get_ref()),
+                    );
+                    ok = false;
+                }
+            }
+            if f.get_ref() == to.get_ref() {
+                w.err(&f.span(), &t.path, "a link joins two different nodes");
+                ok = false;
+            }
+            if ok && topo.link(f.get_ref(), to.get_ref()).is_some() {
+                w.err(
+                    &span,
+                    &t.path,
+                    format!(
+                        "a link from `{}` to `{}` is already declared",
+                        f.get_ref(),
+                        to.get_ref()
+                    ),
+                );
+                ok = false;
+            }
+            if ok {
+                topo.links.push(LinkDecl {
+                    from: f.into_inner(),
+                    to: to.into_inner(),
+                    profile,
+                    span: span.clone(),
+                });
+            }
+        }
+    }
+}

@@ -1,0 +1,381 @@
+//! [`Topology`] + [`StageRegistry`] → [`Plan`]: stage kinds, ports and message types are
+//! checked, replicas are expanded into instances, and every edge declaration becomes one
+//! edge per pair of joined instances, with its capacity, policy and whether it is cut.
+
+use std::collections::{BTreeMap, HashSet};
+use std::fmt::Write as _;
+use std::path::Path;
+
+use super::{Diagnostic, Topology, TopologyErrors, parse};
+use crate::edge::{EdgeSettings, Policy};
+use crate::stage::StageRegistry;
+
+/// One stage instance (a replica of a stage declaration) placed on a node.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct InstancePlan {
+    /// `stage` or `stage[i]`.
+    pub name: String,
+    /// Stage declaration name.
+    pub stage: String,
+    /// Stage kind.
+    pub kind: String,
+    /// Node it runs on.
+    pub node: String,
+    /// Replica index.
+    pub replica: usize,
+    /// Replica count of the stage.
+    pub replicas: usize,
+}
+
+/// One edge between two instances.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct EdgePlan {
+    /// `producer.port -> consumer.port`.
+    pub name: String,
+    /// Producer instance (index into [`Plan::instances`]).
+    pub from: usize,
+    /// Producer output port.
+    pub from_port: &'static str,
+    /// Consumer instance.
+    pub to: usize,
+    /// Consumer input port.
+    pub to_port: &'static str,
+    /// Capacity and policy.
+    pub settings: EdgeSettings,
+    /// Payload type name.
+    pub ty: &'static str,
+    /// Whether producer and consumer are on different nodes.
+    pub cut: bool,
+}
+
+/// A checked topology, expanded into instances and edges.
+#[derive(Clone, Debug)]
+pub struct Plan {
+    /// The topology it came from.
+    pub topology: Topology,
+    /// Every stage instance.
+    pub instances: Vec<InstancePlan>,
+    /// Every edge.
+    pub edges: Vec<EdgePlan>,
+    /// Things that are allowed but probably unintended (e.g. an unconnected input).
+    pub warnings: Vec<Diagnostic>,
+}
+
+fn instance_name(stage: &str, replica: usize, replicas: usize) -> String {
+    if replicas == 1 {
+        stage.to_string()
+    } else {
+        format!("{stage}[{replica}]")
+    }
+}
+
+impl Plan {
+    /// Reads, parses and plans a topology file, reporting every problem of both phases.
+    pub fn load(path: &Path, registry: &StageRegistry) -> Result<Plan, TopologyErrors> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|e| super::unreadable(&file, e))?;
+        Self::from_str(&file, &text, registry)
+    }
+
+    /// Parses and plans topology text named `file`.
+    pub fn from_str(
+        file: &str,
+        text: &str,
+        registry: &StageRegistry,
+    ) -> Result<Plan, TopologyErrors> {
+        let (topology, mut diags) = parse::parse(file, text);
+        if diags.iter().any(|d| d.key == "<syntax>") {
+            return Err(TopologyErrors(diags));
+        }
+        match Self::build(topology, registry) {
+            Ok(plan) if diags.is_empty() => Ok(plan),
+            Ok(_) => Err(TopologyErrors(diags)),
+            Err(TopologyErrors(more)) => {
+                diags.extend(more);
+                diags.sort_by_key(|d| (d.line, d.column));
+                Err(TopologyErrors(diags))
+            }
+        }
+    }
+
+    /// Checks a parsed topology against the stage kinds and expands it.
+    pub fn build(topology: Topology, registry: &StageRegistry) -> Result<Plan, TopologyErrors> {
+        let map = topology.source.clone();
+        let mut errors = Vec::new();
+        let mut warnings = Vec::new();
+        let known_techniques: HashSet<&str> =
+            registry.kinds().map(|k| k.technique.as_str()).collect();
+        for t in &topology.techniques {
+            if !known_techniques.contains(t.as_str()) {
+                let mut list: Vec<_> = known_techniques.iter().copied().collect();
+                list.sort();
+                errors.push(map.diag(
+                    &topology.techniques_span,
+                    "techniques",
+                    format!("unknown technique `{t}` (known: {})", list.join(", ")),
+                ));
+            }
+        }
+
+        // Instances, with kind and parameter checks.
+        let mut instances = Vec::new();
+        let mut first_instance = BTreeMap::new();
+        for s in &topology.stages {
+            let Some(kind) = registry.get(&s.kind) else {
+                let list: Vec<_> = registry.kinds().map(|k| k.name.as_str()).collect();
+                errors.push(map.diag(
+                    &s.span,
+                    &format!("{}.kind", s.key),
+                    format!(
+                        "unknown stage kind `{}` (known: {})",
+                        s.kind,
+                        list.join(", ")
+                    ),
+                ));
+                continue;
+            };
+            if !topology.techniques.contains(&kind.technique) {
+                errors.push(map.diag(
+                    &s.span,
+                    &format!("{}.kind", s.key),
+                    format!(
+                        "kind `{}` belongs to technique `{}`, which `techniques` does not list",
+                        kind.name, kind.technique
+                    ),
+                ));
+            }
+            if let Err(e) = kind.check_params(&s.params) {
+                errors.push(map.diag(&s.span, &format!("{}.params", s.key), e));
+            }
+            first_instance.insert(s.name.clone(), instances.len());
+            for (replica, node) in s.nodes.iter().enumerate() {
+                instances.push(InstancePlan {
+                    name: instance_name(&s.name, replica, s.replicas()),
+                    stage: s.name.clone(),
+                    kind: s.kind.clone(),
+                    node: node.clone(),
+                    replica,
+                    replicas: s.replicas(),
+                });
+            }
+        }
+
+        // Edges.
+        let mut edges: Vec<EdgePlan> = Vec::new();
+        let mut connected: HashSet<(String, &'static str)> = HashSet::new();
+        for e in &topology.edges {
+            let (Some(from_stage), Some(to_stage)) =
+                (topology.stage(&e.from.stage), topology.stage(&e.to.stage))
+            else {
+                continue;
+            };
+            let (Some(from_kind), Some(to_kind)) =
+                (registry.get(&from_stage.kind), registry.get(&to_stage.kind))
+            else {
+                continue; // unknown kind already reported
+            };
+            let out = from_kind.find_output(e.from.port.as_deref());
+            let inp = to_kind.find_input(e.to.port.as_deref());
+            let (out, inp) = match (out, inp) {
+                (Ok(o), Ok(i)) => (o, i),
+                (o, i) => {
+                    if let Err(m) = o {
+                        errors.push(map.diag(
+                            &e.span,
+                            &format!("{}.from", e.key),
+                            format!("{}: {m}", e.from),
+                        ));
+                    }
+                    if let Err(m) = i {
+                        errors.push(map.diag(
+                            &e.span,
+                            &format!("{}.to", e.key),
+                            format!("{}: {m}", e.to),
+                        ));
+                    }
+                    continue;
+                }
+            };
+            if out.ty != inp.ty {
+                errors.push(map.diag(
+                    &e.span,
+                    &e.key,
+                    format!(
+                        "{} sends {} but {} takes {}",
+                        e.from,
+                        out.ty.name(),
+                        e.to,
+                        inp.ty.name()
+                    ),
+                ));
+                continue;
+            }
+            let (r_from, r_to) = (from_stage.replicas(), to_stage.replicas());
+            let pairs: Vec<(usize, usize)> = if r_from == 1 {
+                (0..r_to).map(|j| (0, j)).collect()
+            } else if r_to == 1 {
+                (0..r_from).map(|i| (i, 0)).collect()
+            } else if r_from == r_to {
+                (0..r_from).map(|i| (i, i)).collect()
+            } else {
+                errors.push(map.diag(
+                    &e.span,
+                    &e.key,
+                    format!(
+                        "cannot join {r_from} replicas of `{}` to {r_to} replicas of `{}`: use equal counts (one to one), or 1 on one side (fan-out / fan-in)",
+                        from_stage.name, to_stage.name
+                    ),
+                ));
+                continue;
+            };
+            let default = inp.default.unwrap_or(EdgeSettings {
+                capacity: 4,
+                policy: Policy::Block,
+            });
+            let settings = EdgeSettings {
+                capacity: e
+                    .capacity
+                    .or(topology.defaults.capacity)
+                    .unwrap_or(default.capacity),
+                policy: e
+                    .policy
+                    .or(topology.defaults.policy)
+                    .unwrap_or(default.policy),
+            };
+            for (i, j) in pairs {
+                let from = first_instance[&from_stage.name] + i;
+                let to = first_instance[&to_stage.name] + j;
+                if edges.iter().any(|x| {
+                    x.from == from && x.from_port == out.name && x.to == to && x.to_port == inp.name
+                }) {
+                    errors.push(map.diag(
+                        &e.span,
+                        &e.key,
+                        format!("duplicate edge {} -> {}", e.from, e.to),
+                    ));
+                    break;
+                }
+                connected.insert((instances[to].name.clone(), inp.name));
+                edges.push(EdgePlan {
+                    name: format!(
+                        "{}.{} -> {}.{}",
+                        instances[from].name, out.name, instances[to].name, inp.name
+                    ),
+                    from,
+                    from_port: out.name,
+                    to,
+                    to_port: inp.name,
+                    settings,
+                    ty: out.ty.name(),
+                    cut: instances[from].node != instances[to].node,
+                });
+            }
+        }
+        for s in &topology.stages {
+            let Some(kind) = registry.get(&s.kind) else {
+                continue;
+            };
+            for port in &kind.inputs {
+                let name = instance_name(&s.name, 0, s.replicas());
+                if !connected.contains(&(name, port.name)) {
+                    warnings.push(map.diag(
+                        &s.span,
+                        &s.key,
+                        format!(
+                            "input `{}.{}` has no edge: it will receive nothing",
+                            s.name, port.name
+                        ),
+                    ));
+                }
+            }
+        }
+        if errors.is_empty() {
+            Ok(Plan {
+                topology,
+                instances,
+                edges,
+                warnings,
+            })
+        } else {
+            errors.sort_by_key(|d| (d.line, d.column));
+            Err(TopologyErrors(errors))
+        }
+    }
+
+    /// Node names in declaration order.
+    pub fn nodes(&self) -> impl Iterator<Item = &str> {
+        self.topology.nodes.iter().map(|n| n.name.as_str())
+    }
+
+    /// Instance index by name.
+    pub fn instance(&self, name: &str) -> Option<usize> {
+        self.instances.iter().position(|i| i.name == name)
+    }
+
+    /// A human-readable summary: stages per node, edges, and which edges are cut.
+    pub fn summary(&self) -> String {
+        let t = &self.topology;
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "{}: techniques {}, scene `{}`, seed {}",
+            t.source.file(),
+            t.techniques.join(", "),
+            t.scene,
+            t.seed
+        );
+        for node in &t.nodes {
+            let here: Vec<_> = self
+                .instances
+                .iter()
+                .filter(|i| i.node == node.name)
+                .map(|i| format!("{} ({})", i.name, i.kind))
+                .collect();
+            let _ = writeln!(
+                s,
+                "node {} @ {}: {}",
+                node.name,
+                node.address,
+                if here.is_empty() {
+                    "no stages".to_string()
+                } else {
+                    here.join(", ")
+                }
+            );
+        }
+        let _ = writeln!(s, "edges:");
+        for e in &self.edges {
+            let cut = if e.cut {
+                let (a, b) = (&self.instances[e.from].node, &self.instances[e.to].node);
+                match t.link(a, b) {
+                    Some(p) => format!(
+                        "  CUT {a} -> {b} (link {} ms ± {} ms, {}, loss {})",
+                        p.latency_ms,
+                        p.jitter_ms,
+                        p.bandwidth_mbps
+                            .map_or("uncapped".to_string(), |b| format!("{b} Mbps")),
+                        p.loss
+                    ),
+                    None => format!("  CUT {a} -> {b} (no link profile: plain loopback/network)"),
+                }
+            } else {
+                String::new()
+            };
+            let _ = writeln!(
+                s,
+                "  {} [{} {}]{}",
+                e.name, e.settings.policy, e.settings.capacity, cut
+            );
+        }
+        let cut = self.edges.iter().filter(|e| e.cut).count();
+        let _ = write!(
+            s,
+            "{} instances on {} nodes, {} edges, {} cut",
+            self.instances.len(),
+            t.nodes.len(),
+            self.edges.len(),
+            cut
+        );
+        s
+    }
+}

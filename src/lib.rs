@@ -1,0 +1,19 @@
+//! CloudLight-rs: indirect lighting computed on cloud nodes and streamed to clients.
+//!
+//! This library re-exports the workspace crates; the `cloudlight` binary is the command-line
+//! face. See the README for the commands and the topology format.
+
+pub use cloudlight_actors as actors;
+pub use cloudlight_render as render;
+pub use cloudlight_runtime as runtime;
+pub use cloudlight_scenes as scenes;
+pub use cloudlight_transport as transport;
+
+/// The built-in default topology, used by `cloudlight run` without a file.
+///
+/// Until a lighting technique exists it is the probe pipeline on one node; the photon
+/// technique on the Cornell box replaces it when it arrives.
+pub const DEFAULT_TOPOLOGY: &str = include_str!("../examples/topologies/probe-local.toml");
+
+/// File name under which diagnostics name the built-in default topology.
+pub const DEFAULT_TOPOLOGY_NAME: &str = "<built-in default: examples/topologies/probe-local.toml>";

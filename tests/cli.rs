@@ -1,0 +1,183 @@
+//! The command line as a user meets it: validate, run (default and file), node, kinds.
+
+use assert_cmd::Command;
+
+fn cloudlight() -> Command {
+    let mut c = Command::cargo_bin("cloudlight").unwrap();
+    c.env("RUST_LOG", "warn");
+    c
+}
+
+fn example(name: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("examples/topologies")
+        .join(name)
+}
+
+#[test]
+fn validate_prints_the_placement_and_cut_edges() {
+    let out = cloudlight()
+        .arg("validate")
+        .arg(example("probe-cluster.toml"))
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("node cloud @ 127.0.0.1:7200: source (probe_source)"),
+        "{text}"
+    );
+    assert!(text.contains("CUT cloud -> edge"), "{text}");
+    assert!(text.contains("3 cut"), "{text}");
+}
+
+#[test]
+fn validate_reports_errors_with_file_line_and_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        "techniques = [\"probe\"]\nbogus = 1\n[[node]]\nname = \"a\"\naddress = \"x\"\n",
+    )
+    .unwrap();
+    let out = cloudlight().arg("validate").arg(&bad).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("bad.toml:2:1: `bogus`: unknown key"), "{err}");
+    assert!(err.contains("bad.toml:5:11: `node[0].address`"), "{err}");
+    assert!(err.contains("2 problems found"), "{err}");
+}
+
+#[test]
+fn run_without_topology_runs_the_default_and_writes_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = cloudlight()
+        .args(["run", "--duration", "1", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stderr).contains("built-in default"));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("source.out -> relay.in"), "{text}");
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(json["status"], "finished");
+    let sink = json["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["name"] == "sink")
+        .unwrap();
+    assert!(sink["report"]["received"].as_u64().unwrap() > 10, "{sink}");
+    assert_eq!(sink["report"]["corrupt"], 0);
+}
+
+#[test]
+fn a_failing_stage_exits_non_zero_and_names_the_stage() {
+    let dir = tempfile::tempdir().unwrap();
+    let topo = dir.path().join("fail.toml");
+    std::fs::write(
+        &topo,
+        r#"techniques = ["probe"]
+[[node]]
+name = "a"
+address = "127.0.0.1:0"
+[[stage]]
+name = "src"
+kind = "probe_source"
+node = "a"
+params = { rate_hz = 500.0 }
+[[stage]]
+name = "flaky"
+kind = "probe_relay"
+node = "a"
+params = { fail_after = 3 }
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "a"
+[[edge]]
+from = "src"
+to = "flaky"
+[[edge]]
+from = "flaky"
+to = "sink"
+"#,
+    )
+    .unwrap();
+    let out = cloudlight()
+        .arg("run")
+        .arg(&topo)
+        .args(["--duration", "10", "--out"])
+        .arg(dir.path().join("out"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(3));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("stage `flaky` failed"), "{err}");
+    assert!(err.contains("injected failure after 3 messages"), "{err}");
+}
+
+#[test]
+fn node_runs_only_its_stages_and_refuses_cut_edges_until_the_transport_exists() {
+    let out = cloudlight()
+        .args(["node"])
+        .arg(example("probe-cluster.toml"))
+        .args(["--node", "cloud", "--duration", "1"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("crosses between nodes"), "{err}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let out = cloudlight()
+        .args(["node"])
+        .arg(example("probe-local.toml"))
+        .args(["--node", "local", "--duration", "0.5", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(dir.path().join("metrics.json").exists());
+
+    let out = cloudlight()
+        .args(["node"])
+        .arg(example("probe-local.toml"))
+        .args(["--node", "elsewhere"])
+        .output()
+        .unwrap();
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("node `elsewhere` is not in the topology")
+    );
+}
+
+#[test]
+fn kinds_lists_ports_and_types() {
+    let out = cloudlight().arg("kinds").output().unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("probe_relay (technique probe)"), "{text}");
+    assert!(
+        text.contains("in  in           cloudlight_actors::wire::ProbeMsg [default block 8]"),
+        "{text}"
+    );
+}
+
+#[test]
+fn every_command_documents_its_options() {
+    for cmd in ["validate", "run", "node", "kinds"] {
+        let out = cloudlight().args([cmd, "--help"]).output().unwrap();
+        assert!(out.status.success());
+        assert!(String::from_utf8_lossy(&out.stdout).contains("Usage"));
+    }
+}

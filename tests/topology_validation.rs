@@ -1,0 +1,269 @@
+//! Topology files: every malformed file is rejected with every problem named by file, line
+//! and key; valid files expand into the expected instances and edges.
+
+use cloudlight::runtime::{Diagnostic, EdgeSettings, Plan, Policy, StageKind, StageRegistry};
+
+const GOOD_HEAD: &str = r#"techniques = ["probe"]
+[[node]]
+name = "cloud"
+address = "127.0.0.1:7300"
+[[node]]
+name = "client"
+address = "127.0.0.1:7301"
+"#;
+
+fn registry() -> StageRegistry {
+    let mut r = cloudlight::actors::registry();
+    // A kind that takes another message type, to check type mismatches.
+    r.register(
+        StageKind::new("float_sink", "probe", "takes f32", |_| {
+            anyhow::bail!("not built in these tests")
+        })
+        .input::<f32>(
+            "in",
+            EdgeSettings {
+                capacity: 1,
+                policy: Policy::Latest,
+            },
+        ),
+    );
+    r
+}
+
+fn diagnostics(text: &str) -> Vec<Diagnostic> {
+    match Plan::from_str("bad.toml", text, &registry()) {
+        Ok(_) => panic!("accepted a malformed file:\n{text}"),
+        Err(e) => e.0,
+    }
+}
+
+/// Asserts that one diagnostic has this line and key and mentions `words`.
+#[track_caller]
+fn expect(diags: &[Diagnostic], line: usize, key: &str, words: &str) {
+    assert!(
+        diags.iter().any(|d| d.file == "bad.toml"
+            && d.line == line
+            && d.key == key
+            && d.message.contains(words)),
+        "no diagnostic at line {line} for `{key}` mentioning {words:?}; got:\n{}",
+        diags
+            .iter()
+            .map(|d| d.to_string())
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+}
+
+#[test]
+fn unknown_top_level_key() {
+    let d = diagnostics(&format!("colour = 3\n{GOOD_HEAD}"));
+    expect(&d, 1, "colour", "unknown key");
+    // After a table header, keys belong to that table.
+    let d = diagnostics(&format!("{GOOD_HEAD}colour = 3\n"));
+    expect(
+        &d,
+        8,
+        "node[1].colour",
+        "unknown key (expected one of: name, address)",
+    );
+}
+
+#[test]
+fn unknown_key_in_a_stage() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"s\"\nkind = \"probe_sink\"\nnode = \"cloud\"\nnodee = \"x\"\n"
+    ));
+    expect(&d, 12, "stage[0].nodee", "unknown key");
+}
+
+#[test]
+fn unknown_node() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"s\"\nkind = \"probe_source\"\nnode = \"mars\"\n"
+    ));
+    expect(&d, 11, "stage[0].node", "unknown node `mars`");
+}
+
+#[test]
+fn unplaced_stage() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"s\"\nkind = \"probe_source\"\n"
+    ));
+    expect(&d, 8, "stage[0].node", "not placed");
+}
+
+#[test]
+fn bad_addresses() {
+    let d = diagnostics(
+        "techniques = [\"probe\"]\n[[node]]\nname = \"a\"\naddress = \"127.0.0.1\"\n[[node]]\nname = \"b\"\naddress = \"localhost:99999\"\n",
+    );
+    expect(&d, 4, "node[0].address", "not an IP:port");
+    expect(&d, 7, "node[1].address", "not an IP:port");
+}
+
+#[test]
+fn zero_capacity() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"a\"\nkind = \"probe_source\"\nnode = \"cloud\"\n[[stage]]\nname = \"b\"\nkind = \"probe_sink\"\nnode = \"cloud\"\n[[edge]]\nfrom = \"a\"\nto = \"b\"\ncapacity = 0\n"
+    ));
+    expect(&d, 19, "edge[0].capacity", "at least 1");
+}
+
+#[test]
+fn negative_latency_and_loss_out_of_range() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[link]]\nbetween = [\"cloud\", \"client\"]\nlatency_ms = -5\nloss = 1.5\n"
+    ));
+    expect(&d, 10, "link[0].latency_ms", ">= 0");
+    expect(&d, 11, "link[0].loss", "in [0, 1]");
+}
+
+#[test]
+fn zero_replicas() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"s\"\nkind = \"probe_sink\"\nnode = \"client\"\nreplicas = 0\n"
+    ));
+    expect(&d, 12, "stage[0].replicas", "at least 1");
+}
+
+#[test]
+fn duplicate_names() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[node]]\nname = \"cloud\"\naddress = \"127.0.0.1:7302\"\n[[stage]]\nname = \"s\"\nkind = \"probe_source\"\nnode = \"cloud\"\n[[stage]]\nname = \"s\"\nkind = \"probe_source\"\nnode = \"cloud\"\n"
+    ));
+    expect(&d, 9, "node[2].name", "duplicate node name");
+    expect(&d, 16, "stage[1].name", "duplicate stage name");
+}
+
+#[test]
+fn duplicate_address() {
+    let d = diagnostics(
+        "techniques = [\"probe\"]\n[[node]]\nname = \"a\"\naddress = \"127.0.0.1:9\"\n[[node]]\nname = \"b\"\naddress = \"127.0.0.1:9\"\n",
+    );
+    expect(&d, 7, "node[1].address", "already used by node `a`");
+}
+
+#[test]
+fn unknown_kind_and_technique() {
+    let d = diagnostics(
+        "techniques = [\"photonz\"]\n[[node]]\nname = \"a\"\naddress = \"127.0.0.1:0\"\n[[stage]]\nname = \"s\"\nkind = \"photon_batcherr\"\nnode = \"a\"\n",
+    );
+    expect(&d, 1, "techniques", "unknown technique `photonz`");
+    expect(
+        &d,
+        5,
+        "stage[0].kind",
+        "unknown stage kind `photon_batcherr`",
+    );
+}
+
+#[test]
+fn wrong_value_types_and_bad_policy() {
+    let d = diagnostics(&format!(
+        "seed = \"one\"\n{GOOD_HEAD}[[stage]]\nname = \"a\"\nkind = \"probe_source\"\nnode = \"cloud\"\n[[stage]]\nname = \"b\"\nkind = \"probe_sink\"\nnode = \"cloud\"\n[[edge]]\nfrom = \"a\"\nto = \"b\"\ncapacity = \"four\"\npolicy = \"newest\"\n"
+    ));
+    expect(&d, 1, "seed", "expected an integer");
+    expect(&d, 20, "edge[0].capacity", "expected an integer");
+    expect(&d, 21, "edge[0].policy", "unknown policy `newest`");
+}
+
+#[test]
+fn syntax_error_names_its_line() {
+    let d = diagnostics(&format!("{GOOD_HEAD}[[stage]\nname = \"s\"\n"));
+    expect(&d, 8, "<syntax>", "invalid TOML");
+}
+
+#[test]
+fn unknown_ports_stages_and_type_mismatch() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"a\"\nkind = \"probe_source\"\nnode = \"cloud\"\n[[stage]]\nname = \"f\"\nkind = \"float_sink\"\nnode = \"client\"\n\
+         [[edge]]\nfrom = \"a.output\"\nto = \"f\"\n[[edge]]\nfrom = \"a\"\nto = \"f\"\n[[edge]]\nfrom = \"a\"\nto = \"ghost\"\n"
+    ));
+    expect(&d, 16, "edge[0].from", "no output port `output`");
+    expect(&d, 19, "edge[1]", "takes f32");
+    expect(&d, 24, "edge[2].to", "unknown stage `ghost`");
+}
+
+#[test]
+fn bad_params_and_replica_mismatch() {
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"a\"\nkind = \"probe_source\"\nnode = \"cloud\"\nreplicas = 2\nparams = {{ rate = 3 }}\n\
+         [[stage]]\nname = \"b\"\nkind = \"probe_sink\"\nnodes = [\"client\", \"client\", \"cloud\"]\n[[edge]]\nfrom = \"a\"\nto = \"b\"\n"
+    ));
+    expect(&d, 8, "stage[0].params", "unknown field `rate`");
+    expect(&d, 18, "edge[0]", "cannot join 2 replicas");
+}
+
+#[test]
+fn every_problem_of_a_file_is_reported_at_once() {
+    let text = r#"techniques = ["probe"]
+speed = 2
+[[node]]
+name = "cloud"
+address = "nowhere"
+[[stage]]
+name = "a"
+kind = "probe_source"
+node = "moon"
+[[stage]]
+name = "b"
+kind = "probe_sink"
+node = "cloud"
+replicas = 0
+[[link]]
+between = ["cloud", "cloud"]
+latency_ms = -1
+"#;
+    let d = diagnostics(text);
+    expect(&d, 2, "speed", "unknown key");
+    expect(&d, 5, "node[0].address", "not an IP:port");
+    expect(&d, 9, "stage[0].node", "unknown node `moon`");
+    expect(&d, 14, "stage[1].replicas", "at least 1");
+    expect(&d, 17, "link[0].latency_ms", ">= 0");
+    assert!(d.len() >= 5);
+    let shown = cloudlight::runtime::TopologyErrors(d).to_string();
+    assert!(
+        shown.starts_with("bad.toml:2:1: `speed`: unknown key"),
+        "{shown}"
+    );
+}
+
+#[test]
+fn example_topologies_are_valid_and_expand_as_declared() {
+    let reg = cloudlight::actors::registry();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/topologies");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(&root).unwrap() {
+        let path = entry.unwrap().path();
+        Plan::load(&path, &reg).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        seen += 1;
+    }
+    assert!(seen >= 2);
+    let plan = Plan::load(&root.join("probe-cluster.toml"), &reg).unwrap();
+    let names: Vec<_> = plan.instances.iter().map(|i| i.name.as_str()).collect();
+    assert_eq!(names, ["source", "relay", "client[0]", "client[1]"]);
+    assert_eq!(plan.edges.len(), 3);
+    assert!(plan.edges.iter().all(|e| e.cut));
+    let last = &plan.edges[2];
+    assert_eq!(last.name, "relay.out -> client[1].in");
+    assert_eq!(
+        last.settings,
+        EdgeSettings {
+            capacity: 2,
+            policy: Policy::Latest
+        }
+    );
+    assert_eq!(
+        plan.edges[0].settings,
+        EdgeSettings {
+            capacity: 8,
+            policy: Policy::Block
+        }
+    );
+    let link = plan.topology.link("home", "edge").unwrap();
+    assert_eq!(
+        (link.latency_ms, link.bandwidth_mbps, link.loss),
+        (20.0, Some(50.0), 0.01)
+    );
+    assert!(plan.summary().contains("CUT edge -> home"));
+}
