@@ -1,7 +1,23 @@
-//! Node-to-node links for cut edges: framing, chunking below laminar's fragment limit,
-//! reassembly with hard bounds, per-edge ordering, acknowledgement windows, pacing, credits
-//! carried across the link, heartbeats and a seeded link emulator (latency, jitter,
-//! bandwidth, loss, duplication, reordering).
+//! Node-to-node links for cut edges, over laminar.
 //!
-//! Nothing is implemented yet: this crate is filled by the transport issue. It must never
-//! know about lighting; it moves opaque, already-encoded edge messages.
+//! - [`wire`]: the packet format (versioned, checksummed, decoded without panics).
+//! - [`endpoint`]: the sans-IO protocol core: handshake with a shared secret, chunking below
+//!   laminar's fragment limit, bounded reassembly, per-edge ordering, selective acks and
+//!   retransmission in a send window, pacing, credits that carry an edge's capacity across
+//!   the link, heartbeats and peer loss/restart detection. Every call takes `now`.
+//! - [`emulator`]: a seeded, sans-IO link emulator (latency, jitter, bandwidth, loss,
+//!   duplication, reordering) applied per direction per pair of nodes.
+//! - [`driver`]: the I/O thread: one per node socket, driving laminar's `manual_poll` with
+//!   no fixed sleep (it waits on socket readiness, timers and a waker), bridged to tokio.
+//!
+//! This crate moves opaque, already-encoded edge messages; it never knows about lighting,
+//! stages or topologies.
+
+pub mod emulator;
+pub mod endpoint;
+pub mod wire;
+
+pub use emulator::{LinkEmulator, LinkProfile};
+pub use endpoint::{
+    EdgeDirection, EdgeWireStats, Endpoint, EndpointConfig, Event, PeerStats, SendError,
+};

@@ -1,0 +1,284 @@
+//! A seeded, sans-IO link emulator: what a home, campus or continental link does to packets.
+//!
+//! This machine's kernel has no netem, so placement experiments emulate links here. One
+//! emulator shapes one direction of one pair of nodes; the sending side applies it before a
+//! datagram reaches the socket. Every call takes `now`; the same seed and the same calls
+//! give the same drops, copies and delivery times.
+//!
+//! Model, per datagram, in this order: loss (dropped with probability `loss`); bandwidth (the
+//! datagram is serialized onto a link of `bandwidth_mbps`; when more than `queue_limit_bytes`
+//! wait for the link, it is tail-dropped like a router buffer would); latency plus Gaussian
+//! jitter of standard deviation `jitter_ms` (clamped at zero, so large jitter also reorders);
+//! reordering (with probability `reorder` the datagram is held back one extra latency + 1 ms);
+//! duplication (with probability `duplicate` a second copy follows 0–1 ms later).
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::time::{Duration, Instant};
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// How one direction of a link behaves.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct LinkProfile {
+    /// One-way latency, milliseconds.
+    pub latency_ms: f64,
+    /// Standard deviation of the latency, milliseconds.
+    pub jitter_ms: f64,
+    /// Bandwidth cap in megabits per second; `None` is uncapped.
+    pub bandwidth_mbps: Option<f64>,
+    /// Loss probability in [0, 1].
+    pub loss: f64,
+    /// Duplication probability in [0, 1].
+    pub duplicate: f64,
+    /// Probability in [0, 1] that a datagram is held back and arrives out of order.
+    pub reorder: f64,
+}
+
+impl LinkProfile {
+    /// True when the profile changes nothing (the emulator can be bypassed).
+    pub fn is_transparent(&self) -> bool {
+        *self == LinkProfile::default()
+    }
+}
+
+/// What the emulator did so far.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct EmulatorStats {
+    /// Datagrams given to [`LinkEmulator::send`].
+    pub offered: u64,
+    /// Dropped by `loss`.
+    pub lost: u64,
+    /// Dropped because the bandwidth queue was full.
+    pub queue_drops: u64,
+    /// Extra copies made.
+    pub duplicated: u64,
+    /// Held back to arrive out of order.
+    pub reordered: u64,
+    /// Handed out by [`LinkEmulator::poll`].
+    pub delivered: u64,
+}
+
+/// One direction of an emulated link.
+pub struct LinkEmulator {
+    profile: LinkProfile,
+    rng: ChaCha8Rng,
+    queue: BinaryHeap<Reverse<(Instant, u64, Vec<u8>)>>,
+    order: u64,
+    link_free_at: Option<Instant>,
+    /// Most bytes allowed to wait for the bandwidth-limited link.
+    pub queue_limit_bytes: usize,
+    stats: EmulatorStats,
+}
+
+impl LinkEmulator {
+    /// An emulator with `profile`, seeded with `seed`; the router queue defaults to 1 MiB.
+    pub fn new(profile: LinkProfile, seed: u64) -> Self {
+        LinkEmulator {
+            profile,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            queue: BinaryHeap::new(),
+            order: 0,
+            link_free_at: None,
+            queue_limit_bytes: 1 << 20,
+            stats: EmulatorStats::default(),
+        }
+    }
+
+    /// The profile.
+    pub fn profile(&self) -> &LinkProfile {
+        &self.profile
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> EmulatorStats {
+        self.stats
+    }
+
+    fn push(&mut self, at: Instant, datagram: Vec<u8>) {
+        self.order += 1;
+        self.queue.push(Reverse((at, self.order, datagram)));
+    }
+
+    fn gaussian(&mut self) -> f64 {
+        // Box–Muller.
+        let u1: f64 = self.rng.random::<f64>().max(f64::MIN_POSITIVE);
+        let u2: f64 = self.rng.random();
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+
+    /// Offers a datagram to the link at `now`.
+    pub fn send(&mut self, now: Instant, datagram: Vec<u8>) {
+        self.stats.offered += 1;
+        let p = self.profile;
+        if p.loss > 0.0 && self.rng.random::<f64>() < p.loss {
+            self.stats.lost += 1;
+            return;
+        }
+        let mut at = now;
+        if let Some(mbps) = p.bandwidth_mbps {
+            let start = self.link_free_at.map_or(now, |f| f.max(now));
+            let waiting_s = start.saturating_duration_since(now).as_secs_f64();
+            if waiting_s * mbps * 1e6 / 8.0 > self.queue_limit_bytes as f64 {
+                self.stats.queue_drops += 1;
+                return;
+            }
+            let tx = Duration::from_secs_f64(datagram.len() as f64 * 8.0 / (mbps * 1e6));
+            at = start + tx;
+            self.link_free_at = Some(at);
+        }
+        let mut delay_ms = p.latency_ms;
+        if p.jitter_ms > 0.0 {
+            delay_ms += p.jitter_ms * self.gaussian();
+        }
+        if p.reorder > 0.0 && self.rng.random::<f64>() < p.reorder {
+            self.stats.reordered += 1;
+            delay_ms += p.latency_ms + 1.0;
+        }
+        let at = at + Duration::from_secs_f64(delay_ms.max(0.0) / 1000.0);
+        if p.duplicate > 0.0 && self.rng.random::<f64>() < p.duplicate {
+            self.stats.duplicated += 1;
+            let extra = Duration::from_secs_f64(self.rng.random::<f64>() / 1000.0);
+            self.push(at + extra, datagram.clone());
+        }
+        self.push(at, datagram);
+    }
+
+    /// The next datagram due at `now`, if any.
+    pub fn poll(&mut self, now: Instant) -> Option<Vec<u8>> {
+        if self
+            .queue
+            .peek()
+            .is_some_and(|Reverse((at, _, _))| *at <= now)
+        {
+            self.stats.delivered += 1;
+            return self.queue.pop().map(|Reverse((_, _, d))| d);
+        }
+        None
+    }
+
+    /// When the next datagram is due.
+    pub fn next_due(&self) -> Option<Instant> {
+        self.queue.peek().map(|Reverse((at, _, _))| *at)
+    }
+
+    /// Datagrams waiting.
+    pub fn len(&self) -> usize {
+        self.queue.len()
+    }
+
+    /// Whether nothing waits.
+    pub fn is_empty(&self) -> bool {
+        self.queue.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn drain(e: &mut LinkEmulator, until: Instant) -> Vec<(Instant, Vec<u8>)> {
+        let mut out = Vec::new();
+        while let Some(at) = e.next_due() {
+            if at > until {
+                break;
+            }
+            out.push((at, e.poll(at).unwrap()));
+        }
+        out
+    }
+
+    #[test]
+    fn latency_delays_and_keeps_order_without_jitter() {
+        let t0 = Instant::now();
+        let mut e = LinkEmulator::new(
+            LinkProfile {
+                latency_ms: 20.0,
+                ..Default::default()
+            },
+            1,
+        );
+        for i in 0..10u8 {
+            e.send(t0 + Duration::from_millis(i as u64), vec![i]);
+        }
+        assert!(e.poll(t0 + Duration::from_millis(19)).is_none());
+        let out = drain(&mut e, t0 + Duration::from_secs(1));
+        assert_eq!(
+            out.iter().map(|(_, d)| d[0]).collect::<Vec<_>>(),
+            (0..10).collect::<Vec<_>>()
+        );
+        assert_eq!(out[0].0, t0 + Duration::from_millis(20));
+    }
+
+    #[test]
+    fn loss_rate_matches_and_is_deterministic_by_seed() {
+        let t0 = Instant::now();
+        let run = |seed| {
+            let mut e = LinkEmulator::new(
+                LinkProfile {
+                    loss: 0.1,
+                    duplicate: 0.01,
+                    ..Default::default()
+                },
+                seed,
+            );
+            for i in 0..20_000u32 {
+                e.send(t0, i.to_le_bytes().to_vec());
+            }
+            let out = drain(&mut e, t0 + Duration::from_secs(1));
+            (e.stats(), out)
+        };
+        let (a, da) = run(5);
+        let (b, db) = run(5);
+        assert_eq!(a, b);
+        assert_eq!(da, db);
+        let loss = a.lost as f64 / a.offered as f64;
+        assert!((loss - 0.1).abs() < 0.01, "loss {loss}");
+        assert!(a.duplicated > 100 && a.duplicated < 320, "{a:?}");
+        assert_eq!(a.delivered, a.offered - a.lost + a.duplicated);
+    }
+
+    #[test]
+    fn bandwidth_cap_spaces_datagrams_and_drops_when_the_queue_is_full() {
+        let t0 = Instant::now();
+        let mut e = LinkEmulator::new(
+            LinkProfile {
+                bandwidth_mbps: Some(8.0),
+                ..Default::default()
+            },
+            1,
+        );
+        e.queue_limit_bytes = 10_000;
+        for _ in 0..20 {
+            e.send(t0, vec![0; 1000]); // 1 ms each at 8 Mbps
+        }
+        let out = drain(&mut e, t0 + Duration::from_secs(1));
+        assert!(out.len() >= 10 && out.len() <= 12, "{}", out.len());
+        assert!(e.stats().queue_drops >= 8);
+        let gap = out[5].0 - out[4].0;
+        assert!((gap.as_secs_f64() - 0.001).abs() < 1e-6, "{gap:?}");
+    }
+
+    #[test]
+    fn reorder_holds_some_datagrams_back() {
+        let t0 = Instant::now();
+        let mut e = LinkEmulator::new(
+            LinkProfile {
+                latency_ms: 5.0,
+                reorder: 0.2,
+                ..Default::default()
+            },
+            3,
+        );
+        for i in 0..200u8 {
+            e.send(t0 + Duration::from_micros(i as u64 * 100), vec![i]);
+        }
+        let got: Vec<u8> = drain(&mut e, t0 + Duration::from_secs(1))
+            .into_iter()
+            .map(|(_, d)| d[0])
+            .collect();
+        assert_eq!(got.len(), 200);
+        assert!(got.windows(2).any(|w| w[0] > w[1]), "nothing was reordered");
+    }
+}

@@ -1,0 +1,323 @@
+//! Sending side of a peer link: outstanding messages, packet numbers in flight, loss
+//! detection, retransmission timeout, RTT estimation and pacing.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::time::{Duration, Instant};
+
+use super::{EdgeWireStats, Endpoint, EndpointConfig, Event};
+use crate::wire::{self, DATA_OVERHEAD};
+
+/// A sending edge: its credit and counters.
+pub(crate) struct SendEdge {
+    pub(crate) peer: usize,
+    capacity: u64,
+    /// Messages the peer allows in total (cumulative).
+    pub(crate) granted: u64,
+    /// Messages sent in total.
+    pub(crate) sent: u64,
+    pub(crate) stats: EdgeWireStats,
+}
+
+impl SendEdge {
+    pub(crate) fn new(peer: usize, capacity: u64) -> Self {
+        SendEdge {
+            peer,
+            capacity,
+            granted: capacity,
+            sent: 0,
+            stats: EdgeWireStats::default(),
+        }
+    }
+
+    pub(crate) fn available(&self) -> u64 {
+        self.granted.saturating_sub(self.sent)
+    }
+
+    pub(crate) fn reset(&mut self) {
+        self.granted = self.capacity;
+        self.sent = 0;
+    }
+}
+
+struct OutMsg {
+    data: Vec<u8>,
+    acked: Vec<bool>,
+    remaining: u32,
+}
+
+struct Sent {
+    edge: u32,
+    seq: u64,
+    chunk: u32,
+    at: Instant,
+    retransmit: bool,
+}
+
+/// Per-peer sending state.
+pub(crate) struct SendState {
+    next_pn: u64,
+    msgs: HashMap<(u32, u64), OutMsg>,
+    /// Chunks to send, retransmissions first: (edge, seq, chunk, is retransmission).
+    pending: VecDeque<(u32, u64, u32, bool)>,
+    in_flight: BTreeMap<u64, Sent>,
+    largest_acked: u64,
+    srtt: Option<Duration>,
+    rttvar: Duration,
+    backoff: u32,
+    tokens: f64,
+    refilled: Instant,
+}
+
+const INITIAL_RTO: Duration = Duration::from_millis(200);
+
+impl SendState {
+    pub(crate) fn new(config: &EndpointConfig, now: Instant) -> Self {
+        SendState {
+            next_pn: 1,
+            msgs: HashMap::new(),
+            pending: VecDeque::new(),
+            in_flight: BTreeMap::new(),
+            largest_acked: 0,
+            srtt: None,
+            rttvar: Duration::ZERO,
+            backoff: 0,
+            tokens: burst(config),
+            refilled: now,
+        }
+    }
+
+    pub(crate) fn queue_message(&mut self, edge: u32, seq: u64, data: Vec<u8>, chunk_bytes: usize) {
+        let chunks = data.len().div_ceil(chunk_bytes).max(1) as u32;
+        self.msgs.insert(
+            (edge, seq),
+            OutMsg {
+                data,
+                acked: vec![false; chunks as usize],
+                remaining: chunks,
+            },
+        );
+        self.pending
+            .extend((0..chunks).map(|c| (edge, seq, c, false)));
+    }
+
+    /// Drops everything outstanding (the peer restarted); returns the messages lost.
+    pub(crate) fn reset(&mut self, config: &EndpointConfig, now: Instant) -> u64 {
+        let lost = self.msgs.len() as u64;
+        let next_pn = self.next_pn;
+        *self = SendState::new(config, now);
+        self.next_pn = next_pn;
+        lost
+    }
+
+    pub(crate) fn srtt(&self) -> Duration {
+        self.srtt.unwrap_or(Duration::ZERO)
+    }
+
+    pub(crate) fn rtt_sample(&mut self, rtt: Duration, _config: &EndpointConfig) {
+        match self.srtt {
+            None => {
+                self.srtt = Some(rtt);
+                self.rttvar = rtt / 2;
+            }
+            Some(s) => {
+                let diff = s.abs_diff(rtt);
+                self.rttvar = (self.rttvar * 3 + diff) / 4;
+                self.srtt = Some((s * 7 + rtt) / 8);
+            }
+        }
+        self.backoff = 0;
+    }
+
+    fn rto(&self, config: &EndpointConfig) -> Duration {
+        let base = match self.srtt {
+            None => INITIAL_RTO,
+            Some(s) => (s + self.rttvar * 4).clamp(config.min_rto, config.max_rto),
+        };
+        (base * 2u32.saturating_pow(self.backoff.min(16))).min(config.max_rto)
+    }
+
+    fn refill(&mut self, config: &EndpointConfig, now: Instant) {
+        if let Some(rate) = config.pacing_bytes_per_s {
+            let dt = now.saturating_duration_since(self.refilled).as_secs_f64();
+            self.tokens = (self.tokens + dt * rate).min(burst(config));
+        }
+        self.refilled = now;
+    }
+
+    /// The next time this state needs attention (retransmission timeout or pacing).
+    pub(crate) fn next_timer(&self, config: &EndpointConfig) -> Option<Instant> {
+        let rto = self
+            .in_flight
+            .values()
+            .next()
+            .map(|s| s.at + self.rto(config));
+        let pace = match (config.pacing_bytes_per_s, self.pending.is_empty()) {
+            (Some(rate), false) if self.tokens < config.max_packet_bytes as f64 => {
+                let need = config.max_packet_bytes as f64 - self.tokens;
+                Some(self.refilled + Duration::from_secs_f64(need / rate))
+            }
+            _ => None,
+        };
+        match (rto, pace) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+}
+
+fn burst(config: &EndpointConfig) -> f64 {
+    let p = config.max_packet_bytes as f64;
+    match config.pacing_bytes_per_s {
+        Some(rate) => (16.0 * p).max(rate * 0.002),
+        None => f64::INFINITY,
+    }
+}
+
+/// The next DATA packet for peer `p`, if the window and pacing allow one.
+pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec<u8>> {
+    let Endpoint {
+        peers,
+        send_edges,
+        config,
+        ..
+    } = ep;
+    let peer = &mut peers[p];
+    if !peer.up
+        || peer.send.in_flight.len() >= config.window_packets
+        || peer.send.pending.is_empty()
+    {
+        return None;
+    }
+    let s = &mut peer.send;
+    s.refill(config, now);
+    let cb = config.chunk_bytes();
+    while let Some((edge, seq, chunk, retransmit)) = s.pending.pop_front() {
+        let Some(msg) = s.msgs.get(&(edge, seq)) else {
+            continue;
+        };
+        if msg.acked[chunk as usize] {
+            continue;
+        }
+        let start = chunk as usize * cb;
+        let payload = &msg.data[start..(start + cb).min(msg.data.len())];
+        let size = (DATA_OVERHEAD + payload.len()) as f64;
+        if config.pacing_bytes_per_s.is_some() && s.tokens < size {
+            s.pending.push_front((edge, seq, chunk, retransmit));
+            return None;
+        }
+        s.tokens -= size;
+        let pn = s.next_pn;
+        s.next_pn += 1;
+        let bytes = wire::encode_data(
+            config.incarnation,
+            pn,
+            edge,
+            seq,
+            msg.data.len() as u32,
+            chunk,
+            payload,
+        );
+        s.in_flight.insert(
+            pn,
+            Sent {
+                edge,
+                seq,
+                chunk,
+                at: now,
+                retransmit,
+            },
+        );
+        peer.stats.data_packets_sent += 1;
+        if let Some(e) = send_edges.get_mut(&edge) {
+            e.stats.wire_bytes += bytes.len() as u64;
+            if retransmit {
+                e.stats.retransmissions += 1;
+            }
+        }
+        if retransmit {
+            peer.stats.retransmissions += 1;
+        }
+        return Some(bytes);
+    }
+    None
+}
+
+/// An acknowledgement of packet-number ranges arrived from peer `p`.
+pub(crate) fn on_ack(ep: &mut Endpoint, p: usize, now: Instant, ranges: &[(u64, u64)]) {
+    let Endpoint {
+        peers,
+        events,
+        config,
+        ..
+    } = ep;
+    let peer = &mut peers[p];
+    let s = &mut peer.send;
+    let mut newest: Option<(u64, Instant, bool)> = None;
+    for &(lo, hi) in ranges {
+        let pns: Vec<u64> = s.in_flight.range(lo..=hi).map(|(pn, _)| *pn).collect();
+        for pn in pns {
+            let sent = s.in_flight.remove(&pn).expect("listed above");
+            if newest.is_none_or(|(n, _, _)| pn > n) {
+                newest = Some((pn, sent.at, sent.retransmit));
+            }
+            if let Some(msg) = s.msgs.get_mut(&(sent.edge, sent.seq))
+                && !msg.acked[sent.chunk as usize]
+            {
+                msg.acked[sent.chunk as usize] = true;
+                msg.remaining -= 1;
+                if msg.remaining == 0 {
+                    s.msgs.remove(&(sent.edge, sent.seq));
+                    events.push_back(Event::Delivered {
+                        edge: sent.edge,
+                        seq: sent.seq,
+                    });
+                }
+            }
+        }
+    }
+    if let Some((pn, at, retransmit)) = newest {
+        s.largest_acked = s.largest_acked.max(pn);
+        if !retransmit {
+            s.rtt_sample(now.saturating_duration_since(at), config);
+            peer.stats.srtt_s = s.srtt().as_secs_f64();
+        }
+        s.backoff = 0;
+    }
+    detect_losses(ep, p, now);
+}
+
+/// Declares lost the packets three numbers behind the largest acknowledged one and those
+/// older than the retransmission timeout, and queues their chunks again.
+pub(crate) fn detect_losses(ep: &mut Endpoint, p: usize, now: Instant) {
+    let config = &ep.config;
+    let s = &mut ep.peers[p].send;
+    let mut lost: Vec<u64> = s
+        .in_flight
+        .range(..=s.largest_acked.saturating_sub(3))
+        .map(|(pn, _)| *pn)
+        .collect();
+    let rto = s.rto(config);
+    let mut timed_out = false;
+    for (pn, sent) in s.in_flight.iter() {
+        if sent.at + rto > now {
+            break;
+        }
+        if lost.last().is_none_or(|l| pn > l) {
+            lost.push(*pn);
+            timed_out = true;
+        }
+    }
+    if timed_out {
+        s.backoff += 1;
+    }
+    for pn in lost.into_iter().rev() {
+        let sent = s.in_flight.remove(&pn).expect("listed above");
+        if s.msgs
+            .get(&(sent.edge, sent.seq))
+            .is_some_and(|m| !m.acked[sent.chunk as usize])
+        {
+            s.pending
+                .push_front((sent.edge, sent.seq, sent.chunk, true));
+        }
+    }
+}
