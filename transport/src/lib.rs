@@ -13,10 +13,12 @@
 //! This crate moves opaque, already-encoded edge messages; it never knows about lighting,
 //! stages or topologies.
 
+pub mod driver;
 pub mod emulator;
 pub mod endpoint;
 pub mod wire;
 
+pub use driver::{Command, Driver, DriverConfig, DriverHandle, DriverStats};
 pub use emulator::{LinkEmulator, LinkProfile};
 pub use endpoint::{
     EdgeDirection, EdgeWireStats, Endpoint, EndpointConfig, Event, PeerStats, SendError,

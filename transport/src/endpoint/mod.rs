@@ -156,12 +156,13 @@ pub enum Event {
         /// Sequence number.
         seq: u64,
     },
-    /// The peer granted credit: `available` messages may be sent now.
+    /// The peer granted credit: in total `granted` messages may have been sent on the edge
+    /// (cumulative; `granted − capacity` messages were finished by the remote consumer).
     Credit {
         /// Edge id.
         edge: u32,
-        /// Messages that may be sent now.
-        available: u64,
+        /// Cumulative grant.
+        granted: u64,
     },
 }
 
@@ -351,6 +352,19 @@ impl Endpoint {
             .get(&edge)
             .map(|e| e.stats)
             .or_else(|| self.recv_edges.get(&edge).map(|e| e.stats))
+    }
+
+    /// Names of the declared peers.
+    pub fn peer_names(&self) -> impl Iterator<Item = &str> {
+        self.peers.iter().map(|p| p.name.as_str())
+    }
+
+    /// Ids of the open edges.
+    pub fn edge_ids(&self) -> impl Iterator<Item = u32> + '_ {
+        self.send_edges
+            .keys()
+            .chain(self.recv_edges.keys())
+            .copied()
     }
 
     /// Packets from unknown senders, stale incarnations or with bad proofs, ignored.
@@ -543,10 +557,7 @@ impl Endpoint {
                         && granted > e.granted
                     {
                         e.granted = granted;
-                        self.events.push_back(Event::Credit {
-                            edge,
-                            available: e.available(),
-                        });
+                        self.events.push_back(Event::Credit { edge, granted });
                     }
                 }
             }
@@ -606,11 +617,12 @@ impl Endpoint {
         let old = self.peers[p].remote_incarnation;
         if old != incarnation {
             if old != 0 {
-                let lost = self.reset_peer(p, now);
+                let lost = self.peers[p].send.outstanding();
                 self.events.push_back(Event::PeerRestarted {
                     peer: name.to_string(),
                     lost_messages: lost,
                 });
+                self.reset_peer(p, now);
             }
             self.peers[p].remote_incarnation = incarnation;
         }
@@ -633,23 +645,22 @@ impl Endpoint {
         }
     }
 
-    /// Forgets the streams of a restarted peer; returns the outstanding messages lost.
-    fn reset_peer(&mut self, p: usize, now: Instant) -> u64 {
+    /// Forgets the streams of a restarted peer.
+    fn reset_peer(&mut self, p: usize, now: Instant) {
         let peer = &mut self.peers[p];
-        let lost = peer.send.reset(&self.config, now);
+        peer.send.reset(&self.config, now);
         peer.recv = RecvState::default();
         peer.up = false;
         for (&edge, e) in self.send_edges.iter_mut().filter(|(_, e)| e.peer == p) {
             e.reset();
             self.events.push_back(Event::Credit {
                 edge,
-                available: e.available(),
+                granted: e.granted,
             });
         }
         for e in self.recv_edges.values_mut().filter(|e| e.peer == p) {
             e.reset();
         }
-        lost
     }
 
     /// Runs timers due at `now`: loss detection, heartbeats, peer timeouts, handshakes.

@@ -100,13 +100,16 @@ impl SendState {
             .extend((0..chunks).map(|c| (edge, seq, c, false)));
     }
 
-    /// Drops everything outstanding (the peer restarted); returns the messages lost.
-    pub(crate) fn reset(&mut self, config: &EndpointConfig, now: Instant) -> u64 {
-        let lost = self.msgs.len() as u64;
+    /// Messages not yet fully acknowledged.
+    pub(crate) fn outstanding(&self) -> u64 {
+        self.msgs.len() as u64
+    }
+
+    /// Drops everything outstanding (the peer restarted).
+    pub(crate) fn reset(&mut self, config: &EndpointConfig, now: Instant) {
         let next_pn = self.next_pn;
         *self = SendState::new(config, now);
         self.next_pn = next_pn;
-        lost
     }
 
     pub(crate) fn srtt(&self) -> Duration {

@@ -246,7 +246,7 @@ fn credit_limits_messages_outstanding_and_release_restores_it() {
     assert!(s.run_until(Duration::from_secs(1), |s| s.a.credit(7) == 3));
     assert!(s.a_events.contains(&Event::Credit {
         edge: 7,
-        available: 3
+        granted: 7
     }));
 }
 

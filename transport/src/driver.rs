@@ -1,0 +1,525 @@
+//! The I/O driver: one thread per node socket runs the [`Endpoint`] over laminar.
+//!
+//! The thread owns a non-blocking UDP socket (4 MiB buffers, registered with mio) wrapped as
+//! laminar's `DatagramSocket`, and a laminar `ConnectionManager` driven by `manual_poll`. It
+//! never sleeps a fixed time: it blocks in `mio::Poll` until the socket is readable, a
+//! command arrives (a `mio::Waker`), or the endpoint's or emulators' next timer. Every
+//! transport packet is handed to laminar as an *unreliable* packet no larger than one
+//! datagram, so laminar never fragments, never holds packets in flight and never drops a
+//! connection for having too many; reliability is the endpoint's.
+//!
+//! The tokio side talks to the thread through a bounded command channel and receives
+//! events through a bounded tokio channel. `close` says goodbye to peers and joins the thread.
+
+use std::collections::{HashMap, VecDeque};
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{Receiver, Sender, TryRecvError, TrySendError};
+use laminar::{
+    Config as LaminarConfig, ConnectionManager, DatagramSocket, Packet, SocketEvent,
+    VirtualConnection,
+};
+use mio::{Events, Interest, Poll, Token, Waker};
+
+use crate::emulator::{EmulatorStats, LinkEmulator, LinkProfile};
+use crate::endpoint::{
+    EdgeDirection, EdgeWireStats, Endpoint, EndpointConfig, Event, PeerStats, SendError,
+};
+
+const SOCKET: Token = Token(0);
+const WAKER: Token = Token(1);
+/// Commands waiting for the I/O thread, at most.
+pub const COMMAND_CAPACITY: usize = 4096;
+/// Events waiting for the tokio side, at most.
+pub const EVENT_CAPACITY: usize = 4096;
+
+/// What a driver is started with.
+#[derive(Clone, Debug)]
+pub struct DriverConfig {
+    /// The protocol settings.
+    pub endpoint: EndpointConfig,
+    /// Address to bind (port 0 picks one; see [`DriverHandle::local_addr`]).
+    pub bind: SocketAddr,
+    /// Peers: name and address.
+    pub peers: Vec<(String, SocketAddr)>,
+    /// Emulated link profile of the direction from this node to a peer, by peer name.
+    pub links: HashMap<String, LinkProfile>,
+    /// Seed of the emulators.
+    pub seed: u64,
+    /// Socket receive and send buffer size, bytes.
+    pub socket_buffer_bytes: usize,
+}
+
+impl DriverConfig {
+    /// A driver for `endpoint` bound to `bind`, without peers or emulated links.
+    pub fn new(endpoint: EndpointConfig, bind: SocketAddr) -> Self {
+        DriverConfig {
+            endpoint,
+            bind,
+            peers: Vec::new(),
+            links: HashMap::new(),
+            seed: 0,
+            socket_buffer_bytes: 4 << 20,
+        }
+    }
+}
+
+/// Requests from the tokio side.
+#[derive(Debug)]
+pub enum Command {
+    /// Open an edge (see [`Endpoint::open_edge`]).
+    OpenEdge {
+        /// Edge id.
+        edge: u32,
+        /// Peer name.
+        peer: String,
+        /// Direction.
+        direction: EdgeDirection,
+        /// End-to-end capacity.
+        capacity: u64,
+    },
+    /// Declare (or move) a peer, with the emulated profile of the link towards it.
+    AddPeer {
+        /// Peer name.
+        name: String,
+        /// Its address.
+        addr: SocketAddr,
+        /// Emulated profile of the direction towards it (transparent: none).
+        link: LinkProfile,
+    },
+    /// Send an encoded message; held by the driver until the edge has credit.
+    Send {
+        /// Edge id.
+        edge: u32,
+        /// The bytes.
+        bytes: Vec<u8>,
+    },
+    /// The local consumer finished `n` messages of a receiving edge.
+    Release {
+        /// Edge id.
+        edge: u32,
+        /// Count.
+        n: u64,
+    },
+    /// Say goodbye and stop the thread.
+    Close,
+    /// Stop the thread at once, without goodbyes: peers see a crash (fault injection).
+    Abort,
+}
+
+/// A snapshot of the driver's counters.
+#[derive(Clone, Debug, Default)]
+pub struct DriverStats {
+    /// Per peer.
+    pub peers: Vec<(String, PeerStats)>,
+    /// Per edge.
+    pub edges: HashMap<u32, EdgeWireStats>,
+    /// Packets from strangers or stale incarnations.
+    pub strangers: u64,
+    /// Datagrams that did not decode.
+    pub malformed: u64,
+    /// Per emulated link (by peer name).
+    pub emulators: Vec<(String, EmulatorStats)>,
+    /// Messages refused by the endpoint (too large).
+    pub refused_sends: u64,
+}
+
+/// The driver is gone (closed or its thread failed).
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("the transport driver has stopped")]
+pub struct DriverClosed;
+
+/// The tokio side of a running driver.
+pub struct DriverHandle {
+    commands: Sender<Command>,
+    waker: Arc<Waker>,
+    events: tokio::sync::mpsc::Receiver<Event>,
+    stats: Arc<Mutex<DriverStats>>,
+    local_addr: SocketAddr,
+    thread: Option<JoinHandle<()>>,
+}
+
+/// Starts I/O threads.
+pub struct Driver;
+
+#[derive(Debug)]
+struct MioSocket(mio::net::UdpSocket);
+
+impl DatagramSocket for MioSocket {
+    fn send_packet(&mut self, addr: &SocketAddr, payload: &[u8]) -> std::io::Result<usize> {
+        self.0.send_to(payload, *addr)
+    }
+    fn receive_packet<'a>(
+        &mut self,
+        buffer: &'a mut [u8],
+    ) -> std::io::Result<(&'a [u8], SocketAddr)> {
+        let (n, from) = self.0.recv_from(buffer)?;
+        Ok((&buffer[..n], from))
+    }
+    fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        self.0.local_addr()
+    }
+    fn is_blocking_mode(&self) -> bool {
+        false
+    }
+}
+
+fn bind(config: &DriverConfig) -> std::io::Result<std::net::UdpSocket> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let s = Socket::new(
+        Domain::for_address(config.bind),
+        Type::DGRAM,
+        Some(Protocol::UDP),
+    )?;
+    // Best effort: the kernel caps these at its own maximum.
+    let _ = s.set_recv_buffer_size(config.socket_buffer_bytes);
+    let _ = s.set_send_buffer_size(config.socket_buffer_bytes);
+    s.bind(&config.bind.into())?;
+    s.set_nonblocking(true)?;
+    Ok(s.into())
+}
+
+impl Driver {
+    /// Binds the socket and starts the I/O thread. Must be called inside a tokio runtime
+    /// only for the returned handle's async methods; the thread itself is plain.
+    pub fn start(config: DriverConfig) -> std::io::Result<DriverHandle> {
+        let std_socket = bind(&config)?;
+        let local_addr = std_socket.local_addr()?;
+        let poll = Poll::new()?;
+        let mut socket = mio::net::UdpSocket::from_std(std_socket);
+        poll.registry()
+            .register(&mut socket, SOCKET, Interest::READABLE)?;
+        let waker = Arc::new(Waker::new(poll.registry(), WAKER)?);
+        let (commands, command_rx) = crossbeam_channel::bounded(COMMAND_CAPACITY);
+        let (event_tx, events) = tokio::sync::mpsc::channel(EVENT_CAPACITY);
+        let stats = Arc::new(Mutex::new(DriverStats::default()));
+        let laminar_config = LaminarConfig {
+            receive_buffer_max_size: config.endpoint.max_packet_bytes + 64,
+            idle_connection_timeout: Duration::from_secs(3600),
+            heartbeat_interval: None,
+            ..LaminarConfig::default()
+        };
+        let manager = ConnectionManager::<MioSocket, VirtualConnection>::new(
+            MioSocket(socket),
+            laminar_config,
+        );
+        let thread_stats = stats.clone();
+        let name = format!("transport-{}", config.endpoint.node);
+        let thread = std::thread::Builder::new().name(name).spawn(move || {
+            let mut io = Io::new(config, manager, poll, command_rx, event_tx, thread_stats);
+            if let Err(e) = io.run() {
+                tracing::error!(error = %e, "transport I/O thread failed");
+            }
+        })?;
+        Ok(DriverHandle {
+            commands,
+            waker,
+            events,
+            stats,
+            local_addr,
+            thread: Some(thread),
+        })
+    }
+}
+
+impl DriverHandle {
+    /// The bound address.
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// Queues a command, waiting (asynchronously) while the bounded queue is full.
+    pub async fn command(&self, mut cmd: Command) -> Result<(), DriverClosed> {
+        loop {
+            match self.commands.try_send(cmd) {
+                Ok(()) => {
+                    let _ = self.waker.wake();
+                    return Ok(());
+                }
+                Err(TrySendError::Full(c)) => {
+                    cmd = c;
+                    tokio::time::sleep(Duration::from_micros(100)).await;
+                }
+                Err(TrySendError::Disconnected(_)) => return Err(DriverClosed),
+            }
+        }
+    }
+
+    /// Queues a command from synchronous code; fails when the queue is full or closed.
+    pub fn try_command(&self, cmd: Command) -> Result<(), DriverClosed> {
+        self.commands.try_send(cmd).map_err(|_| DriverClosed)?;
+        let _ = self.waker.wake();
+        Ok(())
+    }
+
+    /// The next event; `None` once the driver has stopped.
+    pub async fn next_event(&mut self) -> Option<Event> {
+        self.events.recv().await
+    }
+
+    /// Splits off the event receiver (for a task that dispatches events).
+    pub fn take_events(&mut self) -> tokio::sync::mpsc::Receiver<Event> {
+        let (_, empty) = tokio::sync::mpsc::channel(1);
+        std::mem::replace(&mut self.events, empty)
+    }
+
+    /// The latest counters (refreshed by the thread every few milliseconds).
+    pub fn stats(&self) -> DriverStats {
+        self.stats.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    /// Stops the thread without saying goodbye (peers see a crash) and waits for it.
+    pub fn abort(&mut self) {
+        let _ = self.try_command(Command::Abort);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+
+    /// Says goodbye to peers, stops the thread and waits for it.
+    pub fn close(&mut self) {
+        let _ = self.try_command(Command::Close);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for DriverHandle {
+    fn drop(&mut self) {
+        self.close();
+    }
+}
+
+struct Io {
+    seed: u64,
+    endpoint: Endpoint,
+    manager: ConnectionManager<MioSocket, VirtualConnection>,
+    poll: Poll,
+    commands: Receiver<Command>,
+    events: tokio::sync::mpsc::Sender<Event>,
+    stats: Arc<Mutex<DriverStats>>,
+    emulators: HashMap<SocketAddr, (String, LinkEmulator)>,
+    backlog: HashMap<u32, VecDeque<Vec<u8>>>,
+    pending_events: VecDeque<Event>,
+    refused_sends: u64,
+    closing: Option<Instant>,
+    aborted: bool,
+}
+
+/// A stable hash of a peer name, to give each emulated link its own seed.
+fn hash_name(name: &str) -> u64 {
+    name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+    })
+}
+
+impl Io {
+    fn new(
+        config: DriverConfig,
+        manager: ConnectionManager<MioSocket, VirtualConnection>,
+        poll: Poll,
+        commands: Receiver<Command>,
+        events: tokio::sync::mpsc::Sender<Event>,
+        stats: Arc<Mutex<DriverStats>>,
+    ) -> Self {
+        let now = Instant::now();
+        let mut endpoint = Endpoint::new(config.endpoint, now);
+        let mut emulators = HashMap::new();
+        for (name, addr) in config.peers.iter() {
+            endpoint.add_peer(name, *addr, now);
+            if let Some(profile) = config.links.get(name).filter(|p| !p.is_transparent()) {
+                let seed = config.seed ^ hash_name(name);
+                emulators.insert(*addr, (name.clone(), LinkEmulator::new(*profile, seed)));
+            }
+        }
+        Io {
+            seed: config.seed,
+            endpoint,
+            manager,
+            poll,
+            commands,
+            events,
+            stats,
+            emulators,
+            backlog: HashMap::new(),
+            pending_events: VecDeque::new(),
+            refused_sends: 0,
+            closing: None,
+            aborted: false,
+        }
+    }
+
+    fn apply(&mut self, cmd: Command, now: Instant) {
+        match cmd {
+            Command::OpenEdge {
+                edge,
+                peer,
+                direction,
+                capacity,
+            } => {
+                if let Err(e) = self.endpoint.open_edge(edge, &peer, direction, capacity) {
+                    tracing::error!(edge, %peer, "cannot open edge: {e}");
+                }
+            }
+            Command::AddPeer { name, addr, link } => {
+                self.endpoint.add_peer(&name, addr, now);
+                self.emulators.retain(|_, (n, _)| *n != name);
+                if !link.is_transparent() {
+                    let seed = self.seed ^ hash_name(&name);
+                    self.emulators
+                        .insert(addr, (name, LinkEmulator::new(link, seed)));
+                }
+            }
+            Command::Send { edge, bytes } => self.backlog.entry(edge).or_default().push_back(bytes),
+            Command::Release { edge, n } => self.endpoint.release(edge, n),
+            Command::Close => {
+                self.endpoint.close();
+                self.closing = Some(now);
+            }
+            Command::Abort => self.aborted = true,
+        }
+    }
+
+    fn flush_backlog(&mut self) {
+        for (&edge, queue) in self.backlog.iter_mut() {
+            while let Some(bytes) = queue.pop_front() {
+                match self.endpoint.send(edge, bytes) {
+                    Ok(_) => {}
+                    Err(SendError::NoCredit(_)) => {
+                        // Only possible right after a peer restart reset the credit; the
+                        // message waits for the next grant.
+                        break;
+                    }
+                    Err(e) => {
+                        self.refused_sends += 1;
+                        tracing::error!(edge, "message refused: {e}");
+                    }
+                }
+            }
+        }
+    }
+
+    fn publish(&self) {
+        let mut s = self.stats.lock().unwrap_or_else(|e| e.into_inner());
+        s.peers = self
+            .endpoint
+            .peer_names()
+            .map(|n| {
+                (
+                    n.to_string(),
+                    self.endpoint.peer_stats(n).unwrap_or_default(),
+                )
+            })
+            .collect();
+        s.edges = self
+            .endpoint
+            .edge_ids()
+            .filter_map(|e| Some((e, self.endpoint.edge_stats(e)?)))
+            .collect();
+        s.strangers = self.endpoint.strangers();
+        s.malformed = self.endpoint.malformed();
+        s.emulators = self
+            .emulators
+            .values()
+            .map(|(n, e)| (n.clone(), e.stats()))
+            .collect();
+        s.refused_sends = self.refused_sends;
+    }
+
+    fn run(&mut self) -> std::io::Result<()> {
+        let sender = self.manager.event_sender().clone();
+        let receiver = self.manager.event_receiver().clone();
+        let mut events = Events::with_capacity(64);
+        let mut last_publish = Instant::now();
+        loop {
+            let now = Instant::now();
+            loop {
+                match self.commands.try_recv() {
+                    Ok(cmd) => self.apply(cmd, now),
+                    Err(TryRecvError::Empty) => break,
+                    Err(TryRecvError::Disconnected) => {
+                        if self.closing.is_none() {
+                            self.apply(Command::Close, now);
+                        }
+                        break;
+                    }
+                }
+            }
+            if self.aborted {
+                return Ok(());
+            }
+            self.manager.manual_poll(now);
+            while let Ok(ev) = receiver.try_recv() {
+                if let SocketEvent::Packet(p) = ev {
+                    self.endpoint.handle_datagram(now, p.addr(), p.payload());
+                }
+            }
+            self.endpoint.handle_timeout(now);
+            self.flush_backlog();
+            while let Some((addr, datagram)) = self.endpoint.poll_transmit(now) {
+                match self.emulators.get_mut(&addr) {
+                    Some((_, em)) => em.send(now, datagram),
+                    None => {
+                        let _ = sender.send(Packet::unreliable(addr, datagram));
+                    }
+                }
+            }
+            for (addr, (_, em)) in self.emulators.iter_mut() {
+                while let Some(d) = em.poll(now) {
+                    let _ = sender.send(Packet::unreliable(*addr, d));
+                }
+            }
+            self.manager.manual_poll(now);
+            while let Some(e) = self.endpoint.poll_event() {
+                self.pending_events.push_back(e);
+            }
+            while let Some(e) = self.pending_events.pop_front() {
+                match self.events.try_send(e) {
+                    Ok(()) => {}
+                    Err(tokio::sync::mpsc::error::TrySendError::Full(e)) => {
+                        self.pending_events.push_front(e);
+                        break;
+                    }
+                    Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
+                        self.pending_events.clear();
+                        break;
+                    }
+                }
+            }
+            if now.duration_since(last_publish) >= Duration::from_millis(20) {
+                self.publish();
+                last_publish = now;
+            }
+            if let Some(since) = self.closing {
+                // Give the goodbyes (and emulated delays) a moment, then stop.
+                let emulated = self.emulators.values().any(|(_, e)| !e.is_empty());
+                if !emulated || now.duration_since(since) > Duration::from_millis(200) {
+                    self.publish();
+                    return Ok(());
+                }
+            }
+            let mut deadline = self.endpoint.poll_timeout();
+            for (_, em) in self.emulators.values() {
+                if let Some(d) = em.next_due() {
+                    deadline = Some(deadline.map_or(d, |x| x.min(d)));
+                }
+            }
+            let mut timeout = deadline.map_or(Duration::from_millis(50), |d| {
+                d.saturating_duration_since(Instant::now())
+            });
+            if !self.pending_events.is_empty() || self.closing.is_some() {
+                timeout = timeout.min(Duration::from_millis(1));
+            }
+            timeout = timeout.min(Duration::from_millis(50));
+            match self.poll.poll(&mut events, Some(timeout)) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+    }
+}
