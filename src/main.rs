@@ -64,6 +64,10 @@ struct RunArgs {
     /// Folder for metrics.json and other run outputs [default: runs/<topology>-<unix time>].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
+    /// Seconds to wait at start for the peers this process's nodes need (overrides the
+    /// topology's `[transport] connect_timeout_s`, default 60).
+    #[arg(long, value_name = "SECONDS")]
+    connect_timeout: Option<f64>,
     /// Seconds between metrics snapshots written during the run.
     #[arg(long, value_name = "SECONDS", default_value_t = 2.0)]
     metrics_interval: f64,
@@ -193,6 +197,7 @@ fn execute(
         duration,
         out_dir: Some(out.clone()),
         only_node,
+        connect_timeout: args.connect_timeout.map(Duration::from_secs_f64),
         metrics_interval: Duration::from_secs_f64(args.metrics_interval.max(0.1)),
         on_progress: Some(Arc::new(move |snap| {
             let handled: u64 = snap.stages.iter().map(|s| s.handled).sum();

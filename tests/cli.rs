@@ -124,16 +124,24 @@ to = "sink"
 }
 
 #[test]
-fn node_runs_only_its_stages_and_refuses_cut_edges_until_the_transport_exists() {
+fn node_runs_only_its_stages_and_names_the_peers_it_waits_for() {
     let out = cloudlight()
         .args(["node"])
         .arg(example("probe-cluster.toml"))
-        .args(["--node", "cloud", "--duration", "1"])
+        .args([
+            "--node",
+            "home",
+            "--duration",
+            "1",
+            "--connect-timeout",
+            "0.5",
+        ])
         .output()
         .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("crosses between nodes"), "{err}");
+    assert!(err.contains("peers not reachable"), "{err}");
+    assert!(err.contains("home -> edge @ 127.0.0.1:7201"), "{err}");
 
     let dir = tempfile::tempdir().unwrap();
     let out = cloudlight()

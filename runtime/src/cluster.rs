@@ -19,10 +19,11 @@ use tokio::task::JoinHandle;
 use crate::actor::{
     InputEdge, Names, RunEvent, RunSupervisor, StageActor, StageArgs, StageMsg, SupervisorState,
 };
-use crate::clock::SceneClock;
+use crate::clock::{SceneClock, now_unix_ns};
 use crate::control::RunControl;
 use crate::edge::Edge;
-use crate::metrics::{EdgeSnapshot, MetricsSnapshot, RunStatus, StageMetrics};
+use crate::metrics::{EdgeSnapshot, MetricsSnapshot, RunStatus, StageMetrics, WireSnapshot};
+use crate::net::NodeNet;
 use crate::stage::{InstanceInfo, OutputPort, StageCtx, StageRegistry, StageSetup};
 use crate::topology::Plan;
 
@@ -45,6 +46,8 @@ pub struct RunOptions {
     pub drain_timeout: Duration,
     /// Called with every periodic snapshot (for progress display).
     pub on_progress: Option<ProgressFn>,
+    /// Longest wait for peers at start; `None` uses the topology's `connect_timeout_s`.
+    pub connect_timeout: Option<Duration>,
 }
 
 impl Default for RunOptions {
@@ -56,6 +59,7 @@ impl Default for RunOptions {
             metrics_interval: Duration::from_secs(2),
             drain_timeout: Duration::from_secs(10),
             on_progress: None,
+            connect_timeout: None,
         }
     }
 }
@@ -96,11 +100,38 @@ pub enum RunError {
     /// `only_node` names no node of the topology.
     #[error("node `{0}` is not in the topology")]
     UnknownNode(String),
-    /// An edge crosses to another node, which needs the transport.
+    /// A node's transport could not start (e.g. its address is taken).
+    #[error("node `{node}` cannot start its transport on {addr}: {error}")]
+    Transport {
+        /// Node name.
+        node: String,
+        /// Address it tried to bind.
+        addr: std::net::SocketAddr,
+        /// Why.
+        error: String,
+    },
+    /// A peer address cannot be reached in a multi-process run.
     #[error(
-        "edge `{0}` crosses between nodes; running a single node with cut edges needs the UDP transport, which is not implemented yet"
+        "node `{node}` needs peer `{peer}`, whose address {addr} has port 0: give fixed ports for multi-process runs"
     )]
-    NeedsTransport(String),
+    EphemeralPeer {
+        /// This node.
+        node: String,
+        /// The peer.
+        peer: String,
+        /// Its declared address.
+        addr: std::net::SocketAddr,
+    },
+    /// Peers did not come up in time.
+    #[error(
+        "peers not reachable after {waited_s:.0} s: {peers} (are their nodes started, with the same topology, cluster and secret?)"
+    )]
+    PeersUnreachable {
+        /// `node -> peer @ address` for each missing peer.
+        peers: String,
+        /// How long the node waited.
+        waited_s: f64,
+    },
     /// A stage could not be built or its `on_start` failed.
     #[error("cannot start stage `{stage}`: {error}")]
     Start {
@@ -136,6 +167,8 @@ struct Running {
 struct EdgeRun {
     edge: Arc<Edge>,
     cut: bool,
+    /// Plan edge index (the transport's edge id) and the node whose transport carries it.
+    net: Option<(u32, String)>,
 }
 
 /// A started cluster: every local stage instance is running.
@@ -146,6 +179,7 @@ pub struct Cluster {
     control: Arc<RunControl>,
     stages: Vec<Running>,
     edges: Vec<EdgeRun>,
+    nets: Vec<NodeNet>,
     events: mpsc::UnboundedReceiver<RunEvent>,
     supervisor: (ActorRef<()>, JoinHandle<()>),
     started: Instant,
@@ -172,19 +206,7 @@ impl Cluster {
                 .is_none_or(|n| &plan.instances[i].node == n)
         };
         let control = Arc::new(RunControl::default());
-        let clock = SceneClock::starting_now(plan.topology.scene_start_s, plan.topology.time_scale);
-
-        let mut edges = Vec::new();
-        for e in &plan.edges {
-            match (local(e.from), local(e.to)) {
-                (true, true) => edges.push(Some(EdgeRun {
-                    edge: Edge::new(e.name.clone(), e.settings, control.clone()),
-                    cut: e.cut,
-                })),
-                (false, false) => edges.push(None),
-                _ => return Err(RunError::NeedsTransport(e.name.clone())),
-            }
-        }
+        let (edges, nets, clock) = wire_edges(&plan, &local, &control, &options).await?;
 
         let (tx, events) = mpsc::unbounded_channel();
         let names: Names = Arc::default();
@@ -209,6 +231,7 @@ impl Cluster {
             control: control.clone(),
             stages: Vec::new(),
             edges: Vec::new(),
+            nets,
             events,
             supervisor,
             started: Instant::now(),
@@ -258,7 +281,7 @@ impl Cluster {
                         .iter()
                         .zip(&edges)
                         .filter(|(e, _)| e.from == idx && e.from_port == port.name)
-                        .filter_map(|(_, r)| r.as_ref().map(|r| r.edge.clone()))
+                        .filter_map(|(_, w)| w.producer.clone())
                         .collect(),
                     next_seq: 0,
                 })
@@ -268,9 +291,9 @@ impl Cluster {
                 .iter()
                 .zip(&edges)
                 .filter(|(e, _)| e.to == idx)
-                .filter_map(|(e, r)| {
-                    r.as_ref().map(|r| InputEdge {
-                        edge: r.edge.clone(),
+                .filter_map(|(e, w)| {
+                    w.consumer.clone().map(|edge| InputEdge {
+                        edge,
                         port: Arc::from(e.to_port),
                         from: Arc::from(plan.instances[e.from].name.as_str()),
                     })
@@ -314,7 +337,7 @@ impl Cluster {
                 }
             }
         }
-        cluster.edges = edges.into_iter().flatten().collect();
+        cluster.edges = edges.into_iter().flat_map(|w| w.runs).collect();
         cluster.started = Instant::now();
         for s in &cluster.stages {
             let _ = s.actor.cast(StageMsg::Tick);
@@ -335,10 +358,42 @@ impl Cluster {
     /// Current metrics.
     pub fn snapshot(&self, status: RunStatus, failure: Option<String>) -> MetricsSnapshot {
         let elapsed_s = self.started.elapsed().as_secs_f64();
+        let net_stats: Vec<_> = self
+            .nets
+            .iter()
+            .map(|n| (n.node.clone(), n.stats()))
+            .collect();
         let edges = self
             .edges
             .iter()
             .map(|r| {
+                let wire = r.net.as_ref().and_then(|(id, node)| {
+                    let net = self.nets.iter().find(|n| &n.node == node)?;
+                    let (_, stats) = net_stats.iter().find(|(n, _)| n == node)?;
+                    let peer = net.peer_of(*id)?.to_string();
+                    let w = stats.edges.get(id).copied().unwrap_or_default();
+                    let p = stats
+                        .peers
+                        .iter()
+                        .find(|(n, _)| *n == peer)
+                        .map(|(_, p)| *p)
+                        .unwrap_or_default();
+                    let extra = net.cut_counters(*id);
+                    Some(WireSnapshot {
+                        peer,
+                        peer_up: p.up,
+                        wire_bytes: w.wire_bytes,
+                        wire_mbps: if elapsed_s > 0.0 {
+                            w.wire_bytes as f64 * 8.0 / elapsed_s / 1e6
+                        } else {
+                            0.0
+                        },
+                        retransmissions: w.retransmissions,
+                        rtt_ms: p.srtt_s * 1000.0,
+                        lost: extra.lost,
+                        refused: extra.refused,
+                    })
+                });
                 let c = r.edge.counters();
                 let bytes = c.bytes.load(std::sync::atomic::Ordering::Relaxed);
                 EdgeSnapshot {
@@ -356,6 +411,7 @@ impl Cluster {
                     } else {
                         0.0
                     },
+                    wire,
                 }
             })
             .collect();
@@ -427,6 +483,9 @@ impl Cluster {
         };
         tracing::info!(?end, "run ending");
         self.control.begin_stopping();
+        for n in &self.nets {
+            n.poke();
+        }
         if end != EndReason::Failed {
             // Drain: sources no longer tick; let every queued message be handled.
             let drain_deadline = tokio::time::Instant::now() + self.options.drain_timeout;
@@ -513,6 +572,9 @@ impl Cluster {
         for e in &self.edges {
             e.edge.close();
         }
+        for n in &mut self.nets {
+            n.shutdown();
+        }
         stopped
     }
 
@@ -534,4 +596,189 @@ pub async fn run(
         .await?
         .run(stop)
         .await
+}
+
+/// The local halves of one plan edge: the edge a producer sends into and the edge a
+/// consumer reads from (the same edge unless the plan edge is cut).
+struct Wired {
+    producer: Option<Arc<Edge>>,
+    consumer: Option<Arc<Edge>>,
+    runs: Vec<EdgeRun>,
+}
+
+/// Creates the local edges of the plan, starts a transport for every local node with cut
+/// edges, waits until the peers they need are up, and returns the run's clock (whose epoch
+/// is the earliest among the node and its peers, so that nodes agree on scene time).
+async fn wire_edges(
+    plan: &Plan,
+    local: &impl Fn(usize) -> bool,
+    control: &Arc<RunControl>,
+    options: &RunOptions,
+) -> Result<(Vec<Wired>, Vec<NodeNet>, SceneClock), RunError> {
+    let t = &plan.topology;
+    let mut wired = Vec::new();
+    for (i, e) in plan.edges.iter().enumerate() {
+        let mut w = Wired {
+            producer: None,
+            consumer: None,
+            runs: Vec::new(),
+        };
+        if !e.cut {
+            if local(e.from) {
+                let edge = Edge::new(e.name.clone(), e.settings, control.clone());
+                w.producer = Some(edge.clone());
+                w.consumer = Some(edge.clone());
+                w.runs.push(EdgeRun {
+                    edge,
+                    cut: false,
+                    net: None,
+                });
+            }
+        } else {
+            if local(e.from) {
+                let edge = Edge::new(e.name.clone(), e.settings, control.clone());
+                w.producer = Some(edge.clone());
+                w.runs.push(EdgeRun {
+                    edge,
+                    cut: true,
+                    net: Some((i as u32, plan.instances[e.from].node.clone())),
+                });
+            }
+            if local(e.to) {
+                let edge = Edge::new(format!("{} (rx)", e.name), e.settings, control.clone());
+                w.consumer = Some(edge.clone());
+                w.runs.push(EdgeRun {
+                    edge,
+                    cut: true,
+                    net: Some((i as u32, plan.instances[e.to].node.clone())),
+                });
+            }
+        }
+        wired.push(w);
+    }
+
+    // One transport per local node that has a cut edge.
+    let epoch = now_unix_ns();
+    let mut net_nodes: Vec<String> = wired
+        .iter()
+        .flat_map(|w| &w.runs)
+        .filter_map(|r| r.net.as_ref().map(|(_, n)| n.clone()))
+        .collect();
+    net_nodes.sort();
+    net_nodes.dedup();
+    let mut nets = Vec::new();
+    for node in &net_nodes {
+        let decl = t.node(node).expect("plan nodes are declared");
+        let net = NodeNet::bind(
+            node,
+            decl.address,
+            &t.cluster,
+            &t.secret,
+            epoch,
+            &t.transport,
+            t.seed,
+        )
+        .map_err(|e| RunError::Transport {
+            node: node.clone(),
+            addr: decl.address,
+            error: e.to_string(),
+        })?;
+        tracing::info!(%node, addr = %net.local_addr(), "transport bound");
+        nets.push(net);
+    }
+    let addr_of = |peer: &str, nets: &[NodeNet]| -> Option<std::net::SocketAddr> {
+        nets.iter().find(|n| n.node == peer).map(|n| n.local_addr())
+    };
+    for (i, e) in plan.edges.iter().enumerate() {
+        if !e.cut {
+            continue;
+        }
+        let (from_node, to_node) = (&plan.instances[e.from].node, &plan.instances[e.to].node);
+        for (here, there, sending) in [(from_node, to_node, true), (to_node, from_node, false)] {
+            let Some(k) = nets.iter().position(|n| &n.node == here) else {
+                continue;
+            };
+            let addr = match addr_of(there, &nets) {
+                Some(a) => a,
+                None => {
+                    let declared = t.node(there).expect("declared").address;
+                    if declared.port() == 0 {
+                        return Err(RunError::EphemeralPeer {
+                            node: here.clone(),
+                            peer: there.clone(),
+                            addr: declared,
+                        });
+                    }
+                    declared
+                }
+            };
+            let link = t.link(here, there).copied().unwrap_or_default();
+            let net = &mut nets[k];
+            net.add_peer(there, addr, link);
+            if sending {
+                let edge = wired[i].producer.clone().expect("local producer half");
+                net.add_sender(i as u32, there, edge, e.ty, control.clone());
+            } else {
+                let edge = wired[i].consumer.clone().expect("local consumer half");
+                net.add_receiver(i as u32, there, edge, e.ty);
+            }
+        }
+    }
+    for n in &mut nets {
+        n.start();
+    }
+
+    // Wait for the peers every local node needs.
+    let waited = Instant::now();
+    let limit = options
+        .connect_timeout
+        .unwrap_or(Duration::from_secs_f64(t.transport.connect_timeout_s));
+    let mut last_log = Instant::now();
+    loop {
+        let missing: Vec<String> = nets
+            .iter()
+            .flat_map(|n| {
+                n.needed_peers()
+                    .into_iter()
+                    .filter(|p| !n.board.get(p).up)
+                    .map(move |p| (n.node.clone(), p))
+            })
+            .map(|(n, p): (String, String)| {
+                let addr =
+                    addr_of(&p, &nets).unwrap_or_else(|| t.node(&p).expect("declared").address);
+                format!("{n} -> {p} @ {addr}")
+            })
+            .collect();
+        if missing.is_empty() {
+            break;
+        }
+        if waited.elapsed() >= limit {
+            for n in &mut nets {
+                n.shutdown();
+            }
+            return Err(RunError::PeersUnreachable {
+                peers: missing.join(", "),
+                waited_s: waited.elapsed().as_secs_f64(),
+            });
+        }
+        if last_log.elapsed() >= Duration::from_secs(2) {
+            tracing::info!("waiting for peers: {}", missing.join(", "));
+            last_log = Instant::now();
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let adopted = nets
+        .iter()
+        .flat_map(|n| n.needed_peers().into_iter().map(|p| n.board.get(&p).epoch))
+        .filter(|&e| e > 0)
+        .fold(epoch, u64::min);
+    if !nets.is_empty() {
+        tracing::info!(
+            nodes = nets.len(),
+            waited_ms = waited.elapsed().as_millis() as u64,
+            "all peers up"
+        );
+    }
+    let clock = SceneClock::new(adopted, t.scene_start_s, t.time_scale);
+    Ok((wired, nets, clock))
 }

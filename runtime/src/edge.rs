@@ -79,6 +79,18 @@ struct Queued {
 }
 
 type Waker = Box<dyn Fn() + Send + Sync>;
+type ReleaseHook = Arc<dyn Fn() + Send + Sync>;
+
+/// Why [`Edge::try_push`] refused a message.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum TryPushError {
+    /// The edge is closed.
+    #[error("edge is closed")]
+    Closed,
+    /// A `block` edge has no room.
+    #[error("edge is full")]
+    Full,
+}
 
 /// Counters of one edge, updated by producers and read by metrics.
 #[derive(Debug, Default)]
@@ -102,6 +114,7 @@ pub struct Edge {
     scheduled: AtomicBool,
     closed: AtomicBool,
     waker: OnceLock<Waker>,
+    release: OnceLock<ReleaseHook>,
     control: Arc<RunControl>,
     counters: EdgeCounters,
 }
@@ -128,6 +141,7 @@ impl Edge {
             scheduled: AtomicBool::new(false),
             closed: AtomicBool::new(false),
             waker: OnceLock::new(),
+            release: OnceLock::new(),
             control,
             counters: EdgeCounters::default(),
         })
@@ -168,6 +182,14 @@ impl Edge {
         }
     }
 
+    /// Registers a hook called each time a message leaves the edge for good: its consumer
+    /// finished it, or `latest` dropped it. Cut edges return credit with it.
+    pub fn set_release_hook(&self, hook: impl Fn() + Send + Sync + 'static) {
+        if self.release.set(Arc::new(hook)).is_err() {
+            panic!("edge {} has two release hooks", self.name);
+        }
+    }
+
     /// Closes the edge: blocked and future producers get [`EdgeClosed`].
     pub fn close(&self) {
         self.closed.store(true, Ordering::SeqCst);
@@ -198,14 +220,39 @@ impl Edge {
         if self.is_closed() {
             return Err(closed());
         }
+        self.enqueue(msg, bytes, permit);
+        Ok(())
+    }
+
+    /// Enqueues `msg` without waiting: a full `block` edge refuses it.
+    pub fn try_push(&self, msg: AnyMessage, bytes: usize) -> Result<(), TryPushError> {
+        if self.is_closed() {
+            return Err(TryPushError::Closed);
+        }
+        let permit =
+            match self.settings.policy {
+                Policy::Block => Some(self.space.clone().try_acquire_owned().map_err(
+                    |e| match e {
+                        tokio::sync::TryAcquireError::Closed => TryPushError::Closed,
+                        tokio::sync::TryAcquireError::NoPermits => TryPushError::Full,
+                    },
+                )?),
+                Policy::Latest => None,
+            };
+        self.enqueue(msg, bytes, permit);
+        Ok(())
+    }
+
+    fn enqueue(&self, msg: AnyMessage, bytes: usize, permit: Option<OwnedSemaphorePermit>) {
         self.control.add_pending();
-        {
+        let dropped = {
             let mut q = self.lock();
-            if self.settings.policy == Policy::Latest && q.len() >= self.settings.capacity {
-                q.pop_front();
-                self.counters.dropped.fetch_add(1, Ordering::Relaxed);
-                self.control.done_pending();
-            }
+            let dropped =
+                if self.settings.policy == Policy::Latest && q.len() >= self.settings.capacity {
+                    q.pop_front()
+                } else {
+                    None
+                };
             q.push_back(Queued {
                 msg,
                 permit,
@@ -214,13 +261,20 @@ impl Edge {
             self.counters
                 .max_depth
                 .fetch_max(q.len() as u64, Ordering::Relaxed);
+            dropped
+        };
+        if dropped.is_some() {
+            self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+            self.control.done_pending();
+            if let Some(hook) = self.release.get() {
+                hook();
+            }
         }
         self.counters.messages.fetch_add(1, Ordering::Relaxed);
         self.counters
             .bytes
             .fetch_add(bytes as u64, Ordering::Relaxed);
         self.wake();
-        Ok(())
     }
 
     fn wake(&self) {
@@ -242,6 +296,7 @@ impl Edge {
             waited: q.enqueued.elapsed(),
             _permit: q.permit,
             control: self.control.clone(),
+            release: self.release.get().cloned(),
         })
     }
 
@@ -261,6 +316,7 @@ pub struct Delivery {
     waited: Duration,
     _permit: Option<OwnedSemaphorePermit>,
     control: Arc<RunControl>,
+    release: Option<ReleaseHook>,
 }
 
 impl Delivery {
@@ -278,6 +334,9 @@ impl Delivery {
 impl Drop for Delivery {
     fn drop(&mut self) {
         self.control.done_pending();
+        if let Some(hook) = &self.release {
+            hook();
+        }
     }
 }
 

@@ -14,6 +14,7 @@ pub mod control;
 pub mod edge;
 pub mod message;
 pub mod metrics;
+mod net;
 pub mod stage;
 pub mod topology;
 

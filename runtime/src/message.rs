@@ -61,6 +61,8 @@ impl PartialEq for MessageType {
     }
 }
 
+impl Eq for MessageType {}
+
 impl MessageType {
     /// The descriptor of `Stamped<T>` messages.
     pub fn of<T: Message>() -> Self {

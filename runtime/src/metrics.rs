@@ -116,6 +116,29 @@ pub struct EdgeSnapshot {
     pub max_depth: u64,
     /// Mean megabits per second over the run so far.
     pub mbps: f64,
+    /// Transport figures when the edge is cut.
+    pub wire: Option<WireSnapshot>,
+}
+
+/// What one half of a cut edge costs on the wire.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct WireSnapshot {
+    /// The node at the other end.
+    pub peer: String,
+    /// Whether that peer is up now.
+    pub peer_up: bool,
+    /// Bytes of DATA packets (headers and retransmissions included) sent or received.
+    pub wire_bytes: u64,
+    /// `wire_bytes` as megabits per second over the run so far.
+    pub wire_mbps: f64,
+    /// DATA packets sent again (sending half).
+    pub retransmissions: u64,
+    /// Smoothed round-trip time to the peer, milliseconds.
+    pub rtt_ms: f64,
+    /// Messages given up (peer restarted or gone while draining).
+    pub lost: u64,
+    /// Incoming messages refused (undecodable, or beyond credit).
+    pub refused: u64,
 }
 
 /// One stage instance at one moment.
@@ -209,23 +232,31 @@ impl MetricsSnapshot {
         edges.load_preset(UTF8_FULL_CONDENSED).set_header([
             "edge",
             "policy/cap",
-            "cut",
+            "peer",
             "messages",
             "MB",
             "Mbps",
             "dropped",
             "max depth",
+            "wire Mbps",
+            "retx",
+            "rtt ms",
         ]);
         for e in &self.edges {
+            let w =
+                |f: &dyn Fn(&WireSnapshot) -> String| e.wire.as_ref().map_or("-".to_string(), f);
             edges.add_row([
                 e.name.clone(),
                 format!("{}/{}", e.policy, e.capacity),
-                if e.cut { "yes" } else { "no" }.to_string(),
+                w(&|w| format!("{}{}", w.peer, if w.peer_up { "" } else { " (down)" })),
                 e.messages.to_string(),
                 format!("{:.3}", e.bytes as f64 / 1e6),
                 format!("{:.3}", e.mbps),
                 e.dropped.to_string(),
                 e.max_depth.to_string(),
+                w(&|w| format!("{:.3}", w.wire_mbps)),
+                w(&|w| w.retransmissions.to_string()),
+                w(&|w| format!("{:.3}", w.rtt_ms)),
             ]);
         }
         format!(

@@ -132,10 +132,42 @@ pub struct DriverStats {
 #[error("the transport driver has stopped")]
 pub struct DriverClosed;
 
-/// The tokio side of a running driver.
-pub struct DriverHandle {
+/// A cloneable sender of commands to a driver's I/O thread.
+#[derive(Clone)]
+pub struct Commander {
     commands: Sender<Command>,
     waker: Arc<Waker>,
+}
+
+impl Commander {
+    /// Queues a command, waiting (asynchronously) while the bounded queue is full.
+    pub async fn command(&self, mut cmd: Command) -> Result<(), DriverClosed> {
+        loop {
+            match self.commands.try_send(cmd) {
+                Ok(()) => {
+                    let _ = self.waker.wake();
+                    return Ok(());
+                }
+                Err(TrySendError::Full(c)) => {
+                    cmd = c;
+                    tokio::time::sleep(Duration::from_micros(100)).await;
+                }
+                Err(TrySendError::Disconnected(_)) => return Err(DriverClosed),
+            }
+        }
+    }
+
+    /// Queues a command from synchronous code; fails when the queue is full or closed.
+    pub fn try_command(&self, cmd: Command) -> Result<(), DriverClosed> {
+        self.commands.try_send(cmd).map_err(|_| DriverClosed)?;
+        let _ = self.waker.wake();
+        Ok(())
+    }
+}
+
+/// The tokio side of a running driver.
+pub struct DriverHandle {
+    commander: Commander,
     events: tokio::sync::mpsc::Receiver<Event>,
     stats: Arc<Mutex<DriverStats>>,
     local_addr: SocketAddr,
@@ -215,8 +247,7 @@ impl Driver {
             }
         })?;
         Ok(DriverHandle {
-            commands,
-            waker,
+            commander: Commander { commands, waker },
             events,
             stats,
             local_addr,
@@ -231,28 +262,19 @@ impl DriverHandle {
         self.local_addr
     }
 
+    /// A cloneable command sender.
+    pub fn commander(&self) -> Commander {
+        self.commander.clone()
+    }
+
     /// Queues a command, waiting (asynchronously) while the bounded queue is full.
-    pub async fn command(&self, mut cmd: Command) -> Result<(), DriverClosed> {
-        loop {
-            match self.commands.try_send(cmd) {
-                Ok(()) => {
-                    let _ = self.waker.wake();
-                    return Ok(());
-                }
-                Err(TrySendError::Full(c)) => {
-                    cmd = c;
-                    tokio::time::sleep(Duration::from_micros(100)).await;
-                }
-                Err(TrySendError::Disconnected(_)) => return Err(DriverClosed),
-            }
-        }
+    pub async fn command(&self, cmd: Command) -> Result<(), DriverClosed> {
+        self.commander.command(cmd).await
     }
 
     /// Queues a command from synchronous code; fails when the queue is full or closed.
     pub fn try_command(&self, cmd: Command) -> Result<(), DriverClosed> {
-        self.commands.try_send(cmd).map_err(|_| DriverClosed)?;
-        let _ = self.waker.wake();
-        Ok(())
+        self.commander.try_command(cmd)
     }
 
     /// The next event; `None` once the driver has stopped.

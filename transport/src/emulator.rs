@@ -8,8 +8,10 @@
 //! Model, per datagram, in this order: loss (dropped with probability `loss`); bandwidth (the
 //! datagram is serialized onto a link of `bandwidth_mbps`; when more than `queue_limit_bytes`
 //! wait for the link, it is tail-dropped like a router buffer would); latency plus Gaussian
-//! jitter of standard deviation `jitter_ms` (clamped at zero, so large jitter also reorders);
-//! reordering (with probability `reorder` the datagram is held back one extra latency + 1 ms);
+//! jitter of standard deviation `jitter_ms`, clamped at zero and never earlier than the
+//! datagram before it (a link's delay varies, but a FIFO path does not reorder); reordering
+//! (with probability `reorder` the datagram is held back one extra latency + 1 ms, and only
+//! these arrive out of order);
 //! duplication (with probability `duplicate` a second copy follows 0–1 ms later).
 
 use std::cmp::Reverse;
@@ -67,6 +69,7 @@ pub struct LinkEmulator {
     queue: BinaryHeap<Reverse<(Instant, u64, Vec<u8>)>>,
     order: u64,
     link_free_at: Option<Instant>,
+    last_at: Option<Instant>,
     /// Most bytes allowed to wait for the bandwidth-limited link.
     pub queue_limit_bytes: usize,
     stats: EmulatorStats,
@@ -81,6 +84,7 @@ impl LinkEmulator {
             queue: BinaryHeap::new(),
             order: 0,
             link_free_at: None,
+            last_at: None,
             queue_limit_bytes: 1 << 20,
             stats: EmulatorStats::default(),
         }
@@ -132,11 +136,15 @@ impl LinkEmulator {
         if p.jitter_ms > 0.0 {
             delay_ms += p.jitter_ms * self.gaussian();
         }
+        let mut at = at + Duration::from_secs_f64(delay_ms.max(0.0) / 1000.0);
         if p.reorder > 0.0 && self.rng.random::<f64>() < p.reorder {
             self.stats.reordered += 1;
-            delay_ms += p.latency_ms + 1.0;
+            at += Duration::from_secs_f64((p.latency_ms + 1.0) / 1000.0);
+        } else {
+            // FIFO: jitter delays, it does not overtake.
+            at = self.last_at.map_or(at, |l| at.max(l));
+            self.last_at = Some(at);
         }
-        let at = at + Duration::from_secs_f64(delay_ms.max(0.0) / 1000.0);
         if p.duplicate > 0.0 && self.rng.random::<f64>() < p.duplicate {
             self.stats.duplicated += 1;
             let extra = Duration::from_secs_f64(self.rng.random::<f64>() / 1000.0);

@@ -18,7 +18,7 @@ pub mod emulator;
 pub mod endpoint;
 pub mod wire;
 
-pub use driver::{Command, Driver, DriverConfig, DriverHandle, DriverStats};
+pub use driver::{Command, Commander, Driver, DriverConfig, DriverHandle, DriverStats};
 pub use emulator::{LinkEmulator, LinkProfile};
 pub use endpoint::{
     EdgeDirection, EdgeWireStats, Endpoint, EndpointConfig, Event, PeerStats, SendError,

@@ -180,22 +180,7 @@ pub struct EdgeDecl {
     pub key: String,
 }
 
-/// How one direction of a link between two nodes behaves (used by the transport's emulator).
-#[derive(Clone, Copy, Debug, PartialEq, Default)]
-pub struct LinkProfile {
-    /// One-way latency, milliseconds.
-    pub latency_ms: f64,
-    /// Jitter (standard deviation added to latency), milliseconds.
-    pub jitter_ms: f64,
-    /// Bandwidth cap in megabits per second; `None` is uncapped.
-    pub bandwidth_mbps: Option<f64>,
-    /// Packet loss probability in [0, 1].
-    pub loss: f64,
-    /// Packet duplication probability in [0, 1].
-    pub duplicate: f64,
-    /// Probability in [0, 1] that a packet is held back and delivered out of order.
-    pub reorder: f64,
-}
+pub use cloudlight_transport::LinkProfile;
 
 /// A link profile from one node to another.
 #[derive(Clone, Debug, PartialEq)]
@@ -208,6 +193,36 @@ pub struct LinkDecl {
     pub profile: LinkProfile,
     /// Where it is declared.
     pub span: Range<usize>,
+}
+
+/// Transport settings of cut edges (`[transport]`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TransportSettings {
+    /// Largest packet handed to laminar, bytes (the UDP datagram adds 5).
+    pub max_packet_bytes: usize,
+    /// Most unacknowledged packets per peer.
+    pub window_packets: usize,
+    /// Sending rate cap per peer, megabits per second.
+    pub pacing_mbps: Option<f64>,
+    /// A peer silent this long is reported lost, milliseconds.
+    pub peer_timeout_ms: f64,
+    /// Interval between heartbeats, milliseconds.
+    pub heartbeat_ms: f64,
+    /// How long a node waits at start for the peers it needs, seconds.
+    pub connect_timeout_s: f64,
+}
+
+impl Default for TransportSettings {
+    fn default() -> Self {
+        TransportSettings {
+            max_packet_bytes: 1200,
+            window_packets: 1024,
+            pacing_mbps: None,
+            peer_timeout_ms: 2000.0,
+            heartbeat_ms: 100.0,
+            connect_timeout_s: 60.0,
+        }
+    }
 }
 
 /// Defaults for edges that set no capacity or policy (over the ports' own defaults).
@@ -230,6 +245,12 @@ pub struct Topology {
     pub techniques_span: Range<usize>,
     /// Scene name or path (`cornell`, `city:N`, a glTF file).
     pub scene: String,
+    /// Cluster id: nodes of other clusters are strangers.
+    pub cluster: String,
+    /// Shared secret proving membership of the cluster (empty: none).
+    pub secret: String,
+    /// Transport settings.
+    pub transport: TransportSettings,
     /// Run seed.
     pub seed: u64,
     /// How long `run` lasts by default, seconds; `None` runs until stopped or finished.

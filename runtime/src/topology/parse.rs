@@ -14,7 +14,7 @@ use toml::de::{DeTable, DeValue};
 
 use super::{
     Diagnostic, EdgeDecl, EdgeDefaults, LinkDecl, LinkProfile, NodeDecl, PortRef, SourceMap,
-    StageDecl, Topology,
+    StageDecl, Topology, TransportSettings,
 };
 use crate::edge::Policy;
 
@@ -282,6 +282,9 @@ const TOP_KEYS: &[&str] = &[
     "techniques",
     "technique",
     "scene",
+    "cluster",
+    "secret",
+    "transport",
     "seed",
     "duration_s",
     "scene_start_s",
@@ -303,6 +306,9 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
         techniques: Vec::new(),
         techniques_span: 0..0,
         scene: "cornell".into(),
+        cluster: "cloudlight".into(),
+        secret: String::new(),
+        transport: TransportSettings::default(),
         seed: 0,
         duration_s: None,
         scene_start_s: 0.0,
@@ -371,6 +377,29 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
     if let Some(s) = top.string(&mut w, "scene") {
         topo.scene = s.into_inner();
     }
+    if let Some(c) = top.string(&mut w, "cluster") {
+        if c.get_ref().is_empty() || c.get_ref().len() > 255 {
+            w.err(&c.span(), "cluster", "must be 1 to 255 bytes");
+        }
+        topo.cluster = c.into_inner();
+    }
+    if let Some(s) = top.string(&mut w, "secret") {
+        topo.secret = s.into_inner();
+    }
+    if let Some(mut t) = top.table(&mut w, "transport") {
+        topo.transport = transport(&mut w, &mut t);
+        t.finish(
+            &mut w,
+            &[
+                "max_packet_bytes",
+                "window_packets",
+                "pacing_mbps",
+                "peer_timeout_ms",
+                "heartbeat_ms",
+                "connect_timeout_s",
+            ],
+        );
+    }
     if let Some(s) = top.uint(&mut w, "seed") {
         topo.seed = s.into_inner();
     }
@@ -404,6 +433,49 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
     top.finish(&mut w, TOP_KEYS);
     w.diags.sort_by_key(|d| (d.line, d.column));
     (topo, w.diags)
+}
+
+fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
+    let mut s = TransportSettings::default();
+    if let Some(v) = t.uint(w, "max_packet_bytes") {
+        if !(128..=65_000).contains(v.get_ref()) {
+            w.err(
+                &v.span(),
+                &t.key("max_packet_bytes"),
+                "must be in [128, 65000]",
+            );
+        }
+        s.max_packet_bytes = *v.get_ref() as usize;
+    }
+    if let Some(v) = t.uint(w, "window_packets") {
+        if !(1..=65_536).contains(v.get_ref()) {
+            w.err(&v.span(), &t.key("window_packets"), "must be in [1, 65536]");
+        }
+        s.window_packets = *v.get_ref() as usize;
+    }
+    for (k, slot) in [
+        ("peer_timeout_ms", &mut s.peer_timeout_ms),
+        ("heartbeat_ms", &mut s.heartbeat_ms),
+        ("connect_timeout_s", &mut s.connect_timeout_s),
+    ] {
+        if let Some(v) = t.float(w, k) {
+            if *v.get_ref() <= 0.0 {
+                w.err(&v.span(), &t.key(k), "must be > 0");
+            }
+            *slot = v.into_inner();
+        }
+    }
+    if let Some(v) = t.float(w, "pacing_mbps") {
+        if *v.get_ref() <= 0.0 {
+            w.err(
+                &v.span(),
+                &t.key("pacing_mbps"),
+                "must be > 0 (leave it out for no pacing)",
+            );
+        }
+        s.pacing_mbps = Some(v.into_inner());
+    }
+    s
 }
 
 fn capacity(w: &mut Walker, t: &mut Tbl<'_, '_>) -> Option<usize> {

@@ -8,6 +8,7 @@ use std::path::Path;
 
 use super::{Diagnostic, Topology, TopologyErrors, parse};
 use crate::edge::{EdgeSettings, Policy};
+use crate::message::MessageType;
 use crate::stage::StageRegistry;
 
 /// One stage instance (a replica of a stage declaration) placed on a node.
@@ -42,8 +43,8 @@ pub struct EdgePlan {
     pub to_port: &'static str,
     /// Capacity and policy.
     pub settings: EdgeSettings,
-    /// Payload type name.
-    pub ty: &'static str,
+    /// Payload type.
+    pub ty: MessageType,
     /// Whether producer and consumer are on different nodes.
     pub cut: bool,
 }
@@ -266,7 +267,7 @@ impl Plan {
                     to,
                     to_port: inp.name,
                     settings,
-                    ty: out.ty.name(),
+                    ty: out.ty,
                     cut: instances[from].node != instances[to].node,
                 });
             }

@@ -222,6 +222,8 @@ pub(crate) struct Peer {
     /// We have seen them and they have seen us.
     up: bool,
     ever_up: bool,
+    /// The peer said goodbye: only a new handshake brings it back.
+    gone: bool,
     reply_hello: bool,
     hello_due: Instant,
     last_heard: Instant,
@@ -287,6 +289,7 @@ impl Endpoint {
             remote_epoch: 0,
             up: false,
             ever_up: false,
+            gone: false,
             reply_hello: false,
             hello_due: now,
             last_heard: now,
@@ -528,6 +531,10 @@ impl Endpoint {
         }
         let peer = &mut self.peers[p];
         peer.last_heard = now;
+        if peer.gone {
+            // It said goodbye: stragglers are ignored; a new handshake revives it.
+            return;
+        }
         peer.stats.packets_received += 1;
         peer.stats.wire_bytes_received += datagram.len() as u64;
         if !peer.up && peer.ever_up && !matches!(packet.body, Body::Bye) {
@@ -571,6 +578,7 @@ impl Endpoint {
                 self.peers[p].stats.srtt_s = self.peers[p].send.srtt().as_secs_f64();
             }
             Body::Bye => {
+                self.peers[p].gone = true;
                 if self.peers[p].up {
                     self.peers[p].up = false;
                     self.events.push_back(Event::PeerLost {
@@ -630,6 +638,7 @@ impl Endpoint {
         let peer = &mut self.peers[p];
         peer.remote_epoch = epoch;
         peer.last_heard = now;
+        peer.gone = false;
         if !reply || seen != my {
             peer.reply_hello = true;
         }
