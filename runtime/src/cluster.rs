@@ -477,7 +477,10 @@ impl Cluster {
                     if let Some(p) = &self.options.on_progress { p(&snap); }
                 }
                 _ = poll.tick() => {
-                    if self.control.is_finished() { break EndReason::Finished; }
+                    let local: Vec<String> = self.nets.iter().map(|n| n.node.clone()).collect();
+                    if self.control.is_finished() && !self.nets.iter().any(|n| n.has_live_upstream(&local)) {
+                        break EndReason::Finished;
+                    }
                 }
             }
         };

@@ -45,6 +45,8 @@ pub(crate) struct PeerState {
     pub(crate) epoch: u64,
     pub(crate) restarts: u64,
     pub(crate) lost_messages: u64,
+    /// It said goodbye.
+    pub(crate) left: bool,
 }
 
 impl PeerBoard {
@@ -265,6 +267,15 @@ impl NodeNet {
         }));
     }
 
+    /// Whether a peer run by another process sends to this node and has not said goodbye:
+    /// more messages may arrive (a peer that is merely silent may come back). Peers in
+    /// `local` run in this process and finish with it.
+    pub(crate) fn has_live_upstream(&self, local: &[String]) -> bool {
+        self.receivers
+            .values()
+            .any(|(peer, _)| !local.contains(peer) && !self.board.get(peer).left)
+    }
+
     /// Peers this node needs (the other ends of its cut edges).
     pub(crate) fn needed_peers(&self) -> Vec<String> {
         let mut v: Vec<String> = self
@@ -455,7 +466,21 @@ async fn dispatch(
                 }
                 board.update(&peer, |s| {
                     s.up = true;
+                    s.left = false;
                     s.epoch = epoch;
+                });
+            }
+            Event::PeerLeft { peer } => {
+                tracing::info!(%node, %peer, "peer left");
+                for (p, s) in senders.values() {
+                    if *p == peer {
+                        s.peer_lost.store(true, Ordering::SeqCst);
+                        s.notify.notify_one();
+                    }
+                }
+                board.update(&peer, |s| {
+                    s.up = false;
+                    s.left = true;
                 });
             }
             Event::PeerLost { peer } => {

@@ -128,8 +128,13 @@ pub enum Event {
         /// The peer's handshake value (its clock epoch).
         epoch: u64,
     },
-    /// A peer was silent for longer than the timeout, or said goodbye.
+    /// A peer was silent for longer than the timeout.
     PeerLost {
+        /// Peer name.
+        peer: String,
+    },
+    /// A peer said goodbye (it is shutting down).
+    PeerLeft {
         /// Peer name.
         peer: String,
     },
@@ -579,12 +584,10 @@ impl Endpoint {
             }
             Body::Bye => {
                 self.peers[p].gone = true;
-                if self.peers[p].up {
-                    self.peers[p].up = false;
-                    self.events.push_back(Event::PeerLost {
-                        peer: self.peers[p].name.clone(),
-                    });
-                }
+                self.peers[p].up = false;
+                self.events.push_back(Event::PeerLeft {
+                    peer: self.peers[p].name.clone(),
+                });
             }
             Body::Hello { .. } => unreachable!("handled above"),
         }

@@ -1,0 +1,391 @@
+//! Clusters of `cloudlight node` processes: one process per node on loopback, a node killed
+//! and restarted, and (as root) two nodes in network namespaces joined by a veth pair.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn bin() -> PathBuf {
+    assert_cmd::cargo::cargo_bin("cloudlight")
+}
+
+fn free_ports(n: usize) -> Vec<u16> {
+    let sockets: Vec<_> = (0..n)
+        .map(|_| std::net::UdpSocket::bind("127.0.0.1:0").unwrap())
+        .collect();
+    sockets
+        .iter()
+        .map(|s| s.local_addr().unwrap().port())
+        .collect()
+}
+
+fn node(topology: &Path, name: &str, out: &Path, extra: &[&str]) -> Child {
+    Command::new(bin())
+        .args(["node"])
+        .arg(topology)
+        .args(["--node", name, "--connect-timeout", "20", "--out"])
+        .arg(out.join(name))
+        .args(extra)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// Waits for a child with a deadline, killing it if it overruns.
+fn finish(mut child: Child, limit: Duration) -> Output {
+    let start = Instant::now();
+    while start.elapsed() < limit {
+        if child.try_wait().unwrap().is_some() {
+            return child.wait_with_output().unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = child.kill();
+    let out = child.wait_with_output().unwrap();
+    panic!(
+        "process overran {limit:?}; stderr:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+fn sink_report(out: &Path, node: &str, stage: &str) -> serde_json::Value {
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join(node).join("metrics.json")).unwrap())
+            .unwrap();
+    m["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["name"] == stage)
+        .unwrap()["report"]
+        .clone()
+}
+
+fn three_node_topology(ports: &[u16]) -> String {
+    format!(
+        r#"techniques = ["probe"]
+cluster = "multiprocess-test"
+secret = "shared"
+duration_s = 3.0
+[transport]
+peer_timeout_ms = 3000
+[[node]]
+name = "a"
+address = "127.0.0.1:{}"
+[[node]]
+name = "b"
+address = "127.0.0.1:{}"
+[[node]]
+name = "c"
+address = "127.0.0.1:{}"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "a"
+params = {{ rate_hz = 200.0, payload_bytes = 4000 }}
+[[stage]]
+name = "relay"
+kind = "probe_relay"
+node = "b"
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "c"
+[[edge]]
+from = "source"
+to = "relay"
+[[edge]]
+from = "relay"
+to = "sink"
+[[link]]
+between = ["a", "b"]
+latency_ms = 2.0
+loss = 0.01
+"#,
+        ports[0], ports[1], ports[2]
+    )
+}
+
+#[test]
+fn three_node_processes_run_a_pipeline_across_two_cuts_and_stop_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let topo = dir.path().join("three.toml");
+    std::fs::write(&topo, three_node_topology(&free_ports(3))).unwrap();
+    // Started in reverse order: each waits for the peers it needs.
+    let children: Vec<(String, Child)> = ["c", "b", "a"]
+        .iter()
+        .map(|n| (n.to_string(), node(&topo, n, dir.path(), &[])))
+        .collect();
+    for (name, child) in children {
+        let out = finish(child, Duration::from_secs(60));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "node {name} failed:\n{err}");
+        assert!(err.contains("all peers up"), "node {name}:\n{err}");
+    }
+    let report = sink_report(dir.path(), "c", "sink");
+    assert!(report["received"].as_u64().unwrap() > 100, "{report}");
+    assert_eq!(report["corrupt"], 0);
+    assert_eq!(report["out_of_order"], 0);
+    let a: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("a/metrics.json")).unwrap()).unwrap();
+    let edge = &a["edges"][0];
+    assert_eq!(edge["wire"]["peer"], "b");
+    assert!(
+        edge["wire"]["retransmissions"].as_u64().unwrap() > 0,
+        "1% loss causes retransmissions: {edge}"
+    );
+}
+
+#[test]
+fn a_killed_node_is_reported_lost_and_rejoins_when_restarted() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_ports(2);
+    let topo = dir.path().join("two.toml");
+    std::fs::write(
+        &topo,
+        format!(
+            r#"techniques = ["probe"]
+cluster = "restart-test"
+duration_s = 6.0
+[transport]
+peer_timeout_ms = 500
+[[node]]
+name = "a"
+address = "127.0.0.1:{}"
+[[node]]
+name = "c"
+address = "127.0.0.1:{}"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "a"
+params = {{ rate_hz = 100.0 }}
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "c"
+[[edge]]
+from = "source"
+to = "sink"
+"#,
+            ports[0], ports[1]
+        ),
+    )
+    .unwrap();
+    let a = node(&topo, "a", dir.path(), &[]);
+    let mut c = node(&topo, "c", dir.path(), &["--duration", "60"]);
+    std::thread::sleep(Duration::from_millis(1500));
+    c.kill().unwrap();
+    c.wait().unwrap();
+    std::thread::sleep(Duration::from_millis(1200));
+    let c2 = node(&topo, "c", &dir.path().join("again"), &["--duration", "2"]);
+    let out_c2 = finish(c2, Duration::from_secs(30));
+    assert!(
+        out_c2.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out_c2.stderr)
+    );
+    let out_a = finish(a, Duration::from_secs(30));
+    let err = String::from_utf8_lossy(&out_a.stderr);
+    assert!(out_a.status.success(), "{err}");
+    let lost = err.find("peer lost").expect("a reports c lost");
+    let restarted = err
+        .find("peer restarted")
+        .expect("a sees c's new incarnation");
+    assert!(lost < restarted, "{err}");
+    let report = sink_report(&dir.path().join("again"), "c", "sink");
+    assert!(
+        report["received"].as_u64().unwrap() > 20,
+        "the restarted node receives again: {report}"
+    );
+}
+
+/// Creates two network namespaces joined by a veth pair, and removes them on drop.
+struct Namespaces {
+    names: [String; 2],
+}
+
+impl Namespaces {
+    fn create() -> Option<Namespaces> {
+        let id = std::process::id();
+        let names = [format!("cl-a-{id}"), format!("cl-b-{id}")];
+        let ns = Namespaces {
+            names: names.clone(),
+        };
+        let (a, b) = (&names[0], &names[1]);
+        let (va, vb) = (
+            format!("cla{}", id % 100_000),
+            format!("clb{}", id % 100_000),
+        );
+        let steps: Vec<Vec<String>> = vec![
+            vec!["netns".into(), "add".into(), a.clone()],
+            vec!["netns".into(), "add".into(), b.clone()],
+            vec![
+                "link".into(),
+                "add".into(),
+                va.clone(),
+                "type".into(),
+                "veth".into(),
+                "peer".into(),
+                "name".into(),
+                vb.clone(),
+            ],
+            vec![
+                "link".into(),
+                "set".into(),
+                va.clone(),
+                "netns".into(),
+                a.clone(),
+            ],
+            vec![
+                "link".into(),
+                "set".into(),
+                vb.clone(),
+                "netns".into(),
+                b.clone(),
+            ],
+            vec![
+                "-n".into(),
+                a.clone(),
+                "addr".into(),
+                "add".into(),
+                "10.213.7.1/24".into(),
+                "dev".into(),
+                va.clone(),
+            ],
+            vec![
+                "-n".into(),
+                b.clone(),
+                "addr".into(),
+                "add".into(),
+                "10.213.7.2/24".into(),
+                "dev".into(),
+                vb.clone(),
+            ],
+            vec![
+                "-n".into(),
+                a.clone(),
+                "link".into(),
+                "set".into(),
+                va,
+                "up".into(),
+            ],
+            vec![
+                "-n".into(),
+                b.clone(),
+                "link".into(),
+                "set".into(),
+                vb,
+                "up".into(),
+            ],
+            vec![
+                "-n".into(),
+                a.clone(),
+                "link".into(),
+                "set".into(),
+                "lo".into(),
+                "up".into(),
+            ],
+            vec![
+                "-n".into(),
+                b.clone(),
+                "link".into(),
+                "set".into(),
+                "lo".into(),
+                "up".into(),
+            ],
+        ];
+        for s in steps {
+            let ok = Command::new("ip")
+                .args(&s)
+                .status()
+                .map(|st| st.success())
+                .unwrap_or(false);
+            if !ok {
+                eprintln!("`ip {}` failed", s.join(" "));
+                return None; // Drop removes what was made.
+            }
+        }
+        Some(ns)
+    }
+}
+
+impl Drop for Namespaces {
+    fn drop(&mut self) {
+        for n in &self.names {
+            let _ = Command::new("ip").args(["netns", "del", n]).status();
+        }
+    }
+}
+
+#[test]
+fn two_nodes_in_network_namespaces_joined_by_veth() {
+    let root = Command::new("id")
+        .arg("-u")
+        .output()
+        .map(|o| o.stdout == b"0\n")
+        .unwrap_or(false);
+    if !root {
+        eprintln!("skipped: creating network namespaces needs root (CI runs as root)");
+        return;
+    }
+    let ns = Namespaces::create().expect("root can create network namespaces and a veth pair");
+    let dir = tempfile::tempdir().unwrap();
+    let topo = dir.path().join("netns.toml");
+    std::fs::write(
+        &topo,
+        r#"techniques = ["probe"]
+cluster = "netns-test"
+duration_s = 2.0
+[[node]]
+name = "a"
+address = "10.213.7.1:7400"
+[[node]]
+name = "b"
+address = "10.213.7.2:7400"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "a"
+params = { rate_hz = 100.0, payload_bytes = 20000 }
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "b"
+[[edge]]
+from = "source"
+to = "sink"
+"#,
+    )
+    .unwrap();
+    let spawn = |netns: &str, name: &str| {
+        Command::new("ip")
+            .args(["netns", "exec", netns])
+            .arg(bin())
+            .args(["node"])
+            .arg(&topo)
+            .args(["--node", name, "--connect-timeout", "20", "--out"])
+            .arg(dir.path().join(name))
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let b = spawn(&ns.names[1], "b");
+    let a = spawn(&ns.names[0], "a");
+    for (name, child) in [("a", a), ("b", b)] {
+        let out = finish(child, Duration::from_secs(60));
+        assert!(
+            out.status.success(),
+            "node {name}:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let report = sink_report(dir.path(), "b", "sink");
+    assert!(report["received"].as_u64().unwrap() > 50, "{report}");
+    assert_eq!(report["corrupt"], 0);
+    drop(ns);
+}
