@@ -13,6 +13,7 @@
 
 use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -137,6 +138,9 @@ pub struct DriverClosed;
 pub struct Commander {
     commands: Sender<Command>,
     waker: Arc<Waker>,
+    /// True while the I/O thread is (about to be) blocked in `poll`: only then does a new
+    /// command need a wake-up system call.
+    sleeping: Arc<AtomicBool>,
 }
 
 impl Commander {
@@ -145,7 +149,7 @@ impl Commander {
         loop {
             match self.commands.try_send(cmd) {
                 Ok(()) => {
-                    let _ = self.waker.wake();
+                    self.wake();
                     return Ok(());
                 }
                 Err(TrySendError::Full(c)) => {
@@ -160,8 +164,14 @@ impl Commander {
     /// Queues a command from synchronous code; fails when the queue is full or closed.
     pub fn try_command(&self, cmd: Command) -> Result<(), DriverClosed> {
         self.commands.try_send(cmd).map_err(|_| DriverClosed)?;
-        let _ = self.waker.wake();
+        self.wake();
         Ok(())
+    }
+
+    fn wake(&self) {
+        if self.sleeping.swap(false, Ordering::SeqCst) {
+            let _ = self.waker.wake();
+        }
     }
 }
 
@@ -225,6 +235,7 @@ impl Driver {
         poll.registry()
             .register(&mut socket, SOCKET, Interest::READABLE)?;
         let waker = Arc::new(Waker::new(poll.registry(), WAKER)?);
+        let sleeping = Arc::new(AtomicBool::new(false));
         let (commands, command_rx) = crossbeam_channel::bounded(COMMAND_CAPACITY);
         let (event_tx, events) = tokio::sync::mpsc::channel(EVENT_CAPACITY);
         let stats = Arc::new(Mutex::new(DriverStats::default()));
@@ -239,15 +250,28 @@ impl Driver {
             laminar_config,
         );
         let thread_stats = stats.clone();
+        let thread_sleeping = sleeping.clone();
         let name = format!("transport-{}", config.endpoint.node);
         let thread = std::thread::Builder::new().name(name).spawn(move || {
-            let mut io = Io::new(config, manager, poll, command_rx, event_tx, thread_stats);
+            let mut io = Io::new(
+                config,
+                manager,
+                poll,
+                command_rx,
+                event_tx,
+                thread_stats,
+                thread_sleeping,
+            );
             if let Err(e) = io.run() {
                 tracing::error!(error = %e, "transport I/O thread failed");
             }
         })?;
         Ok(DriverHandle {
-            commander: Commander { commands, waker },
+            commander: Commander {
+                commands,
+                waker,
+                sleeping,
+            },
             events,
             stats,
             local_addr,
@@ -318,6 +342,7 @@ impl Drop for DriverHandle {
 
 struct Io {
     seed: u64,
+    sleeping: Arc<AtomicBool>,
     endpoint: Endpoint,
     manager: ConnectionManager<MioSocket, VirtualConnection>,
     poll: Poll,
@@ -347,6 +372,7 @@ impl Io {
         commands: Receiver<Command>,
         events: tokio::sync::mpsc::Sender<Event>,
         stats: Arc<Mutex<DriverStats>>,
+        sleeping: Arc<AtomicBool>,
     ) -> Self {
         let now = Instant::now();
         let mut endpoint = Endpoint::new(config.endpoint, now);
@@ -360,6 +386,7 @@ impl Io {
         }
         Io {
             seed: config.seed,
+            sleeping,
             endpoint,
             manager,
             poll,
@@ -537,7 +564,15 @@ impl Io {
                 timeout = timeout.min(Duration::from_millis(1));
             }
             timeout = timeout.min(Duration::from_millis(50));
-            match self.poll.poll(&mut events, Some(timeout)) {
+            // Announce the sleep, then look once more: a command queued before the flag was
+            // set found no sleeper to wake.
+            self.sleeping.store(true, Ordering::SeqCst);
+            if !self.commands.is_empty() {
+                timeout = Duration::ZERO;
+            }
+            let polled = self.poll.poll(&mut events, Some(timeout));
+            self.sleeping.store(false, Ordering::SeqCst);
+            match polled {
                 Ok(()) => {}
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
                 Err(e) => return Err(e),

@@ -1,5 +1,11 @@
 //! Sending side of a peer link: outstanding messages, packet numbers in flight, loss
-//! detection, retransmission timeout, RTT estimation and pacing.
+//! detection, probe timeout, RTT estimation and pacing.
+//!
+//! Loss detection follows QUIC (RFC 9002): a packet is lost when a packet sent three
+//! numbers later was acknowledged, or when a later packet was acknowledged and it has been
+//! outstanding for 9/8 of the round trip. When nothing is acknowledged for a probe timeout
+//! (`srtt + 4·rttvar + ack delay`, doubling each time it fires), only the oldest packet is
+//! sent again as a probe; declaring the whole window lost on a timer would resend it all.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -62,8 +68,11 @@ pub(crate) struct SendState {
     in_flight: BTreeMap<u64, Sent>,
     largest_acked: u64,
     srtt: Option<Duration>,
+    latest_rtt: Duration,
     rttvar: Duration,
     backoff: u32,
+    /// Last time an acknowledgement made progress (or sending started from idle).
+    last_progress: Instant,
     tokens: f64,
     refilled: Instant,
 }
@@ -79,8 +88,10 @@ impl SendState {
             in_flight: BTreeMap::new(),
             largest_acked: 0,
             srtt: None,
+            latest_rtt: Duration::ZERO,
             rttvar: Duration::ZERO,
             backoff: 0,
+            last_progress: now,
             tokens: burst(config),
             refilled: now,
         }
@@ -117,6 +128,7 @@ impl SendState {
     }
 
     pub(crate) fn rtt_sample(&mut self, rtt: Duration, _config: &EndpointConfig) {
+        self.latest_rtt = rtt;
         match self.srtt {
             None => {
                 self.srtt = Some(rtt);
@@ -131,12 +143,21 @@ impl SendState {
         self.backoff = 0;
     }
 
-    fn rto(&self, config: &EndpointConfig) -> Duration {
+    /// Probe timeout, with backoff.
+    fn pto(&self, config: &EndpointConfig) -> Duration {
         let base = match self.srtt {
             None => INITIAL_RTO,
-            Some(s) => (s + self.rttvar * 4).clamp(config.min_rto, config.max_rto),
+            Some(s) => {
+                (s + self.rttvar * 4 + config.ack_delay).clamp(config.min_rto, config.max_rto)
+            }
         };
         (base * 2u32.saturating_pow(self.backoff.min(16))).min(config.max_rto)
+    }
+
+    /// How long a packet may stay unacknowledged after a later one was acknowledged.
+    fn time_threshold(&self) -> Duration {
+        let rtt = self.srtt.unwrap_or(INITIAL_RTO).max(self.latest_rtt);
+        (rtt * 9 / 8).max(Duration::from_millis(1))
     }
 
     fn refill(&mut self, config: &EndpointConfig, now: Instant) {
@@ -149,11 +170,16 @@ impl SendState {
 
     /// The next time this state needs attention (retransmission timeout or pacing).
     pub(crate) fn next_timer(&self, config: &EndpointConfig) -> Option<Instant> {
-        let rto = self
+        let loss = self
             .in_flight
-            .values()
+            .range(..self.largest_acked)
             .next()
-            .map(|s| s.at + self.rto(config));
+            .map(|(_, sent)| sent.at + self.time_threshold());
+        let probe = (!self.in_flight.is_empty()).then(|| self.last_progress + self.pto(config));
+        let rto = match (loss, probe) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
         let pace = match (config.pacing_bytes_per_s, self.pending.is_empty()) {
             (Some(rate), false) if self.tokens < config.max_packet_bytes as f64 => {
                 let need = config.max_packet_bytes as f64 - self.tokens;
@@ -209,6 +235,9 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
             return None;
         }
         s.tokens -= size;
+        if s.in_flight.is_empty() {
+            s.last_progress = now;
+        }
         let pn = s.next_pn;
         s.next_pn += 1;
         let bytes = wire::encode_data(
@@ -285,33 +314,31 @@ pub(crate) fn on_ack(ep: &mut Endpoint, p: usize, now: Instant, ranges: &[(u64, 
             peer.stats.srtt_s = s.srtt().as_secs_f64();
         }
         s.backoff = 0;
+        s.last_progress = now;
     }
     detect_losses(ep, p, now);
 }
 
-/// Declares lost the packets three numbers behind the largest acknowledged one and those
-/// older than the retransmission timeout, and queues their chunks again.
+/// Declares lost the packets three numbers behind the largest acknowledged one, or older
+/// than the time threshold with a later one acknowledged, and queues their chunks again;
+/// when the probe timeout expires, sends the oldest packet again as a probe.
 pub(crate) fn detect_losses(ep: &mut Endpoint, p: usize, now: Instant) {
     let config = &ep.config;
     let s = &mut ep.peers[p].send;
+    let threshold = s.time_threshold();
     let mut lost: Vec<u64> = s
         .in_flight
-        .range(..=s.largest_acked.saturating_sub(3))
+        .range(..s.largest_acked)
+        .filter(|(pn, sent)| **pn + 3 <= s.largest_acked || sent.at + threshold <= now)
         .map(|(pn, _)| *pn)
         .collect();
-    let rto = s.rto(config);
-    let mut timed_out = false;
-    for (pn, sent) in s.in_flight.iter() {
-        if sent.at + rto > now {
-            break;
-        }
-        if lost.last().is_none_or(|l| pn > l) {
-            lost.push(*pn);
-            timed_out = true;
-        }
-    }
-    if timed_out {
+    if lost.is_empty()
+        && let Some((&oldest, _)) = s.in_flight.iter().next()
+        && now >= s.last_progress + s.pto(config)
+    {
+        lost.push(oldest);
         s.backoff += 1;
+        s.last_progress = now;
     }
     for pn in lost.into_iter().rev() {
         let sent = s.in_flight.remove(&pn).expect("listed above");

@@ -1,0 +1,377 @@
+//! `cloudlight bench transport`: two drivers on loopback exchange messages through the link
+//! emulator, and a plain UDP blast of the same bytes in datagrams of the same size measures
+//! the ceiling. Users run it to qualify a link profile; it reports whether every message
+//! arrived byte-identical and in order, goodput, retransmissions and message round trips.
+
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+use crate::driver::{Command, Driver, DriverConfig, DriverHandle};
+use crate::emulator::LinkProfile;
+use crate::endpoint::{EdgeDirection, EndpointConfig, Event};
+
+/// What to measure.
+#[derive(Clone, Debug, Serialize)]
+pub struct BenchOptions {
+    /// Bytes per message.
+    pub size: usize,
+    /// Messages in the bulk phase.
+    pub count: usize,
+    /// Round trips measured after the bulk phase (one message out, one back).
+    pub rtt_rounds: usize,
+    /// Emulated link, applied in both directions.
+    pub link: LinkProfile,
+    /// Largest packet handed to laminar.
+    pub packet_bytes: usize,
+    /// Messages in flight end to end (the edge's capacity).
+    pub capacity: u64,
+    /// Most unacknowledged packets per peer.
+    pub window_packets: usize,
+    /// Seed of the emulators.
+    pub seed: u64,
+    /// Longest the whole bench may take.
+    #[serde(skip)]
+    pub time_limit: Duration,
+    /// Also measure a plain UDP blast of the same bytes.
+    pub udp_baseline: bool,
+}
+
+impl Default for BenchOptions {
+    fn default() -> Self {
+        BenchOptions {
+            size: 1024,
+            count: 10_000,
+            rtt_rounds: 200,
+            link: LinkProfile::default(),
+            packet_bytes: 1200,
+            capacity: 64,
+            window_packets: EndpointConfig::new("", "", b"", 1).window_packets,
+            seed: 1,
+            time_limit: Duration::from_secs(120),
+            udp_baseline: true,
+        }
+    }
+}
+
+/// What was measured.
+#[derive(Clone, Debug, Serialize)]
+pub struct BenchReport {
+    /// The options.
+    pub options: BenchOptions,
+    /// Messages sent in the bulk phase.
+    pub sent: usize,
+    /// Messages delivered in the bulk phase.
+    pub delivered: usize,
+    /// Whether every delivered message equals what was sent.
+    pub byte_identical: bool,
+    /// Whether messages arrived in sending order, each once.
+    pub in_order: bool,
+    /// Seconds from the first send to the last delivery.
+    pub elapsed_s: f64,
+    /// Message bytes delivered per second, MB/s (10⁶ bytes).
+    pub goodput_mb_s: f64,
+    /// DATA packets sent, retransmissions included.
+    pub data_packets: u64,
+    /// DATA packets that were retransmissions.
+    pub retransmissions: u64,
+    /// retransmissions / data_packets.
+    pub retransmission_ratio: f64,
+    /// Bytes of all packets the sender sent.
+    pub wire_bytes: u64,
+    /// Message round trips measured.
+    pub rtt_rounds: usize,
+    /// Median message round trip, microseconds.
+    pub rtt_p50_us: f64,
+    /// 99th percentile message round trip, microseconds.
+    pub rtt_p99_us: f64,
+    /// Plain UDP blast of the same bytes in datagrams of the same size, MB/s.
+    pub udp_blast_mb_s: Option<f64>,
+    /// goodput / UDP blast.
+    pub fraction_of_blast: Option<f64>,
+}
+
+/// Message `seq`'s bytes: a xorshift stream, eight bytes per step (cheap to make and check).
+fn pattern(seq: u64, len: usize) -> Vec<u8> {
+    let mut x = seq.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut out = Vec::with_capacity(len + 8);
+    while out.len() < len {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+    out.truncate(len);
+    out
+}
+
+fn start(name: &str, incarnation: u64, opts: &BenchOptions) -> std::io::Result<DriverHandle> {
+    let mut c = EndpointConfig::new(name, "bench", b"bench", incarnation);
+    c.max_packet_bytes = opts.packet_bytes;
+    c.window_packets = opts.window_packets;
+    c.max_message_bytes = c.max_message_bytes.max(opts.size);
+    let mut d = DriverConfig::new(c, SocketAddr::from(([127, 0, 0, 1], 0)));
+    d.seed = opts.seed ^ incarnation;
+    Driver::start(d)
+}
+
+/// Runs the bench (see the module documentation).
+pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
+    let io = |e: std::io::Error| e.to_string();
+    let mut a = start("a", 1, &opts).map_err(io)?;
+    let mut b = start("b", 2, &opts).map_err(io)?;
+    let closed = |_| "transport driver stopped".to_string();
+    a.command(Command::AddPeer {
+        name: "b".into(),
+        addr: b.local_addr(),
+        link: opts.link,
+    })
+    .await
+    .map_err(closed)?;
+    b.command(Command::AddPeer {
+        name: "a".into(),
+        addr: a.local_addr(),
+        link: opts.link,
+    })
+    .await
+    .map_err(closed)?;
+    for (h, peer, out, inp) in [(&a, "b", 1, 2), (&b, "a", 2, 1)] {
+        h.command(Command::OpenEdge {
+            edge: out,
+            peer: peer.into(),
+            direction: EdgeDirection::Send,
+            capacity: opts.capacity,
+        })
+        .await
+        .map_err(closed)?;
+        h.command(Command::OpenEdge {
+            edge: inp,
+            peer: peer.into(),
+            direction: EdgeDirection::Receive,
+            capacity: opts.capacity,
+        })
+        .await
+        .map_err(closed)?;
+    }
+    let deadline = tokio::time::Instant::now() + opts.time_limit;
+
+    // Bulk: a sends `count` messages on edge 1 within the credit; b checks and releases.
+    let mut granted = opts.capacity;
+    let mut sent = 0usize;
+    let mut delivered = 0usize;
+    let mut identical = true;
+    let mut in_order = true;
+    let mut b_events = b.take_events();
+    let mut a_events = a.take_events();
+    let start_t = Instant::now();
+    let mut last_delivery = start_t;
+    while delivered < opts.count {
+        while sent < opts.count && (sent as u64) < granted {
+            a.command(Command::Send {
+                edge: 1,
+                bytes: pattern(sent as u64, opts.size),
+            })
+            .await
+            .map_err(closed)?;
+            sent += 1;
+        }
+        tokio::select! {
+            ev = b_events.recv() => {
+                // Take everything already waiting, then release it with one command.
+                let mut released = 0;
+                let mut next = ev;
+                loop {
+                    match next {
+                        Some(Event::Message { edge: 1, seq, bytes }) => {
+                            in_order &= seq == delivered as u64;
+                            identical &= bytes == pattern(seq, opts.size);
+                            delivered += 1;
+                            released += 1;
+                            last_delivery = Instant::now();
+                        }
+                        Some(_) => {}
+                        None => return Err("receiver stopped".into()),
+                    }
+                    match b_events.try_recv() {
+                        Ok(e) => next = Some(e),
+                        Err(_) => break,
+                    }
+                }
+                if released > 0 {
+                    b.command(Command::Release { edge: 1, n: released }).await.map_err(closed)?;
+                }
+            }
+            ev = a_events.recv() => match ev {
+                Some(Event::Credit { edge: 1, granted: g }) => granted = granted.max(g),
+                Some(_) => {}
+                None => return Err("sender stopped".into()),
+            },
+            _ = tokio::time::sleep_until(deadline) => break,
+        }
+    }
+    let elapsed_s = last_delivery
+        .duration_since(start_t)
+        .as_secs_f64()
+        .max(1e-9);
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    let stats = a.stats();
+    let peer = stats.peers.first().map(|(_, p)| *p).unwrap_or_default();
+
+    // Round trips: a sends one message, b echoes it back on edge 2.
+    let mut rtts = Vec::with_capacity(opts.rtt_rounds);
+    let mut b_sent = 0u64;
+    let mut b_granted = opts.capacity;
+    for round in 0..opts.rtt_rounds {
+        if tokio::time::Instant::now() >= deadline {
+            break;
+        }
+        while (sent as u64) >= granted {
+            match a_events.recv().await {
+                Some(Event::Credit {
+                    edge: 1,
+                    granted: g,
+                }) => granted = granted.max(g),
+                Some(_) => {}
+                None => return Err("sender stopped".into()),
+            }
+        }
+        let t0 = Instant::now();
+        a.command(Command::Send {
+            edge: 1,
+            bytes: pattern(round as u64, opts.size),
+        })
+        .await
+        .map_err(closed)?;
+        sent += 1;
+        // b receives and echoes.
+        loop {
+            match b_events.recv().await {
+                Some(Event::Message { edge: 1, bytes, .. }) => {
+                    b.command(Command::Release { edge: 1, n: 1 })
+                        .await
+                        .map_err(closed)?;
+                    while b_sent >= b_granted {
+                        match b_events.recv().await {
+                            Some(Event::Credit {
+                                edge: 2,
+                                granted: g,
+                            }) => b_granted = b_granted.max(g),
+                            Some(_) => {}
+                            None => return Err("receiver stopped".into()),
+                        }
+                    }
+                    b.command(Command::Send { edge: 2, bytes })
+                        .await
+                        .map_err(closed)?;
+                    b_sent += 1;
+                    break;
+                }
+                Some(Event::Credit {
+                    edge: 2,
+                    granted: g,
+                }) => b_granted = b_granted.max(g),
+                Some(_) => {}
+                None => return Err("receiver stopped".into()),
+            }
+        }
+        loop {
+            match a_events.recv().await {
+                Some(Event::Message { edge: 2, .. }) => {
+                    rtts.push(t0.elapsed());
+                    a.command(Command::Release { edge: 2, n: 1 })
+                        .await
+                        .map_err(closed)?;
+                    break;
+                }
+                Some(Event::Credit {
+                    edge: 1,
+                    granted: g,
+                }) => granted = granted.max(g),
+                Some(_) => {}
+                None => return Err("sender stopped".into()),
+            }
+        }
+    }
+    a.close();
+    b.close();
+    rtts.sort();
+    let q = |p: f64| {
+        rtts.get(((rtts.len() as f64 * p) as usize).min(rtts.len().saturating_sub(1)))
+            .map_or(0.0, |d| d.as_secs_f64() * 1e6)
+    };
+    let goodput = (delivered * opts.size) as f64 / elapsed_s / 1e6;
+    let blast = if opts.udp_baseline {
+        // Datagrams as large as the transport's: a message's chunk plus its header, plus
+        // laminar's 5 bytes.
+        let datagram = (opts.size + crate::wire::DATA_OVERHEAD).min(opts.packet_bytes) + 5;
+        Some(udp_blast(opts.count * opts.size, datagram).map_err(io)?)
+    } else {
+        None
+    };
+    Ok(BenchReport {
+        sent: opts.count.min(sent),
+        delivered,
+        byte_identical: identical,
+        in_order,
+        elapsed_s,
+        goodput_mb_s: goodput,
+        data_packets: peer.data_packets_sent,
+        retransmissions: peer.retransmissions,
+        retransmission_ratio: if peer.data_packets_sent > 0 {
+            peer.retransmissions as f64 / peer.data_packets_sent as f64
+        } else {
+            0.0
+        },
+        wire_bytes: peer.wire_bytes_sent,
+        rtt_rounds: rtts.len(),
+        rtt_p50_us: q(0.5),
+        rtt_p99_us: q(0.99),
+        udp_blast_mb_s: blast,
+        fraction_of_blast: blast.map(|b| goodput / b),
+        options: opts,
+    })
+}
+
+/// A plain UDP blast on loopback: `total_bytes` in datagrams of `datagram_bytes`, sent as
+/// fast as the socket takes them, 4 MiB buffers. Returns the MB/s received (10⁶ bytes/s,
+/// counting only bytes that arrived).
+pub fn udp_blast(total_bytes: usize, datagram_bytes: usize) -> std::io::Result<f64> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let mk = || -> std::io::Result<std::net::UdpSocket> {
+        let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
+        let _ = s.set_recv_buffer_size(4 << 20);
+        let _ = s.set_send_buffer_size(4 << 20);
+        s.bind(&SocketAddr::from(([127, 0, 0, 1], 0)).into())?;
+        Ok(s.into())
+    };
+    let (rx, tx) = (mk()?, mk()?);
+    rx.set_read_timeout(Some(Duration::from_millis(100)))?;
+    let to = rx.local_addr()?;
+    let datagrams = total_bytes.div_ceil(datagram_bytes).max(1);
+    let receiver = std::thread::spawn(move || {
+        let mut buf = vec![0u8; 65536];
+        let (mut got, mut first, mut last) = (0usize, None, Instant::now());
+        while let Ok(n) = rx.recv(&mut buf) {
+            first.get_or_insert_with(Instant::now);
+            got += n;
+            last = Instant::now();
+        }
+        (
+            got,
+            first.map_or(0.0, |f| last.duration_since(f).as_secs_f64()),
+        )
+    });
+    let payload = vec![0x5au8; datagram_bytes];
+    for _ in 0..datagrams {
+        let _ = tx.send_to(&payload, to);
+    }
+    let (got, secs) = receiver
+        .join()
+        .map_err(|_| std::io::Error::other("receiver panicked"))?;
+    Ok(if secs > 0.0 {
+        got as f64 / secs / 1e6
+    } else {
+        0.0
+    })
+}
