@@ -195,12 +195,27 @@ fn bench_transport_reports_an_intact_transfer_through_a_lossy_link() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("bench.json");
     let out = cloudlight()
-        .args(["bench", "transport", "--size", "5000", "--count", "300", "--loss", "0.05", "--latency-ms", "1"])
+        .args([
+            "bench",
+            "transport",
+            "--size",
+            "5000",
+            "--count",
+            "300",
+            "--loss",
+            "0.05",
+            "--latency-ms",
+            "1",
+        ])
         .args(["--rtt-rounds", "20", "--json"])
         .arg(&json)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let table = String::from_utf8_lossy(&out.stdout);
     assert!(table.contains("byte-identical"), "{table}");
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
@@ -208,10 +223,16 @@ fn bench_transport_reports_an_intact_transfer_through_a_lossy_link() {
     assert_eq!(r["byte_identical"], true);
     assert_eq!(r["in_order"], true);
     assert!(r["retransmissions"].as_u64().unwrap() > 0, "{r}");
-    assert!(r["rtt_p50_us"].as_f64().unwrap() >= 2000.0, "two 1 ms hops each way: {r}");
+    assert!(
+        r["rtt_p50_us"].as_f64().unwrap() >= 2000.0,
+        "two 1 ms hops each way: {r}"
+    );
     assert!(r["udp_blast_mb_s"].as_f64().unwrap() > 0.0);
 
-    let bad = cloudlight().args(["bench", "transport", "--loss", "2"]).output().unwrap();
+    let bad = cloudlight()
+        .args(["bench", "transport", "--loss", "2"])
+        .output()
+        .unwrap();
     assert_eq!(bad.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--loss must be in [0, 1]"));
 }

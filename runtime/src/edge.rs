@@ -294,7 +294,7 @@ impl Edge {
         Some(Delivery {
             msg: q.msg,
             waited: q.enqueued.elapsed(),
-            _permit: q.permit,
+            permit: q.permit,
             control: self.control.clone(),
             release: self.release.get().cloned(),
         })
@@ -314,7 +314,7 @@ impl Edge {
 pub struct Delivery {
     msg: AnyMessage,
     waited: Duration,
-    _permit: Option<OwnedSemaphorePermit>,
+    permit: Option<OwnedSemaphorePermit>,
     control: Arc<RunControl>,
     release: Option<ReleaseHook>,
 }
@@ -333,6 +333,8 @@ impl Delivery {
 
 impl Drop for Delivery {
     fn drop(&mut self) {
+        // Free the room first: the release hook may grant a remote producer credit for it.
+        drop(self.permit.take());
         self.control.done_pending();
         if let Some(hook) = &self.release {
             hook();

@@ -385,6 +385,12 @@ impl Endpoint {
         self.malformed
     }
 
+    /// Bytes held by partial messages from `peer` (bounded by `max_reassembly_bytes`).
+    pub fn reassembly_bytes(&self, peer: &str) -> usize {
+        self.peer_index(peer)
+            .map_or(0, |i| self.peers[i].recv.reassembly_bytes())
+    }
+
     /// Messages that may be sent on `edge` now.
     pub fn credit(&self, edge: u32) -> u64 {
         self.send_edges.get(&edge).map_or(0, |e| e.available())

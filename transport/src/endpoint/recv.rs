@@ -62,6 +62,12 @@ pub(crate) struct RecvState {
     reassembly_bytes: usize,
 }
 
+impl RecvState {
+    pub(crate) fn reassembly_bytes(&self) -> usize {
+        self.reassembly_bytes
+    }
+}
+
 /// A DATA packet from peer `p`.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn on_data(

@@ -344,8 +344,53 @@ fn forged_and_malformed_data_is_refused_without_big_allocations() {
     assert!(s.delivered().is_empty());
 }
 
+#[test]
+fn pacing_holds_the_sending_rate() {
+    let mut s = Sim::new(LinkProfile::default(), 1);
+    let now = s.now;
+    let mut c = s.a.config().clone();
+    c.pacing_bytes_per_s = Some(1e6);
+    s.a = Endpoint::new(c, now);
+    s.a.add_peer("b", addr(B), now);
+    s.a.open_edge(7, "b", EdgeDirection::Send, 4).unwrap();
+    assert!(s.run_until(Duration::from_secs(1), |s| s.a.is_up("b")));
+    let start = s.now;
+    assert!(s.transfer(&[pattern(200_000, 1)], Duration::from_secs(10)));
+    let took = (s.now - start).as_secs_f64();
+    // 200 kB at 1 MB/s, less the initial burst allowance (16 packets).
+    assert!(
+        took > 0.17 && took < 0.3,
+        "200 kB paced at 1 MB/s took {took} s"
+    );
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
+
+    /// Forged DATA packets from a legitimate peer (any edge, sequence, length, chunk and
+    /// payload) never panic the receiver nor make it hold more than its reassembly bound.
+    #[test]
+    fn forged_data_never_panics_or_exceeds_the_reassembly_bound(
+        packets in proptest::collection::vec(
+            (0u32..10, 0u64..8, any::<u32>(), 0u32..100_000, proptest::collection::vec(any::<u8>(), 0..1300)),
+            1..200,
+        )
+    ) {
+        let mut s = Sim::new(LinkProfile::default(), 1);
+        let now = s.now;
+        let mut c = s.b.config().clone();
+        c.max_message_bytes = 1 << 20;
+        c.max_reassembly_bytes = 3 << 20;
+        s.b = Endpoint::new(c, now);
+        s.b.add_peer("a", addr(A), now);
+        s.b.open_edge(7, "a", EdgeDirection::Receive, 4).unwrap();
+        prop_assert!(s.run_until(Duration::from_secs(1), |s| s.b.is_up("a")));
+        for (i, (edge, seq, len, chunk, payload)) in packets.into_iter().enumerate() {
+            let d = crate::wire::encode_data(11, 10_000 + i as u64, edge, seq, len, chunk, &payload);
+            s.b.handle_datagram(now, addr(A), &d);
+            prop_assert!(s.b.reassembly_bytes("a") <= 3 << 20);
+        }
+    }
 
     /// Any mix of loss, duplication, reordering and jitter delivers every message exactly
     /// once and in order.
