@@ -273,15 +273,8 @@ fn execute(
         })),
         ..RunOptions::default()
     };
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-    {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("cannot start the async runtime: {e}");
-            return ExitCode::FAILURE;
-        }
+    let Some(runtime) = async_runtime() else {
+        return ExitCode::FAILURE;
     };
     let result: Result<RunReport, RunError> = runtime.block_on(async {
         let ticker_bar = bar.clone();
@@ -379,15 +372,8 @@ fn bench_transport(args: TransportBenchArgs) -> ExitCode {
         udp_baseline: !args.no_baseline,
         ..BenchOptions::default()
     };
-    let rt = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-    {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("cannot start the async runtime: {e}");
-            return ExitCode::FAILURE;
-        }
+    let Some(rt) = async_runtime() else {
+        return ExitCode::FAILURE;
     };
     eprintln!(
         "transport bench: {} messages of {} bytes, link {:?}",
@@ -449,5 +435,19 @@ fn bench_transport(args: TransportBenchArgs) -> ExitCode {
         ExitCode::SUCCESS
     } else {
         ExitCode::from(4)
+    }
+}
+
+/// The multi-threaded tokio runtime every command runs on; says why when it cannot start.
+fn async_runtime() -> Option<tokio::runtime::Runtime> {
+    match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(r) => Some(r),
+        Err(e) => {
+            eprintln!("cannot start the async runtime: {e}");
+            None
+        }
     }
 }

@@ -86,7 +86,7 @@ pub struct BenchReport {
     pub rtt_p50_us: f64,
     /// 99th percentile message round trip, microseconds.
     pub rtt_p99_us: f64,
-    /// Plain UDP blast of the same bytes in datagrams of the same size, MB/s.
+    /// Plain UDP blast of the same bytes (at least 32 MiB) in datagrams of the same size, MB/s.
     pub udp_blast_mb_s: Option<f64>,
     /// goodput / UDP blast.
     pub fraction_of_blast: Option<f64>,
@@ -114,6 +114,63 @@ fn start(name: &str, incarnation: u64, opts: &BenchOptions) -> std::io::Result<D
     let mut d = DriverConfig::new(c, SocketAddr::from(([127, 0, 0, 1], 0)));
     d.seed = opts.seed ^ incarnation;
     Driver::start(d)
+}
+
+/// One end of the round-trip phase: its driver, events and the credit of its sending edge.
+struct Side<'a> {
+    handle: &'a DriverHandle,
+    events: &'a mut tokio::sync::mpsc::Receiver<Event>,
+    granted: u64,
+    sent: u64,
+}
+
+impl Side<'_> {
+    fn credit(&mut self, edge: u32, event: &Event) {
+        if let Event::Credit { edge: e, granted } = *event
+            && e == edge
+        {
+            self.granted = self.granted.max(granted);
+        }
+    }
+
+    async fn next(&mut self) -> Result<Event, String> {
+        self.events
+            .recv()
+            .await
+            .ok_or_else(|| "transport driver stopped".to_string())
+    }
+
+    async fn wait_credit(&mut self, edge: u32) -> Result<(), String> {
+        while self.sent >= self.granted {
+            let e = self.next().await?;
+            self.credit(edge, &e);
+        }
+        Ok(())
+    }
+
+    async fn send(&mut self, edge: u32, bytes: Vec<u8>) -> Result<(), String> {
+        self.sent += 1;
+        self.handle
+            .command(Command::Send { edge, bytes })
+            .await
+            .map_err(|e| e.to_string())
+    }
+
+    /// Waits for a message on `edge` (keeping track of credit on `sending`) and releases it.
+    async fn receive(&mut self, edge: u32, sending: u32) -> Result<Vec<u8>, String> {
+        loop {
+            match self.next().await? {
+                Event::Message { edge: e, bytes, .. } if e == edge => {
+                    self.handle
+                        .command(Command::Release { edge, n: 1 })
+                        .await
+                        .map_err(|e| e.to_string())?;
+                    return Ok(bytes);
+                }
+                other => self.credit(sending, &other),
+            }
+        }
+    }
 }
 
 /// Runs the bench (see the module documentation).
@@ -219,79 +276,31 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
     let peer = stats.peers.first().map(|(_, p)| *p).unwrap_or_default();
 
     // Round trips: a sends one message, b echoes it back on edge 2.
+    let mut a_side = Side {
+        handle: &a,
+        events: &mut a_events,
+        granted,
+        sent: sent as u64,
+    };
+    let mut b_side = Side {
+        handle: &b,
+        events: &mut b_events,
+        granted: opts.capacity,
+        sent: 0,
+    };
     let mut rtts = Vec::with_capacity(opts.rtt_rounds);
-    let mut b_sent = 0u64;
-    let mut b_granted = opts.capacity;
     for round in 0..opts.rtt_rounds {
         if tokio::time::Instant::now() >= deadline {
             break;
         }
-        while (sent as u64) >= granted {
-            match a_events.recv().await {
-                Some(Event::Credit {
-                    edge: 1,
-                    granted: g,
-                }) => granted = granted.max(g),
-                Some(_) => {}
-                None => return Err("sender stopped".into()),
-            }
-        }
+        a_side.wait_credit(1).await?;
         let t0 = Instant::now();
-        a.command(Command::Send {
-            edge: 1,
-            bytes: pattern(round as u64, opts.size),
-        })
-        .await
-        .map_err(closed)?;
-        sent += 1;
-        // b receives and echoes.
-        loop {
-            match b_events.recv().await {
-                Some(Event::Message { edge: 1, bytes, .. }) => {
-                    b.command(Command::Release { edge: 1, n: 1 })
-                        .await
-                        .map_err(closed)?;
-                    while b_sent >= b_granted {
-                        match b_events.recv().await {
-                            Some(Event::Credit {
-                                edge: 2,
-                                granted: g,
-                            }) => b_granted = b_granted.max(g),
-                            Some(_) => {}
-                            None => return Err("receiver stopped".into()),
-                        }
-                    }
-                    b.command(Command::Send { edge: 2, bytes })
-                        .await
-                        .map_err(closed)?;
-                    b_sent += 1;
-                    break;
-                }
-                Some(Event::Credit {
-                    edge: 2,
-                    granted: g,
-                }) => b_granted = b_granted.max(g),
-                Some(_) => {}
-                None => return Err("receiver stopped".into()),
-            }
-        }
-        loop {
-            match a_events.recv().await {
-                Some(Event::Message { edge: 2, .. }) => {
-                    rtts.push(t0.elapsed());
-                    a.command(Command::Release { edge: 2, n: 1 })
-                        .await
-                        .map_err(closed)?;
-                    break;
-                }
-                Some(Event::Credit {
-                    edge: 1,
-                    granted: g,
-                }) => granted = granted.max(g),
-                Some(_) => {}
-                None => return Err("sender stopped".into()),
-            }
-        }
+        a_side.send(1, pattern(round as u64, opts.size)).await?;
+        let echo = b_side.receive(1, 2).await?;
+        b_side.wait_credit(2).await?;
+        b_side.send(2, echo).await?;
+        a_side.receive(2, 1).await?;
+        rtts.push(t0.elapsed());
     }
     a.close();
     b.close();
@@ -305,7 +314,9 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
         // Datagrams as large as the transport's: a message's chunk plus its header, plus
         // laminar's 5 bytes.
         let datagram = (opts.size + crate::wire::DATA_OVERHEAD).min(opts.packet_bytes) + 5;
-        Some(udp_blast(opts.count * opts.size, datagram).map_err(io)?)
+        // At least 32 MiB, so that a small transfer still measures the steady rate rather
+        // than a burst into the socket buffer.
+        Some(udp_blast((opts.count * opts.size).max(32 << 20), datagram).map_err(io)?)
     } else {
         None
     };
