@@ -8,6 +8,7 @@
 
 mod parse;
 mod plan;
+mod reader;
 
 use std::fmt;
 use std::net::SocketAddr;
