@@ -1,5 +1,58 @@
 //! The scene model (meshes, diffuse materials, lights in watts, cameras, animation as a
-//! function of scene time), glTF import, the built-in Cornell box and procedural `city:N`.
+//! function of scene time), the built-in Cornell box and the procedural `city:N`.
 //!
-//! Nothing is implemented yet: this crate is filled by the scenes/render issue. It never
-//! knows about actors, queues or sockets.
+//! Kernels get a [`Scene`] and a scene time and ask it for world-space triangles and light
+//! states; nothing here knows about actors, queues or sockets. glTF import arrives with the
+//! rest of the scenes issue.
+
+pub mod city;
+pub mod cornell;
+pub mod model;
+
+pub use model::{
+    Camera, CameraPath, Light, LightKind, LightState, Material, Mesh, Motion, Object, Scene,
+    WorldTriangle,
+};
+
+/// Smallest and largest `N` accepted by `city:N`.
+pub const CITY_RANGE: (usize, usize) = (1_000, 20_000_000);
+
+/// Why a scene could not be made.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SceneError {
+    /// The name is none of the built-in scenes.
+    #[error("unknown scene `{0}` (built-in: cornell, cornell-animated, city:N)")]
+    Unknown(String),
+    /// `city:N` with a bad N.
+    #[error("`{0}`: N must be a whole number from {min} to {max}", min = CITY_RANGE.0, max = CITY_RANGE.1)]
+    CitySize(String),
+}
+
+/// A built-in scene by name: `cornell`, `cornell-animated` or `city:N`.
+pub fn builtin(name: &str) -> Result<Scene, SceneError> {
+    match name {
+        "cornell" => Ok(cornell::cornell(false)),
+        "cornell-animated" => Ok(cornell::cornell(true)),
+        _ => match name.strip_prefix("city:") {
+            Some(n) => match n.replace('_', "").parse::<usize>() {
+                Ok(n) if (CITY_RANGE.0..=CITY_RANGE.1).contains(&n) => Ok(city::city(n)),
+                _ => Err(SceneError::CitySize(name.to_string())),
+            },
+            None => Err(SceneError::Unknown(name.to_string())),
+        },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtin_names() {
+        assert_eq!(builtin("cornell").unwrap().name, "cornell");
+        assert_eq!(builtin("city:1_000").unwrap().name, "city:1000");
+        assert!(matches!(builtin("city:10"), Err(SceneError::CitySize(_))));
+        assert!(matches!(builtin("city:x"), Err(SceneError::CitySize(_))));
+        assert!(matches!(builtin("sponza"), Err(SceneError::Unknown(_))));
+    }
+}
