@@ -6,6 +6,8 @@
 //! knows about actors, queues or sockets.
 
 pub mod bvh;
+pub mod reference;
 pub mod sampling;
 
 pub use bvh::{BvhKind, Hit, SceneBvh};
+pub use reference::{ReferenceImages, ReferenceRenderer, RenderSettings, render};

@@ -132,6 +132,17 @@ impl Mesh {
         ); // -y
     }
 
+    /// The same surfaces facing the other way (winding and normals reversed).
+    pub fn flipped(mut self) -> Self {
+        for t in &mut self.indices {
+            t.swap(1, 2);
+        }
+        for n in &mut self.normals {
+            *n = -*n;
+        }
+        self
+    }
+
     /// Number of triangles.
     pub fn triangle_count(&self) -> usize {
         self.indices.len()
@@ -436,6 +447,32 @@ pub struct WorldTriangle {
 }
 
 impl Scene {
+    /// The scene scaled by `s` about the origin: geometry, motions, lights and cameras
+    /// (radiance and power are unchanged).
+    pub fn scaled(mut self, s: f32) -> Self {
+        let scale = |m: &mut Motion| match m {
+            Motion::Static(a) => a.translation *= s,
+            Motion::Orbit { center, radius, .. } => {
+                *center *= s;
+                *radius *= s;
+            }
+            Motion::Path { keys } => keys.iter_mut().for_each(|(_, p)| *p *= s),
+        };
+        for o in &mut self.objects {
+            o.mesh.positions.iter_mut().for_each(|p| *p *= s);
+            scale(&mut o.motion);
+        }
+        for l in &mut self.lights {
+            scale(&mut l.motion);
+        }
+        for c in &mut self.cameras {
+            c.camera.position *= s;
+            c.camera.target *= s;
+            scale(&mut c.motion);
+        }
+        self
+    }
+
     /// Total triangle count.
     pub fn triangle_count(&self) -> usize {
         self.objects.iter().map(|o| o.mesh.triangle_count()).sum()

@@ -1,0 +1,336 @@
+//! The reference path tracer that judges every technique.
+//!
+//! Diffuse surfaces, cosine-weighted bounces (throughput × albedo), next-event estimation
+//! at every vertex towards emissive triangles (chosen by power, uniform on the triangle),
+//! point, spot and directional lights, and Russian roulette from the third bounce
+//! (q = min(0.95, max throughput channel), unbiased). Without MIS, emitters hit by bounce
+//! rays are ignored (their light arrives by NEE). Each (pixel, sample) draws from its own
+//! random stream, so images are deterministic and passes can be split at will.
+//!
+//! Three float images come out, all radiance in W·m⁻²·sr⁻¹ toward the camera:
+//! - `direct`: emitters seen by the camera + light from sources reflected once (NEE at the
+//!   primary hit) — what a client's own direct lighting computes;
+//! - `indirect`: everything else (light that bounced at least twice) = ρ/π·E_indirect at the
+//!   primary hit — what the techniques deliver;
+//! - `full` = direct + indirect.
+
+use cloudlight_scenes::{Camera, LightState, Scene};
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+
+use crate::bvh::SceneBvh;
+use crate::sampling::{Rng, basis, cosine_hemisphere, uniform_triangle};
+
+/// What to render.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// The view.
+    pub camera: Camera,
+    /// Scene time, seconds.
+    pub time_s: f64,
+    /// Seed of the random streams.
+    pub seed: u64,
+    /// Longest path (bounces), a safety bound; Russian roulette ends paths long before.
+    pub max_bounces: u32,
+}
+
+/// Accumulated radiance images (sums over samples; divide by `spp`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReferenceImages {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// Samples per pixel accumulated.
+    pub spp: u32,
+    direct_sum: Vec<Vec3>,
+    indirect_sum: Vec<Vec3>,
+}
+
+impl ReferenceImages {
+    /// Empty images.
+    pub fn new(width: u32, height: u32) -> Self {
+        let n = (width * height) as usize;
+        ReferenceImages {
+            width,
+            height,
+            spp: 0,
+            direct_sum: vec![Vec3::ZERO; n],
+            indirect_sum: vec![Vec3::ZERO; n],
+        }
+    }
+
+    fn mean(&self, sum: &[Vec3]) -> Vec<Vec3> {
+        let k = 1.0 / self.spp.max(1) as f32;
+        sum.iter().map(|v| *v * k).collect()
+    }
+
+    /// Direct radiance per pixel (row-major from the top).
+    pub fn direct(&self) -> Vec<Vec3> {
+        self.mean(&self.direct_sum)
+    }
+
+    /// Indirect radiance per pixel.
+    pub fn indirect(&self) -> Vec<Vec3> {
+        self.mean(&self.indirect_sum)
+    }
+
+    /// Full radiance per pixel.
+    pub fn full(&self) -> Vec<Vec3> {
+        let k = 1.0 / self.spp.max(1) as f32;
+        self.direct_sum
+            .iter()
+            .zip(&self.indirect_sum)
+            .map(|(d, i)| (*d + *i) * k)
+            .collect()
+    }
+}
+
+/// Emissive triangles of a BVH, ready for power-proportional sampling.
+struct Emitters {
+    triangles: Vec<u32>,
+    cdf: Vec<f32>,
+    total: f32,
+}
+
+impl Emitters {
+    fn new(scene: &Scene, bvh: &SceneBvh) -> Self {
+        let mut triangles = Vec::new();
+        let mut cdf = Vec::new();
+        let mut total = 0.0;
+        for (i, t) in bvh.triangles().iter().enumerate() {
+            let m = &scene.materials[t.material as usize];
+            let area = 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length();
+            let power = m.emission.element_sum() * area;
+            if power > 0.0 && area.is_finite() {
+                total += power;
+                triangles.push(i as u32);
+                cdf.push(total);
+            }
+        }
+        Emitters {
+            triangles,
+            cdf,
+            total,
+        }
+    }
+
+    /// A triangle and the probability of having picked it.
+    fn pick(&self, u: f32) -> Option<(u32, f32)> {
+        if self.triangles.is_empty() {
+            return None;
+        }
+        let x = u * self.total;
+        let i = self
+            .cdf
+            .partition_point(|c| *c <= x)
+            .min(self.triangles.len() - 1);
+        let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
+        Some((self.triangles[i], (self.cdf[i] - lo) / self.total))
+    }
+}
+
+/// Everything a render of one scene at one time needs besides the settings.
+pub struct ReferenceRenderer<'a> {
+    scene: &'a Scene,
+    bvh: &'a SceneBvh,
+    emitters: Emitters,
+    lights: Vec<LightState>,
+    eps: f32,
+    settings: RenderSettings,
+}
+
+impl<'a> ReferenceRenderer<'a> {
+    /// Prepares a render of `scene` (whose BVH at `settings.time_s` is `bvh`).
+    pub fn new(scene: &'a Scene, bvh: &'a SceneBvh, settings: RenderSettings) -> Self {
+        let (lo, hi) = scene.bounds_at(settings.time_s);
+        let extent = (hi - lo).length();
+        let eps = if extent.is_finite() && extent > 0.0 {
+            extent * 1e-5
+        } else {
+            1e-5
+        };
+        ReferenceRenderer {
+            scene,
+            bvh,
+            emitters: Emitters::new(scene, bvh),
+            lights: scene.lights.iter().map(|l| l.at(settings.time_s)).collect(),
+            eps,
+            settings,
+        }
+    }
+
+    /// Adds samples `first_sample .. first_sample + count` of every pixel to `images`.
+    pub fn render_pass(&self, images: &mut ReferenceImages, first_sample: u32, count: u32) {
+        let s = self.settings;
+        let aspect = s.width as f32 / s.height as f32;
+        images
+            .direct_sum
+            .par_chunks_mut(s.width as usize)
+            .zip(images.indirect_sum.par_chunks_mut(s.width as usize))
+            .enumerate()
+            .for_each(|(y, (direct_row, indirect_row))| {
+                for x in 0..s.width as usize {
+                    let pixel = (y * s.width as usize + x) as u64;
+                    for k in first_sample..first_sample + count {
+                        let mut rng = Rng::new(s.seed, pixel * 1_000_003 + k as u64);
+                        let jitter = Vec2::new(rng.next_f32(), rng.next_f32());
+                        let ndc = Vec2::new(
+                            ((x as f32 + jitter.x) / s.width as f32) * 2.0 - 1.0,
+                            1.0 - ((y as f32 + jitter.y) / s.height as f32) * 2.0,
+                        );
+                        let dir = s.camera.ray_direction(ndc, aspect);
+                        let (d, i) = self.trace(s.camera.position, dir, &mut rng);
+                        direct_row[x] += d;
+                        indirect_row[x] += i;
+                    }
+                }
+            });
+        images.spp += count;
+    }
+
+    /// Radiance along one camera ray, split into (direct, indirect).
+    fn trace(&self, origin: Vec3, dir: Vec3, rng: &mut Rng) -> (Vec3, Vec3) {
+        let mut direct = Vec3::ZERO;
+        let mut indirect = Vec3::ZERO;
+        let mut throughput = Vec3::ONE;
+        let (mut o, mut d) = (origin, dir);
+        for bounce in 0..self.settings.max_bounces {
+            let Some(hit) = self.bvh.closest_hit(o, d, f32::INFINITY) else {
+                break;
+            };
+            let tri = &self.bvh.triangles()[hit.triangle as usize];
+            let material = &self.scene.materials[tri.material as usize];
+            let ng = self.bvh.geometric_normal(hit.triangle);
+            let front = ng.dot(d) < 0.0;
+            if bounce == 0 && front {
+                direct += material.emission;
+            }
+            // Two-sided diffuse: shade with the normal facing the incoming ray.
+            let mut n = self.bvh.shading_normal(&hit);
+            let ng = if front { ng } else { -ng };
+            if n.dot(ng) < 0.0 {
+                n = -n;
+            }
+            let albedo = material.albedo
+                * material
+                    .texture
+                    .as_ref()
+                    .map_or(Vec3::ONE, |t| t.sample(self.bvh.hit_uv(&hit)));
+            let x = o + d * hit.t + ng * self.eps;
+            let nee = self.next_event(x, n, albedo, rng);
+            if bounce == 0 {
+                direct += nee;
+            } else {
+                indirect += throughput * nee;
+            }
+            // Bounce.
+            if bounce >= 2 {
+                let q = throughput.max_element().min(0.95);
+                if rng.next_f32() >= q {
+                    break;
+                }
+                throughput /= q;
+            }
+            throughput *= albedo;
+            if throughput.max_element() <= 0.0 {
+                break;
+            }
+            let (t, b) = basis(n);
+            let l = cosine_hemisphere(rng.next_f32(), rng.next_f32());
+            d = (t * l.x + b * l.y + n * l.z).normalize();
+            o = x;
+        }
+        (direct, indirect)
+    }
+
+    /// Reflected radiance at `x` (normal `n`, albedo `albedo`) from one emitter sample and
+    /// every punctual and directional light.
+    fn next_event(&self, x: Vec3, n: Vec3, albedo: Vec3, rng: &mut Rng) -> Vec3 {
+        let brdf = albedo / std::f32::consts::PI;
+        let mut e = Vec3::ZERO;
+        let (u0, u1, u2) = (rng.next_f32(), rng.next_f32(), rng.next_f32());
+        if let Some((ti, p_tri)) = self.emitters.pick(u0) {
+            let t = &self.bvh.triangles()[ti as usize];
+            let b = uniform_triangle(u1, u2);
+            let y = t.v[0] * (1.0 - b.x - b.y) + t.v[1] * b.x + t.v[2] * b.y;
+            let cross = (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]);
+            let area = 0.5 * cross.length();
+            let ny = cross / (2.0 * area);
+            let to = y - x;
+            let dist2 = to.length_squared();
+            let w = to / dist2.sqrt();
+            let (cx, cy) = (n.dot(w), -ny.dot(w));
+            if cx > 0.0 && cy > 0.0 && !self.bvh.occluded(x, w, dist2.sqrt() * (1.0 - 1e-4)) {
+                let le = self.scene.materials[t.material as usize].emission;
+                e += le * cx * cy / dist2 * area / p_tri;
+            }
+        }
+        for l in &self.lights {
+            match *l {
+                LightState::Point {
+                    position,
+                    intensity,
+                } => e += self.punctual(x, n, position, intensity, None),
+                LightState::Spot {
+                    position,
+                    direction,
+                    cos_cone,
+                    intensity,
+                } => e += self.punctual(x, n, position, intensity, Some((direction, cos_cone))),
+                LightState::Directional {
+                    direction,
+                    irradiance,
+                } => {
+                    let w = -direction;
+                    let c = n.dot(w);
+                    if c > 0.0 && !self.bvh.occluded(x, w, f32::INFINITY) {
+                        e += irradiance * c;
+                    }
+                }
+            }
+        }
+        brdf * e
+    }
+
+    fn punctual(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        p: Vec3,
+        intensity: Vec3,
+        cone: Option<(Vec3, f32)>,
+    ) -> Vec3 {
+        let to = p - x;
+        let dist2 = to.length_squared();
+        let w = to / dist2.sqrt();
+        let c = n.dot(w);
+        if c <= 0.0 || cone.is_some_and(|(axis, cos_cone)| (-w).dot(axis) < cos_cone) {
+            return Vec3::ZERO;
+        }
+        if self.bvh.occluded(x, w, dist2.sqrt() * (1.0 - 1e-4)) {
+            return Vec3::ZERO;
+        }
+        intensity * c / dist2
+    }
+}
+
+/// Renders `spp` samples per pixel in one go.
+pub fn render(
+    scene: &Scene,
+    bvh: &SceneBvh,
+    settings: RenderSettings,
+    spp: u32,
+) -> ReferenceImages {
+    let r = ReferenceRenderer::new(scene, bvh, settings);
+    let mut images = ReferenceImages::new(settings.width, settings.height);
+    r.render_pass(&mut images, 0, spp);
+    images
+}
+
+#[cfg(test)]
+mod tests;

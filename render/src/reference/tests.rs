@@ -1,0 +1,155 @@
+//! Physics checks of the reference path tracer.
+
+use cloudlight_scenes::{Camera, Material, Mesh, Motion, Object, Scene};
+use glam::Vec3;
+
+use super::*;
+use crate::bvh::BvhKind;
+
+/// A closed unit cube, inside faces of albedo `a`, every face emitting radiance `le`.
+fn furnace(a: f32, le: f32) -> Scene {
+    let mut mesh = Mesh::default();
+    mesh.push_box(Vec3::ZERO, Vec3::ONE);
+    Scene {
+        name: "furnace".into(),
+        materials: vec![Material {
+            emission: Vec3::splat(le),
+            ..Material::diffuse("wall", Vec3::splat(a))
+        }],
+        objects: vec![Object {
+            name: "box".into(),
+            mesh: mesh.flipped(),
+            material: 0,
+            motion: Motion::identity(),
+        }],
+        lights: Vec::new(),
+        cameras: Vec::new(),
+    }
+}
+
+fn settings(camera: Camera, size: u32) -> RenderSettings {
+    RenderSettings {
+        width: size,
+        height: size,
+        camera,
+        time_s: 0.0,
+        seed: 9,
+        max_bounces: 256,
+    }
+}
+
+fn rmse(img: &[Vec3], expect: f32) -> f64 {
+    (img.iter()
+        .map(|v| ((v.x - expect) as f64).powi(2))
+        .sum::<f64>()
+        / img.len() as f64)
+        .sqrt()
+}
+
+fn mean(img: &[Vec3]) -> Vec3 {
+    img.iter().copied().sum::<Vec3>() / img.len() as f32
+}
+
+#[test]
+fn a_furnace_converges_to_the_analytic_radiance() {
+    // Radiance everywhere is Le / (1 − a): Le seen directly, a·Le reflected once, the rest
+    // from longer paths.
+    let (a, le) = (0.5, 1.0);
+    let scene = furnace(a, le);
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let cam = Camera {
+        position: Vec3::splat(0.5),
+        target: Vec3::new(0.5, 0.5, 1.0),
+        up: Vec3::Y,
+        fov_y_rad: 1.2,
+    };
+    let few = render(&scene, &bvh, settings(cam, 16), 4);
+    let many = render(&scene, &bvh, settings(cam, 16), 64);
+    let full = mean(&many.full());
+    assert!((full.x - le / (1.0 - a)).abs() < 0.02, "full {full}");
+    let direct = mean(&many.direct());
+    assert!((direct.x - (le + a * le)).abs() < 0.02, "direct {direct}");
+    let indirect = mean(&many.indirect());
+    assert!(
+        (indirect.x - a * a * le / (1.0 - a)).abs() < 0.02,
+        "indirect {indirect}"
+    );
+    // Error falls as 1/√spp: 16× the samples, about a quarter of the error.
+    let (e_few, e_many) = (rmse(&few.indirect(), 0.5), rmse(&many.indirect(), 0.5));
+    let ratio = e_few / e_many;
+    assert!(
+        (2.5..6.5).contains(&ratio),
+        "error {e_few} at 4 spp, {e_many} at 64 spp: ratio {ratio}"
+    );
+}
+
+#[test]
+fn images_are_deterministic_and_passes_add_up() {
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let s = settings(scene.cameras[0].camera, 12);
+    let whole = render(&scene, &bvh, s, 6);
+    let r = ReferenceRenderer::new(&scene, &bvh, s);
+    let mut split = ReferenceImages::new(12, 12);
+    r.render_pass(&mut split, 0, 2);
+    r.render_pass(&mut split, 2, 4);
+    for (a, b) in whole.full().iter().zip(split.full()) {
+        assert!((*a - b).abs().max_element() <= 1e-5 * a.max_element().max(1.0));
+    }
+    assert_eq!(whole, render(&scene, &bvh, s, 6));
+}
+
+#[test]
+fn scene_scale_and_light_power_change_images_as_physics_says() {
+    let base = cloudlight_scenes::builtin("cornell").unwrap();
+    let image = |scene: &Scene| {
+        let bvh = SceneBvh::at(scene, 0.0, BvhKind::default());
+        let img = render(scene, &bvh, settings(scene.cameras[0].camera, 10), 8);
+        let full = img.full();
+        assert!(full.iter().all(|v| v.is_finite() && v.min_element() >= 0.0));
+        mean(&full)
+    };
+    let reference = image(&base);
+    assert!(reference.min_element() > 0.0);
+    // Radiance does not depend on the unit of length.
+    for s in [1e-3, 1e4] {
+        let m = image(&base.clone().scaled(s));
+        assert!(
+            ((m - reference) / reference).abs().max_element() < 0.02,
+            "scale {s}: {m} vs {reference}"
+        );
+    }
+    // It is linear in the emitted power: the 0.7 W light at 1e-6 W and 1e6 W.
+    let power = base.emitted_power_w().x;
+    for watts in [1e-6f32, 1e6] {
+        let mut s = base.clone();
+        let k = watts / power;
+        s.materials.iter_mut().for_each(|m| m.emission *= k);
+        let m = image(&s);
+        assert!(
+            ((m / k - reference) / reference).abs().max_element() < 1e-3,
+            "{watts} W: {m}"
+        );
+    }
+}
+
+#[test]
+fn a_scene_without_lights_is_black_and_degenerate_triangles_are_harmless() {
+    let mut s = cloudlight_scenes::builtin("cornell").unwrap();
+    s.materials.iter_mut().for_each(|m| m.emission = Vec3::ZERO);
+    let junk = Mesh {
+        positions: vec![Vec3::splat(0.3); 3],
+        normals: vec![Vec3::ZERO; 3],
+        indices: vec![[0, 1, 2]],
+        ..Default::default()
+    };
+    s.objects.push(Object {
+        name: "degenerate".into(),
+        mesh: junk,
+        material: 0,
+        motion: Motion::identity(),
+    });
+    let bvh = SceneBvh::at(&s, 0.0, BvhKind::default());
+    let img = render(&s, &bvh, settings(s.cameras[0].camera, 8), 2);
+    assert!(img.full().iter().all(|v| *v == Vec3::ZERO));
+}
