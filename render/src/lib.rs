@@ -6,6 +6,8 @@
 //! knows about actors, queues or sockets.
 
 pub mod bvh;
+pub mod image_io;
+pub mod metrics;
 pub mod reference;
 pub mod sampling;
 

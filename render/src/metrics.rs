@@ -1,0 +1,247 @@
+//! Image error metrics: RMSE, relMSE, PSNR and FLIP (LDR through NVIDIA's reference code
+//! via the `nv-flip` crate, HDR by the exposure bracketing of HDR-FLIP on top of it).
+//!
+//! Images are linear RGB radiance, row-major, `width × height`. relMSE uses an absolute
+//! ε = 0.01 in the image's units: state units and ε with every number (ALGORITHMS.md §4).
+
+use glam::Vec3;
+
+/// The ε of relMSE used throughout the project.
+pub const REL_MSE_EPSILON: f64 = 0.01;
+
+/// Default viewing condition of FLIP: 67 pixels per degree (a 0.7 m wide 4K screen at 0.7 m).
+pub const PIXELS_PER_DEGREE: f32 = 67.0;
+
+fn pairs<'a>(test: &'a [Vec3], reference: &'a [Vec3]) -> impl Iterator<Item = (f64, f64)> + 'a {
+    assert_eq!(test.len(), reference.len(), "images differ in size");
+    test.iter()
+        .zip(reference)
+        .flat_map(|(a, b)| (0..3).map(move |c| (a[c] as f64, b[c] as f64)))
+}
+
+/// Mean squared error over pixels and channels.
+pub fn mse(test: &[Vec3], reference: &[Vec3]) -> f64 {
+    let n = (test.len() * 3).max(1) as f64;
+    pairs(test, reference)
+        .map(|(x, y)| (x - y).powi(2))
+        .sum::<f64>()
+        / n
+}
+
+/// Root mean squared error.
+pub fn rmse(test: &[Vec3], reference: &[Vec3]) -> f64 {
+    mse(test, reference).sqrt()
+}
+
+/// Relative MSE: mean over pixels and channels of (x − y)² / (y² + ε), y the reference.
+pub fn relmse(test: &[Vec3], reference: &[Vec3], epsilon: f64) -> f64 {
+    let n = (test.len() * 3).max(1) as f64;
+    pairs(test, reference)
+        .map(|(x, y)| (x - y).powi(2) / (y * y + epsilon))
+        .sum::<f64>()
+        / n
+}
+
+/// Peak signal-to-noise ratio in dB, the peak being the reference's largest channel value
+/// (infinite for identical images).
+pub fn psnr(test: &[Vec3], reference: &[Vec3]) -> f64 {
+    let peak = reference
+        .iter()
+        .map(|v| v.max_element())
+        .fold(0.0f32, f32::max) as f64;
+    10.0 * (peak * peak / mse(test, reference)).log10()
+}
+
+/// A FLIP comparison.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Flip {
+    /// Mean per-pixel error in [0, 1].
+    pub mean: f32,
+    /// Per-pixel error in [0, 1].
+    pub error_map: Vec<f32>,
+    /// Pixel counts in ten equal bins over [0, 1].
+    pub histogram: [u32; 10],
+}
+
+impl Flip {
+    fn from_map(error_map: Vec<f32>) -> Self {
+        let mut histogram = [0u32; 10];
+        for e in &error_map {
+            histogram[((e * 10.0) as usize).min(9)] += 1;
+        }
+        let mean = error_map.iter().map(|e| *e as f64).sum::<f64>() / error_map.len().max(1) as f64;
+        Flip {
+            mean: mean as f32,
+            error_map,
+            histogram,
+        }
+    }
+}
+
+/// LDR-FLIP of sRGB8 images (RGB, 3 bytes per pixel).
+pub fn flip_ldr(
+    test: &[u8],
+    reference: &[u8],
+    width: u32,
+    height: u32,
+    pixels_per_degree: f32,
+) -> Flip {
+    let r = nv_flip::FlipImageRgb8::with_data(width, height, reference);
+    let t = nv_flip::FlipImageRgb8::with_data(width, height, test);
+    Flip::from_map(nv_flip::flip(r, t, pixels_per_degree).to_vec())
+}
+
+/// The ACES filmic curve (Narkowicz's fit), linear in → [0, 1] out.
+pub fn aces(x: f32) -> f32 {
+    let x = x.max(0.0);
+    ((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14)).clamp(0.0, 1.0)
+}
+
+/// Linear [0, 1] → sRGB-encoded byte.
+pub fn srgb8(x: f32) -> u8 {
+    let x = x.clamp(0.0, 1.0);
+    let s = if x <= 0.003_130_8 {
+        12.92 * x
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    };
+    (s * 255.0 + 0.5) as u8
+}
+
+/// Tone-maps a linear image at exposure `2^stops` with ACES to sRGB8 RGB bytes.
+pub fn tonemap(image: &[Vec3], stops: f32) -> Vec<u8> {
+    let k = 2f32.powf(stops);
+    image
+        .iter()
+        .flat_map(|v| {
+            [
+                srgb8(aces(v.x * k)),
+                srgb8(aces(v.y * k)),
+                srgb8(aces(v.z * k)),
+            ]
+        })
+        .collect()
+}
+
+fn luminance(v: Vec3) -> f32 {
+    0.2126 * v.x + 0.7152 * v.y + 0.0722 * v.z
+}
+
+/// The exposures (stops) HDR-FLIP brackets for `reference`: from the one at which its
+/// brightest pixel reaches 0.85 after tone mapping to the one at which its median does.
+pub fn hdr_exposures(reference: &[Vec3]) -> Vec<f32> {
+    let mut y: Vec<f32> = reference
+        .iter()
+        .map(|v| luminance(*v))
+        .filter(|l| l.is_finite() && *l > 0.0)
+        .collect();
+    if y.is_empty() {
+        return vec![0.0];
+    }
+    y.sort_by(f32::total_cmp);
+    let (median, max) = (y[y.len() / 2], y[y.len() - 1]);
+    // Input that ACES maps to 0.85, by bisection (the curve is monotonic).
+    let (mut lo, mut hi) = (0.0f32, 100.0f32);
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if aces(mid) < 0.85 { lo = mid } else { hi = mid }
+    }
+    let target = 0.5 * (lo + hi);
+    let stop = (target / max).log2();
+    let start = (target / median).log2();
+    let n = ((start - stop).ceil() as usize).max(2);
+    (0..n)
+        .map(|i| stop + (start - stop) * i as f32 / (n - 1) as f32)
+        .collect()
+}
+
+/// HDR-FLIP of linear images: LDR-FLIP at each exposure of [`hdr_exposures`] (ACES tone
+/// mapping), keeping each pixel's largest error.
+pub fn flip_hdr(
+    test: &[Vec3],
+    reference: &[Vec3],
+    width: u32,
+    height: u32,
+    pixels_per_degree: f32,
+) -> Flip {
+    let mut worst = vec![0.0f32; test.len()];
+    for stops in hdr_exposures(reference) {
+        let f = flip_ldr(
+            &tonemap(test, stops),
+            &tonemap(reference, stops),
+            width,
+            height,
+            pixels_per_degree,
+        );
+        for (w, e) in worst.iter_mut().zip(f.error_map) {
+            *w = w.max(e);
+        }
+    }
+    Flip::from_map(worst)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn flat(v: f32, n: usize) -> Vec<Vec3> {
+        vec![Vec3::splat(v); n]
+    }
+
+    #[test]
+    fn closed_forms_on_constant_images() {
+        let (a, b) = (flat(1.1, 16), flat(1.0, 16));
+        assert!((rmse(&a, &b) - 0.1).abs() < 1e-6);
+        assert!((relmse(&a, &b, 0.01) - 0.01 / 1.01).abs() < 1e-6);
+        assert!((psnr(&a, &b) - 20.0).abs() < 1e-4);
+        assert_eq!(rmse(&b, &b), 0.0);
+        assert_eq!(relmse(&b, &b, REL_MSE_EPSILON), 0.0);
+        assert!(psnr(&b, &b).is_infinite());
+        // relMSE is asymmetric: relative to the reference.
+        assert!(relmse(&b, &a, 0.01) < relmse(&a, &b, 0.01));
+    }
+
+    #[test]
+    fn flip_sees_nothing_between_equal_images_and_much_between_black_and_white() {
+        let (w, h) = (32, 32);
+        let grey = vec![128u8; (w * h * 3) as usize];
+        let same = flip_ldr(&grey, &grey, w, h, PIXELS_PER_DEGREE);
+        assert!(same.mean < 1e-6, "{}", same.mean);
+        assert_eq!(same.histogram[0], w * h);
+        let black = vec![0u8; (w * h * 3) as usize];
+        let white = vec![255u8; (w * h * 3) as usize];
+        let far = flip_ldr(&black, &white, w, h, PIXELS_PER_DEGREE);
+        assert!(far.mean > 0.8, "{}", far.mean);
+        let noisy: Vec<u8> = grey
+            .iter()
+            .enumerate()
+            .map(|(i, g)| g.wrapping_add((i % 7) as u8))
+            .collect();
+        let small = flip_ldr(&noisy, &grey, w, h, PIXELS_PER_DEGREE);
+        assert!(small.mean > 0.0 && small.mean < 0.2, "{}", small.mean);
+    }
+
+    #[test]
+    fn hdr_flip_does_not_depend_on_the_unit_of_radiance() {
+        let (w, h) = (24, 24);
+        let reference: Vec<Vec3> = (0..w * h)
+            .map(|i| Vec3::splat(0.05 + (i % 24) as f32 * 0.2))
+            .collect();
+        let test: Vec<Vec3> = reference
+            .iter()
+            .enumerate()
+            .map(|(i, v)| *v * if i % 5 == 0 { 1.3 } else { 1.0 })
+            .collect();
+        let f1 = flip_hdr(&test, &reference, w, h, PIXELS_PER_DEGREE);
+        let scaled = |img: &[Vec3]| img.iter().map(|v| *v * 1000.0).collect::<Vec<_>>();
+        let f2 = flip_hdr(&scaled(&test), &scaled(&reference), w, h, PIXELS_PER_DEGREE);
+        assert!(f1.mean > 0.0);
+        assert!(
+            (f1.mean - f2.mean).abs() < 0.01,
+            "{} vs {}",
+            f1.mean,
+            f2.mean
+        );
+        assert!(hdr_exposures(&reference).len() >= 2);
+    }
+}
