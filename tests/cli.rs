@@ -236,3 +236,66 @@ fn bench_transport_reports_an_intact_transfer_through_a_lossy_link() {
     assert_eq!(bad.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--loss must be in [0, 1]"));
 }
+
+#[test]
+fn reference_writes_three_float_images_and_pngs() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = cloudlight()
+        .args([
+            "reference",
+            "cornell",
+            "--spp",
+            "4",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for name in ["full", "direct", "indirect"] {
+        let (w, h, px) =
+            cloudlight::render::image_io::read_exr(&dir.path().join(format!("{name}.exr")))
+                .unwrap();
+        assert_eq!((w, h), (32, 24));
+        assert!(px.iter().all(|v| v.is_finite() && v.min_element() >= 0.0));
+        assert!(px.iter().any(|v| v.max_element() > 0.0), "{name} is black");
+        assert!(dir.path().join(format!("{name}.png")).exists());
+    }
+    let bad = cloudlight()
+        .args(["reference", "cornell", "--camera", "7", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("has 1 camera paths"));
+    let custom = cloudlight()
+        .args([
+            "reference",
+            "city:1000",
+            "--spp",
+            "1",
+            "--width",
+            "8",
+            "--height",
+            "8",
+            "--camera",
+            "-4,2,-4:20,1,20:60",
+            "--out",
+        ])
+        .arg(dir.path().join("city"))
+        .output()
+        .unwrap();
+    assert!(
+        custom.status.success(),
+        "{}",
+        String::from_utf8_lossy(&custom.stderr)
+    );
+}

@@ -5,6 +5,8 @@
 //! states; nothing here knows about actors, queues or sockets. glTF import arrives with the
 //! rest of the scenes issue.
 
+pub use glam;
+
 pub mod city;
 pub mod cornell;
 pub mod model;
