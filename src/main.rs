@@ -99,6 +99,20 @@ enum BenchCommand {
     ///
     /// Prints a table and the JSON report (also written to --json PATH if given).
     Transport(TransportBenchArgs),
+    /// Ray casting on a scene: BVH build time, and million rays per second for coherent
+    /// camera rays (1280x720) and incoherent diffuse-bounce rays, for CWBVH and BVH2 at each
+    /// thread count (best of --rounds passes).
+    Rays {
+        /// Scene: `cornell`, `cornell-animated` or `city:N`.
+        #[arg(long, default_value = "city:250000")]
+        scene: String,
+        /// Thread counts, comma-separated.
+        #[arg(long, value_delimiter = ',', default_value = "1,2")]
+        threads: Vec<usize>,
+        /// Passes over the rays; the best is kept.
+        #[arg(long, default_value_t = 3)]
+        rounds: usize,
+    },
 }
 
 #[derive(clap::Args)]
@@ -228,6 +242,14 @@ fn main() -> ExitCode {
             what: BenchCommand::Transport(args),
         } => bench_transport(args),
         Command::Reference(args) => reference(args),
+        Command::Bench {
+            what:
+                BenchCommand::Rays {
+                    scene,
+                    threads,
+                    rounds,
+                },
+        } => bench_rays(&scene, &threads, rounds),
         Command::Kinds => {
             for k in registry.kinds() {
                 println!("{} (technique {}): {}", k.name, k.technique, k.summary);
@@ -618,6 +640,54 @@ fn reference(args: ReferenceArgs) -> ExitCode {
         render_s,
         t0.elapsed().as_secs_f64(),
         args.out.display()
+    );
+    ExitCode::SUCCESS
+}
+
+fn bench_rays(scene: &str, threads: &[usize], rounds: usize) -> ExitCode {
+    let t = Instant::now();
+    let scene = match cloudlight::scenes::builtin(scene) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    eprintln!(
+        "{}: {} triangles, generated in {:.2} s",
+        scene.name,
+        scene.triangle_count(),
+        t.elapsed().as_secs_f64()
+    );
+    let rows = cloudlight::render::raybench::run(&scene, threads, rounds.max(1));
+    let mut table = comfy_table::Table::new();
+    table
+        .load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
+        .set_header([
+            "BVH",
+            "threads",
+            "build s",
+            "coherent Mrays/s",
+            "incoherent Mrays/s",
+        ]);
+    let mut json = Vec::new();
+    for r in &rows {
+        table.add_row([
+            format!("{:?}", r.kind),
+            r.threads.to_string(),
+            format!("{:.3}", r.build_s),
+            format!("{:.2}", r.coherent_mrays_s),
+            format!("{:.2}", r.incoherent_mrays_s),
+        ]);
+        json.push(serde_json::json!({
+            "bvh": format!("{:?}", r.kind), "threads": r.threads, "build_s": r.build_s,
+            "coherent_mrays_s": r.coherent_mrays_s, "incoherent_mrays_s": r.incoherent_mrays_s,
+        }));
+    }
+    println!("{table}");
+    println!(
+        "{}",
+        serde_json::json!({ "scene": scene.name, "triangles": scene.triangle_count(), "rows": json })
     );
     ExitCode::SUCCESS
 }
