@@ -65,7 +65,7 @@ enum Command {
 
 #[derive(clap::Args)]
 struct ReferenceArgs {
-    /// Scene: `cornell`, `cornell-animated` or `city:N`.
+    /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.
     scene: String,
     /// View: the index of one of the scene's camera paths, or `px,py,pz:tx,ty,tz[:fov_deg]`
     /// (eye and target in meters, vertical field of view in degrees, default 45).
@@ -103,7 +103,7 @@ enum BenchCommand {
     /// camera rays (1280x720) and incoherent diffuse-bounce rays, for CWBVH and BVH2 at each
     /// thread count (best of --rounds passes).
     Rays {
-        /// Scene: `cornell`, `cornell-animated` or `city:N`.
+        /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.
         #[arg(long, default_value = "city:250000")]
         scene: String,
         /// Thread counts, comma-separated.
@@ -552,7 +552,7 @@ fn reference(args: ReferenceArgs) -> ExitCode {
     use cloudlight::render::{
         BvhKind, ReferenceImages, ReferenceRenderer, RenderSettings, SceneBvh, image_io,
     };
-    let scene = match cloudlight::scenes::builtin(&args.scene) {
+    let scene = match cloudlight::scenes::load(&args.scene) {
         Ok(s) => s,
         Err(e) => {
             eprintln!("error: {e}");
@@ -646,7 +646,7 @@ fn reference(args: ReferenceArgs) -> ExitCode {
 
 fn bench_rays(scene: &str, threads: &[usize], rounds: usize) -> ExitCode {
     let t = Instant::now();
-    let scene = match cloudlight::scenes::builtin(scene) {
+    let scene = match cloudlight::scenes::load(scene) {
         Ok(s) => s,
         Err(e) => {
             eprintln!("error: {e}");

@@ -230,6 +230,7 @@ pub fn city(n: usize) -> Scene {
         power_w: Vec3::ZERO,
         motion: Motion::identity(),
         sun_path: Some(SunPath {
+            fixed: None,
             day_length_s: 600.0,
             max_elevation_rad: 1.1,
             phase: 0.2,

@@ -2,13 +2,13 @@
 //! function of scene time), the built-in Cornell box and the procedural `city:N`.
 //!
 //! Kernels get a [`Scene`] and a scene time and ask it for world-space triangles and light
-//! states; nothing here knows about actors, queues or sockets. glTF import arrives with the
-//! rest of the scenes issue.
+//! states; nothing here knows about actors, queues or sockets. [`load`] also reads glTF 2.0.
 
 pub use glam;
 
 pub mod city;
 pub mod cornell;
+pub mod gltf_import;
 pub mod model;
 
 pub use model::{
@@ -23,11 +23,31 @@ pub const CITY_RANGE: (usize, usize) = (1_000, 20_000_000);
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum SceneError {
     /// The name is none of the built-in scenes.
-    #[error("unknown scene `{0}` (built-in: cornell, cornell-animated, city:N)")]
+    #[error(
+        "unknown scene `{0}` (built-in: cornell, cornell-animated, city:N; or a .gltf/.glb file)"
+    )]
     Unknown(String),
+    /// A glTF file could not be loaded.
+    #[error("{file}: {message}")]
+    Gltf {
+        /// The file.
+        file: String,
+        /// What is wrong.
+        message: String,
+    },
     /// `city:N` with a bad N.
     #[error("`{0}`: N must be a whole number from {min} to {max}", min = CITY_RANGE.0, max = CITY_RANGE.1)]
     CitySize(String),
+}
+
+/// A scene by name (`cornell`, `cornell-animated`, `city:N`) or path to a glTF 2.0 file
+/// (`.gltf` or `.glb`).
+pub fn load(spec: &str) -> Result<Scene, SceneError> {
+    let lower = spec.to_ascii_lowercase();
+    if lower.ends_with(".gltf") || lower.ends_with(".glb") {
+        return gltf_import::load(std::path::Path::new(spec));
+    }
+    builtin(spec)
 }
 
 /// A built-in scene by name: `cornell`, `cornell-animated` or `city:N`.

@@ -274,9 +274,12 @@ pub struct Light {
     pub sun_path: Option<SunPath>,
 }
 
-/// A sun direction as a function of time: a day of `day_length_s` scene seconds.
+/// A sun direction as a function of time: a day of `day_length_s` scene seconds, or a
+/// fixed direction.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SunPath {
+    /// A fixed direction of travel, overriding the day cycle.
+    pub fixed: Option<Vec3>,
     /// Scene seconds per day.
     pub day_length_s: f64,
     /// Highest elevation above the horizon, radians.
@@ -286,8 +289,21 @@ pub struct SunPath {
 }
 
 impl SunPath {
+    /// A sun that does not move, its light travelling along `direction`.
+    pub fn fixed(direction: Vec3) -> Self {
+        SunPath {
+            fixed: Some(direction.normalize_or(Vec3::NEG_Y)),
+            day_length_s: 1.0,
+            max_elevation_rad: 1.0,
+            phase: 0.0,
+        }
+    }
+
     /// Unit direction of travel of sunlight at `t_s` (pointing down when the sun is up).
     pub fn direction(&self, t_s: f64) -> Vec3 {
+        if let Some(d) = self.fixed {
+            return d;
+        }
         let day = (t_s / self.day_length_s + self.phase).fract() as f32;
         let azimuth = day * std::f32::consts::TAU;
         // Elevation follows a sine over the day, kept above the horizon.
