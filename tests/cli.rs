@@ -299,3 +299,20 @@ fn reference_writes_three_float_images_and_pngs() {
         String::from_utf8_lossy(&custom.stderr)
     );
 }
+
+#[test]
+fn plan_describes_the_scene_and_the_allocations() {
+    let out = cloudlight().args(["plan", "cornell"]).output().unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("32 triangles"), "{text}");
+    assert!(text.contains("0.7290 / 0.5146 / 0.1715 W"), "{text}");
+    assert!(text.contains("512³"), "{text}");
+    assert!(text.contains("49 bases"), "{text}");
+    let bad = cloudlight()
+        .args(["plan", "nowhere.gltf"])
+        .output()
+        .unwrap();
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("nowhere.gltf"));
+}

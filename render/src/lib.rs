@@ -8,6 +8,7 @@
 pub mod bvh;
 pub mod image_io;
 pub mod metrics;
+pub mod plan;
 pub mod raybench;
 pub mod reference;
 pub mod sampling;

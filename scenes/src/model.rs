@@ -497,10 +497,9 @@ impl Scene {
     /// Whether anything moves (objects, lights or the sun).
     pub fn is_animated(&self) -> bool {
         self.objects.iter().any(|o| o.motion.is_animated())
-            || self
-                .lights
-                .iter()
-                .any(|l| l.motion.is_animated() || l.sun_path.is_some())
+            || self.lights.iter().any(|l| {
+                l.motion.is_animated() || l.sun_path.as_ref().is_some_and(|s| s.fixed.is_none())
+            })
     }
 
     /// Every triangle in world space at scene time `t_s`, objects in order.

@@ -1,0 +1,215 @@
+//! `cloudlight plan SCENE`: what a scene is and what each technique would allocate for it
+//! with its default settings — the project models only what a scene requires.
+//!
+//! The allocations are computed from the scene, not guessed: occupied voxels per octree
+//! level come from voxelizing every triangle (points sampled at half the leaf size, so every
+//! touched leaf is found); photon batches from each light's power; light-map texels from the
+//! surface area. The defaults are calibrated on the paper's Cornell box figures (10k photons
+//! in one batch, a 128² light map with 50 bases, a 9-level octree).
+
+use std::collections::HashSet;
+
+use cloudlight_scenes::{LightKind, Scene};
+use glam::Vec3;
+
+/// Technique settings the plan uses.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PlanSettings {
+    /// Photons emitted per watt (summed over channels).
+    pub photons_per_watt: f64,
+    /// Photons per batch.
+    pub batch_size: u64,
+    /// Octree levels; the leaf grid is 2^levels per axis over the scene's largest extent.
+    pub octree_levels: u32,
+    /// Light-map texels per square meter of surface.
+    pub texels_per_m2: f64,
+    /// Light-map texels per basis.
+    pub texels_per_basis: f64,
+}
+
+impl Default for PlanSettings {
+    fn default() -> Self {
+        // Cornell box: 1.42 W summed over channels → 10k photons; 2.0 m² → 128² texels; 50 bases.
+        PlanSettings {
+            photons_per_watt: 7_050.0,
+            batch_size: 10_000,
+            octree_levels: 9,
+            texels_per_m2: 8_200.0,
+            texels_per_basis: 330.0,
+        }
+    }
+}
+
+/// A light's photon budget.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LightPlan {
+    /// Light name.
+    pub name: String,
+    /// Watts summed over channels (directional: irradiance × the scene's ground area).
+    pub power_w: f64,
+    /// Photons per iteration.
+    pub photons: u64,
+    /// Batches per iteration.
+    pub batches: u64,
+}
+
+/// What `plan` reports.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScenePlan {
+    /// Triangles.
+    pub triangles: usize,
+    /// Bounds (min, max), meters.
+    pub bounds: (Vec3, Vec3),
+    /// Surface area, m².
+    pub area_m2: f64,
+    /// Whether anything moves.
+    pub animated: bool,
+    /// Emitted power of lights and emissive surfaces, W per channel.
+    pub emitted_w: Vec3,
+    /// Photon budget per light (emissive surfaces count as one light).
+    pub lights: Vec<LightPlan>,
+    /// Occupied voxels per octree level, root (level 0) first.
+    pub voxels_per_level: Vec<u64>,
+    /// Leaf voxel size, meters.
+    pub leaf_voxel_m: f32,
+    /// Light-map texels.
+    pub lightmap_texels: u64,
+    /// Light-map bases.
+    pub bases: u64,
+}
+
+/// Computes the plan of `scene` at scene time 0.
+pub fn plan(scene: &Scene, s: &PlanSettings) -> ScenePlan {
+    let tris = scene.triangles_at(0.0);
+    let (lo, hi) = scene.bounds_at(0.0);
+    let area: f64 = tris
+        .iter()
+        .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length() as f64)
+        .sum();
+    let ground = ((hi.x - lo.x) * (hi.z - lo.z)).max(0.0) as f64;
+    let budget = |name: &str, power_w: f64| {
+        let photons = (power_w * s.photons_per_watt).round() as u64;
+        LightPlan {
+            name: name.to_string(),
+            power_w,
+            photons,
+            batches: photons.div_ceil(s.batch_size.max(1)),
+        }
+    };
+    let mut lights: Vec<LightPlan> = scene
+        .lights
+        .iter()
+        .map(|l| match &l.kind {
+            LightKind::Directional { irradiance_w_m2 } => {
+                budget(&l.name, irradiance_w_m2.element_sum() as f64 * ground)
+            }
+            _ => budget(&l.name, l.power_w.element_sum() as f64),
+        })
+        .collect();
+    let surface_power = scene.emitted_power_w()
+        - scene
+            .lights
+            .iter()
+            .filter(|l| !matches!(l.kind, LightKind::Directional { .. }))
+            .map(|l| l.power_w)
+            .sum::<Vec3>();
+    if surface_power.element_sum() > 0.0 {
+        lights.push(budget(
+            "emissive surfaces",
+            surface_power.element_sum() as f64,
+        ));
+    }
+
+    // Voxelize at the leaf level; parents are the leaves shifted down.
+    let levels = s.octree_levels.min(12);
+    let n = 1u64 << levels;
+    let extent = (hi - lo).max_element().max(1e-6);
+    let leaf = extent / n as f32;
+    let mut occupied: HashSet<u64> = HashSet::new();
+    let cell = |p: Vec3| -> u64 {
+        let q = ((p - lo) / leaf)
+            .floor()
+            .clamp(Vec3::ZERO, Vec3::splat((n - 1) as f32));
+        (q.x as u64) | (q.y as u64) << 20 | (q.z as u64) << 40
+    };
+    for t in &tris {
+        let (e1, e2) = (t.v[1] - t.v[0], t.v[2] - t.v[0]);
+        let steps = ((e1.length().max(e2.length()) / (0.5 * leaf)).ceil() as u32).clamp(1, 1 << 16);
+        for i in 0..=steps {
+            for j in 0..=(steps - i) {
+                let (a, b) = (i as f32 / steps as f32, j as f32 / steps as f32);
+                occupied.insert(cell(t.v[0] + e1 * a + e2 * b));
+            }
+        }
+    }
+    let mut voxels_per_level = vec![0u64; levels as usize + 1];
+    for l in 0..=levels {
+        let shift = levels - l;
+        let mask = (1u64 << 20) - 1;
+        let at_level: HashSet<u64> = occupied
+            .iter()
+            .map(|c| {
+                ((c & mask) >> shift)
+                    | (((c >> 20) & mask) >> shift) << 20
+                    | ((c >> 40) >> shift) << 40
+            })
+            .collect();
+        voxels_per_level[l as usize] = at_level.len() as u64;
+    }
+    let texels = (area * s.texels_per_m2).round() as u64;
+    ScenePlan {
+        triangles: tris.len(),
+        bounds: (lo, hi),
+        area_m2: area,
+        animated: scene.is_animated(),
+        emitted_w: scene.emitted_power_w(),
+        lights,
+        voxels_per_level,
+        leaf_voxel_m: leaf,
+        lightmap_texels: texels,
+        bases: (texels as f64 / s.texels_per_basis).ceil() as u64,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_cornell_box_plans_like_the_paper() {
+        let p = plan(
+            &cloudlight_scenes::builtin("cornell").unwrap(),
+            &PlanSettings::default(),
+        );
+        assert_eq!(p.triangles, 32);
+        assert_eq!(p.lights.len(), 1);
+        assert_eq!(p.lights[0].batches, 1, "one batch of 10k photons");
+        assert!(
+            (9_000..11_000).contains(&p.lights[0].photons),
+            "{}",
+            p.lights[0].photons
+        );
+        assert!(
+            (14_000..19_000).contains(&p.lightmap_texels),
+            "about 128²: {}",
+            p.lightmap_texels
+        );
+        assert!((40..60).contains(&p.bases), "about 50 bases: {}", p.bases);
+        assert_eq!(p.voxels_per_level[0], 1);
+        assert!(
+            p.voxels_per_level
+                .windows(2)
+                .all(|w| w[1] >= w[0] && w[1] <= w[0] * 8)
+        );
+        // Surfaces are 2D: occupied leaves grow about 4× per level, far below the 8× of a volume.
+        let (a, b) = (p.voxels_per_level[8] as f64, p.voxels_per_level[9] as f64);
+        assert!((3.0..5.0).contains(&(b / a)), "{a} → {b}");
+    }
+
+    #[test]
+    fn a_scene_without_lights_plans_no_photons() {
+        let mut s = cloudlight_scenes::builtin("cornell").unwrap();
+        s.materials.iter_mut().for_each(|m| m.emission = Vec3::ZERO);
+        assert!(plan(&s, &PlanSettings::default()).lights.is_empty());
+    }
+}
