@@ -375,16 +375,9 @@ impl Io {
         sleeping: Arc<AtomicBool>,
     ) -> Self {
         let now = Instant::now();
-        let mut endpoint = Endpoint::new(config.endpoint, now);
-        let mut emulators = HashMap::new();
-        for (name, addr) in config.peers.iter() {
-            endpoint.add_peer(name, *addr, now);
-            if let Some(profile) = config.links.get(name).filter(|p| !p.is_transparent()) {
-                let seed = config.seed ^ hash_name(name);
-                emulators.insert(*addr, (name.clone(), LinkEmulator::new(*profile, seed)));
-            }
-        }
-        Io {
+        let endpoint = Endpoint::new(config.endpoint, now);
+        let emulators = HashMap::new();
+        let mut io = Io {
             seed: config.seed,
             sleeping,
             endpoint,
@@ -399,7 +392,12 @@ impl Io {
             refused_sends: 0,
             closing: None,
             aborted: false,
+        };
+        for (name, addr) in config.peers {
+            let link = config.links.get(&name).copied().unwrap_or_default();
+            io.apply(Command::AddPeer { name, addr, link }, now);
         }
+        io
     }
 
     fn apply(&mut self, cmd: Command, now: Instant) {
