@@ -9,6 +9,7 @@ pub mod bvh;
 pub mod image_io;
 pub mod metrics;
 pub mod plan;
+pub mod raster;
 pub mod raybench;
 pub mod reference;
 pub mod sampling;
