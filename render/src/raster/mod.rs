@@ -1,5 +1,5 @@
-//! Raster on wgpu, headless: the client-side G-buffer (world position, normal, albedo),
-//! read back to the CPU. Direct lighting with shadow maps builds on it (next step).
+//! Raster on wgpu, headless: the client-side G-buffer (world position, normal, albedo) and
+//! direct lighting with shadow maps ([`direct`]), read back to the CPU.
 //!
 //! On a GPU-less Linux box wgpu gets an adapter from Mesa's software drivers (Vulkan
 //! lavapipe from `mesa-vulkan-drivers`, or EGL/GL llvmpipe from `libegl-mesa0` +
@@ -8,6 +8,10 @@
 use cloudlight_scenes::{Camera, Scene, WorldTriangle};
 use glam::{Mat4, Vec3, Vec4};
 use wgpu::util::DeviceExt;
+
+pub mod direct;
+
+pub use direct::ShadowSettings;
 
 /// Why the raster cannot run.
 #[derive(Debug, thiserror::Error)]
@@ -33,6 +37,9 @@ pub struct Raster {
     adapter_info: wgpu::AdapterInfo,
     gbuffer: wgpu::RenderPipeline,
     globals_layout: wgpu::BindGroupLayout,
+    shadow: wgpu::RenderPipeline,
+    direct_pipeline: wgpu::RenderPipeline,
+    direct_layout: wgpu::BindGroupLayout,
 }
 
 /// The G-buffer of one view, on the CPU (row-major from the top).
@@ -62,6 +69,127 @@ struct Vertex {
 const POSITION_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 const NORMAL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 const ALBEDO_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+
+/// The shadow pipeline (depth only, sharing the G-buffer's `globals` layout) and the
+/// full-screen direct-lighting pipeline with its bind group layout.
+fn direct_pipelines(
+    device: &wgpu::Device,
+    globals_pipeline_layout: &wgpu::PipelineLayout,
+) -> (
+    wgpu::RenderPipeline,
+    wgpu::RenderPipeline,
+    wgpu::BindGroupLayout,
+) {
+    let shadow_shader = device.create_shader_module(wgpu::include_wgsl!("shadow.wgsl"));
+    let shadow = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("shadow"),
+        layout: Some(globals_pipeline_layout),
+        vertex: wgpu::VertexState {
+            module: &shadow_shader,
+            entry_point: Some("vs_main"),
+            compilation_options: Default::default(),
+            buffers: &[Some(wgpu::VertexBufferLayout {
+                array_stride: 12,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &wgpu::vertex_attr_array![0 => Float32x3],
+            })],
+        },
+        primitive: wgpu::PrimitiveState {
+            cull_mode: None,
+            ..Default::default()
+        },
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: wgpu::TextureFormat::Depth32Float,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::Less),
+            stencil: Default::default(),
+            bias: wgpu::DepthBiasState {
+                constant: 2,
+                slope_scale: 1.5,
+                clamp: 0.0,
+            },
+        }),
+        multisample: Default::default(),
+        fragment: None,
+        multiview_mask: None,
+        cache: None,
+    });
+    let texture = |binding, sample_type, view_dimension| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Texture {
+            sample_type,
+            view_dimension,
+            multisampled: false,
+        },
+        count: None,
+    };
+    let buffer = |binding, ty| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Buffer {
+            ty,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    };
+    let unfilterable = wgpu::TextureSampleType::Float { filterable: false };
+    let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("direct"),
+        entries: &[
+            texture(0, unfilterable, wgpu::TextureViewDimension::D2),
+            texture(1, unfilterable, wgpu::TextureViewDimension::D2),
+            texture(2, unfilterable, wgpu::TextureViewDimension::D2),
+            texture(
+                3,
+                wgpu::TextureSampleType::Depth,
+                wgpu::TextureViewDimension::D2Array,
+            ),
+            wgpu::BindGroupLayoutEntry {
+                binding: 4,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
+                count: None,
+            },
+            buffer(5, wgpu::BufferBindingType::Storage { read_only: true }),
+            buffer(6, wgpu::BufferBindingType::Storage { read_only: true }),
+            buffer(7, wgpu::BufferBindingType::Uniform),
+        ],
+    });
+    let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some("direct"),
+        bind_group_layouts: &[Some(&layout)],
+        immediate_size: 0,
+    });
+    let shader = device.create_shader_module(wgpu::include_wgsl!("direct.wgsl"));
+    let direct = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("direct"),
+        layout: Some(&pipeline_layout),
+        vertex: wgpu::VertexState {
+            module: &shader,
+            entry_point: Some("vs_main"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: Default::default(),
+        depth_stencil: None,
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: &shader,
+            entry_point: Some("fs_main"),
+            compilation_options: Default::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format: wgpu::TextureFormat::Rgba32Float,
+                blend: None,
+                write_mask: wgpu::ColorWrites::ALL,
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    });
+    (shadow, direct, layout)
+}
 
 /// clip_from_world of a camera (wgpu clip space: y up, z in [0, 1]).
 pub fn clip_from_world(camera: &Camera, aspect: f32, near: f32, far: f32) -> Mat4 {
@@ -150,12 +278,16 @@ impl Raster {
             multiview_mask: None,
             cache: None,
         });
+        let (shadow, direct_pipeline, direct_layout) = direct_pipelines(&device, &layout);
         Ok(Raster {
             device,
             queue,
             adapter_info,
             gbuffer,
             globals_layout,
+            shadow,
+            direct_pipeline,
+            direct_layout,
         })
     }
 
@@ -164,15 +296,17 @@ impl Raster {
         &self.adapter_info
     }
 
-    /// Rasterizes the G-buffer of `triangles` seen by `camera`.
-    pub fn gbuffer(
+    /// Records the G-buffer pass of `triangles` seen by `camera` into `enc`; returns the
+    /// position, normal and albedo targets.
+    pub(crate) fn encode_gbuffer(
         &self,
+        enc: &mut wgpu::CommandEncoder,
         scene: &Scene,
         triangles: &[WorldTriangle],
         camera: &Camera,
         width: u32,
         height: u32,
-    ) -> Result<GBuffer, RasterError> {
+    ) -> [wgpu::Texture; 3] {
         let d = &self.device;
         let vertices: Vec<Vertex> = triangles
             .iter()
@@ -223,7 +357,9 @@ impl Raster {
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
                 format,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                    | wgpu::TextureUsages::COPY_SRC
+                    | wgpu::TextureUsages::TEXTURE_BINDING,
                 view_formats: &[],
             })
         };
@@ -238,7 +374,6 @@ impl Raster {
             .map(|t| t.create_view(&Default::default()))
             .collect();
         let depth_view = depth.create_view(&Default::default());
-        let mut enc = d.create_command_encoder(&Default::default());
         {
             let attachments: Vec<_> = views
                 .iter()
@@ -276,9 +411,55 @@ impl Raster {
                 pass.draw(0..vertices.len() as u32, 0..1);
             }
         }
+        targets
+    }
+
+    /// Rasterizes the G-buffer of `triangles` seen by `camera` and reads it back.
+    pub fn gbuffer(
+        &self,
+        scene: &Scene,
+        triangles: &[WorldTriangle],
+        camera: &Camera,
+        width: u32,
+        height: u32,
+    ) -> Result<GBuffer, RasterError> {
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        let targets = self.encode_gbuffer(&mut enc, scene, triangles, camera, width, height);
+        let planes = self.read_back(
+            enc,
+            &targets
+                .each_ref()
+                .map(|t| (t, if t.format() == POSITION_FORMAT { 16 } else { 8 })),
+            width,
+            height,
+        )?;
+        Ok(GBuffer {
+            width,
+            height,
+            position: planes[0].clone(),
+            normal: planes[1].iter().map(|v| v.truncate()).collect(),
+            albedo: planes[2].iter().map(|v| v.truncate()).collect(),
+        })
+    }
+
+    /// Submits `enc` with copies of `textures` (Rgba32Float: 16 bytes per pixel, Rgba16Float:
+    /// 8) and returns their pixels.
+    pub(crate) fn read_back(
+        &self,
+        mut enc: wgpu::CommandEncoder,
+        textures: &[(&wgpu::Texture, u32)],
+        width: u32,
+        height: u32,
+    ) -> Result<Vec<Vec<Vec4>>, RasterError> {
+        let d = &self.device;
+        let size = wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        };
         // Read the three targets back (rows padded to 256 bytes).
         let mut readbacks = Vec::new();
-        for (t, bytes_per_px) in targets.iter().zip([16u32, 8, 8]) {
+        for &(t, bytes_per_px) in textures {
             let row = (width * bytes_per_px).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
                 * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
             let buf = d.create_buffer(&wgpu::BufferDescriptor {
@@ -334,13 +515,7 @@ impl Raster {
             buf.unmap();
             planes.push(px);
         }
-        Ok(GBuffer {
-            width,
-            height,
-            position: planes[0].clone(),
-            normal: planes[1].iter().map(|v| v.truncate()).collect(),
-            albedo: planes[2].iter().map(|v| v.truncate()).collect(),
-        })
+        Ok(planes)
     }
 }
 
