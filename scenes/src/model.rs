@@ -338,6 +338,17 @@ pub enum LightState {
         /// Radiant intensity inside the cone, W/sr per channel.
         intensity: Vec3,
     },
+    /// A small piece of an emissive surface: a Lambertian point emitter whose radiant
+    /// intensity toward a direction at angle θ from `normal` is `intensity`·cos θ (zero
+    /// behind it). Techniques and the raster approximate area lights with these.
+    Surface {
+        /// Position, meters.
+        position: Vec3,
+        /// Unit normal of the emitting side.
+        normal: Vec3,
+        /// Radiant intensity along the normal (radiance × area), W/sr per channel.
+        intensity: Vec3,
+    },
     /// Directional light.
     Directional {
         /// Unit direction light travels.
@@ -518,6 +529,51 @@ impl Scene {
                     uv: i.map(uv),
                     material: o.material,
                 });
+            }
+        }
+        out
+    }
+
+    /// Emissive surfaces at scene time `t_s` as Lambertian point emitters: each emissive
+    /// triangle is split into `n`² equal sub-triangles, one emitter at each centroid.
+    pub fn surface_light_samples(&self, t_s: f64, n: u32) -> Vec<LightState> {
+        let n = n.max(1);
+        let mut out = Vec::new();
+        for t in self.triangles_at(t_s) {
+            let le = self.materials[t.material as usize].emission;
+            if le.max_element() <= 0.0 {
+                continue;
+            }
+            let cross = (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]);
+            let area = 0.5 * cross.length();
+            if area <= 0.0 || !area.is_finite() {
+                continue;
+            }
+            let normal = cross.normalize();
+            let intensity = le * (area / (n * n) as f32);
+            // A regular subdivision: upward and downward sub-triangles.
+            let at = |i: f32, j: f32| {
+                t.v[0] + (t.v[1] - t.v[0]) * (i / n as f32) + (t.v[2] - t.v[0]) * (j / n as f32)
+            };
+            for i in 0..n {
+                for j in 0..(n - i) {
+                    let (fi, fj) = (i as f32, j as f32);
+                    let up = (at(fi, fj) + at(fi + 1.0, fj) + at(fi, fj + 1.0)) / 3.0;
+                    out.push(LightState::Surface {
+                        position: up,
+                        normal,
+                        intensity,
+                    });
+                    if i + j + 1 < n {
+                        let down =
+                            (at(fi + 1.0, fj) + at(fi, fj + 1.0) + at(fi + 1.0, fj + 1.0)) / 3.0;
+                        out.push(LightState::Surface {
+                            position: down,
+                            normal,
+                            intensity,
+                        });
+                    }
+                }
             }
         }
         out

@@ -49,6 +49,17 @@ struct Params {
     pad: f32,
 }
 
+/// Cube-map faces (view direction, up); the order matches cube_face() in direct.wgsl:
+/// +x, −x, +y, −y, +z, −z. Views are a little wider than 90° so that face borders overlap.
+const CUBE_FACES: [(Vec3, Vec3); 6] = [
+    (Vec3::X, Vec3::NEG_Y),
+    (Vec3::NEG_X, Vec3::NEG_Y),
+    (Vec3::Y, Vec3::Z),
+    (Vec3::NEG_Y, Vec3::NEG_Z),
+    (Vec3::Z, Vec3::NEG_Y),
+    (Vec3::NEG_Z, Vec3::NEG_Y),
+];
+
 fn perspective_view(eye: Vec3, dir: Vec3, up: Vec3, fov: f32, near: f32, far: f32) -> Mat4 {
     glam::camera::rh::proj::directx::perspective(fov, 1.0, near, far)
         * glam::camera::rh::view::look_to_mat4(eye, dir, up)
@@ -68,16 +79,7 @@ fn shadow_views(lights: &[LightState], lo: Vec3, hi: Vec3) -> (Vec<Mat4>, Vec<Li
                 position,
                 intensity,
             } => {
-                // Face order matches cube_face() in direct.wgsl: +x, −x, +y, −y, +z, −z.
-                for (dir, up) in [
-                    (Vec3::X, Vec3::NEG_Y),
-                    (Vec3::NEG_X, Vec3::NEG_Y),
-                    (Vec3::Y, Vec3::Z),
-                    (Vec3::NEG_Y, Vec3::NEG_Z),
-                    (Vec3::Z, Vec3::NEG_Y),
-                    (Vec3::NEG_Z, Vec3::NEG_Y),
-                ] {
-                    // A little wider than 90° so that face borders overlap.
+                for (dir, up) in CUBE_FACES {
                     views.push(perspective_view(
                         position,
                         dir,
@@ -90,6 +92,29 @@ fn shadow_views(lights: &[LightState], lo: Vec3, hi: Vec3) -> (Vec<Mat4>, Vec<Li
                 gpu.push(LightGpu {
                     position: [position.x, position.y, position.z, 0.0],
                     direction: [0.0; 4],
+                    intensity: [intensity.x, intensity.y, intensity.z, first],
+                });
+            }
+            LightState::Surface {
+                position,
+                normal,
+                intensity,
+            } => {
+                // Shadow views from just in front of the emitter, over the whole sphere.
+                let eye = position + normal * radius * 1e-3;
+                for (dir, up) in CUBE_FACES {
+                    views.push(perspective_view(
+                        eye,
+                        dir,
+                        up,
+                        92f32.to_radians(),
+                        near,
+                        far,
+                    ));
+                }
+                gpu.push(LightGpu {
+                    position: [eye.x, eye.y, eye.z, 3.0],
+                    direction: [normal.x, normal.y, normal.z, 0.0],
                     intensity: [intensity.x, intensity.y, intensity.z, first],
                 });
             }
@@ -167,6 +192,13 @@ impl Raster {
         }
         let (views, gpu_lights) = shadow_views(lights, lo, hi);
         let layers = views.len().max(1) as u32;
+        let max_layers = d.limits().max_texture_array_layers;
+        if layers > max_layers {
+            return Err(RasterError::TooManyShadowViews {
+                views: layers,
+                max: max_layers,
+            });
+        }
         let shadow_tex = d.create_texture(&wgpu::TextureDescriptor {
             label: Some("shadow maps"),
             size: wgpu::Extent3d {

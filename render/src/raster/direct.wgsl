@@ -2,9 +2,10 @@
 // directional lights. Layouts match raster/direct.rs (`LightGpu`, `ShadowView`, `Params`).
 
 struct LightGpu {
-    // xyz: position (m); w: kind (0 point, 1 spot, 2 directional).
+    // xyz: position (m); w: kind (0 point, 1 spot, 2 directional, 3 surface sample).
     position: vec4<f32>,
-    // xyz: unit direction (spot axis / travel of sunlight); w: cosine of the spot cone.
+    // xyz: unit direction (spot axis / travel of sunlight / emitter normal); w: cosine of the
+    // spot cone.
     direction: vec4<f32>,
     // rgb: intensity (W/sr) or irradiance (W/m²); w: index of the light's first shadow view.
     intensity: vec4<f32>,
@@ -92,12 +93,17 @@ fn fs_main(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<f32> {
             continue;
         }
         var view = first;
-        if (kind == 0u) {
+        var falloff = 1.0;
+        if (kind == 0u || kind == 3u) {
             view = first + cube_face(-w);
+            if (kind == 3u) {
+                // Lambertian emitter: intensity × cosine at the light, nothing behind it.
+                falloff = max(dot(-w, l.direction.xyz), 0.0);
+            }
         } else if (dot(-w, l.direction.xyz) < l.direction.w) {
             continue;
         }
-        e += l.intensity.rgb * c / dist2 * visibility(view, p);
+        e += l.intensity.rgb * falloff * c / dist2 * visibility(view, p);
     }
     return vec4<f32>(albedo / 3.14159265 * e, 1.0);
 }

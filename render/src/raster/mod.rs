@@ -25,6 +25,17 @@ pub enum RasterError {
     /// The adapter refused a device.
     #[error("the graphics adapter refused a device: {0}")]
     Device(String),
+    /// More shadow views (6 per point or surface light, 1 per spot or sun) than the device
+    /// allows texture layers.
+    #[error(
+        "{views} shadow views exceed the device's {max} texture layers: use fewer lights or light samples"
+    )]
+    TooManyShadowViews {
+        /// Views needed.
+        views: u32,
+        /// Device limit.
+        max: u32,
+    },
     /// Reading results back failed.
     #[error("reading back from the GPU failed: {0}")]
     Readback(String),

@@ -282,6 +282,14 @@ impl<'a> ReferenceRenderer<'a> {
                     cos_cone,
                     intensity,
                 } => e += self.punctual(x, n, position, intensity, Some((direction, cos_cone))),
+                LightState::Surface {
+                    position,
+                    normal,
+                    intensity,
+                } => {
+                    let cos_light = (x - position).normalize_or_zero().dot(normal).max(0.0);
+                    e += self.punctual(x, n, position, intensity * cos_light, None);
+                }
                 LightState::Directional {
                     direction,
                     irradiance,
