@@ -106,6 +106,16 @@ enum BenchCommand {
     ///
     /// Prints a table and the JSON report (also written to --json PATH if given).
     Transport(TransportBenchArgs),
+    /// Raster on wgpu: G-buffer + direct light with shadow maps of a scene's view at
+    /// 1280x720 (median of --rounds frames, after one warm-up).
+    Raster {
+        /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.
+        #[arg(long, default_value = "city:100000")]
+        scene: String,
+        /// Frames timed.
+        #[arg(long, default_value_t = 5)]
+        rounds: usize,
+    },
     /// Ray casting on a scene: BVH build time, and million rays per second for coherent
     /// camera rays (1280x720) and incoherent diffuse-bounce rays, for CWBVH and BVH2 at each
     /// thread count (best of --rounds passes).
@@ -258,6 +268,9 @@ fn main() -> ExitCode {
                     rounds,
                 },
         } => bench_rays(&scene, &threads, rounds),
+        Command::Bench {
+            what: BenchCommand::Raster { scene, rounds },
+        } => bench_raster(&scene, rounds),
         Command::Kinds => {
             for k in registry.kinds() {
                 println!("{} (technique {}): {}", k.name, k.technique, k.summary);
@@ -777,6 +790,62 @@ fn plan(scene: &str) -> ExitCode {
         p.bases,
         settings.texels_per_basis,
         p.area_m2 / (1024.0 * 1024.0)
+    );
+    ExitCode::SUCCESS
+}
+
+fn bench_raster(scene: &str, rounds: usize) -> ExitCode {
+    use cloudlight::render::raster::{Raster, ShadowSettings};
+    let scene = match cloudlight::scenes::load(scene) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let raster = match Raster::new() {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let tris = scene.triangles_at(0.0);
+    let mut lights: Vec<_> = scene.lights.iter().map(|l| l.at(0.0)).collect();
+    lights.extend(scene.surface_light_samples(0.0, 2));
+    let camera = scene.cameras[0].at(0.0);
+    let mut times = Vec::new();
+    for i in 0..=rounds.max(1) {
+        let t = Instant::now();
+        if let Err(e) = raster.direct(
+            &scene,
+            &tris,
+            &lights,
+            &camera,
+            1280,
+            720,
+            ShadowSettings::default(),
+        ) {
+            eprintln!("error: {e}");
+            return ExitCode::FAILURE;
+        }
+        if i > 0 {
+            times.push(t.elapsed().as_secs_f64() * 1000.0);
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    let info = raster.adapter();
+    println!(
+        "{}: {} triangles, {} lights, 1280x720 G-buffer + direct with {}² shadow maps on {} ({:?}): median {:.1} ms per frame (min {:.1}, max {:.1}; includes upload and read-back)",
+        scene.name,
+        tris.len(),
+        lights.len(),
+        ShadowSettings::default().size,
+        info.name,
+        info.backend,
+        times[times.len() / 2],
+        times[0],
+        times[times.len() - 1]
     );
     ExitCode::SUCCESS
 }
