@@ -233,19 +233,7 @@ impl Raster {
                 ..Default::default()
             });
             let matrix = views.get(layer as usize).copied().unwrap_or(Mat4::IDENTITY);
-            let ubuf = d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("shadow view"),
-                contents: bytemuck::cast_slice(&matrix.to_cols_array()),
-                usage: wgpu::BufferUsages::UNIFORM,
-            });
-            let bind = d.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("shadow view"),
-                layout: &self.globals_layout,
-                entries: &[wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: ubuf.as_entire_binding(),
-                }],
-            });
+            let bind = self.matrix_bind_group(matrix, "shadow view");
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("shadow"),
                 color_attachments: &[],

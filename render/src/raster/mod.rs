@@ -302,6 +302,25 @@ impl Raster {
         })
     }
 
+    /// A bind group holding one matrix in the `globals` layout (camera or shadow view).
+    pub(crate) fn matrix_bind_group(&self, matrix: Mat4, label: &str) -> wgpu::BindGroup {
+        let buf = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytemuck::cast_slice(&matrix.to_cols_array()),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(label),
+            layout: &self.globals_layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: buf.as_entire_binding(),
+            }],
+        })
+    }
+
     /// The adapter in use (name, backend, device type).
     pub fn adapter(&self) -> &wgpu::AdapterInfo {
         &self.adapter_info
@@ -335,19 +354,7 @@ impl Raster {
             ((hi - lo).length() + (camera.position - (lo + hi) * 0.5).length()).max(1e-3) * 2.0;
         let near = far * 1e-5;
         let globals = clip_from_world(camera, width as f32 / height as f32, near, far);
-        let globals_buf = d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("globals"),
-            contents: bytemuck::cast_slice(&globals.to_cols_array()),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let bind = d.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("globals"),
-            layout: &self.globals_layout,
-            entries: &[wgpu::BindGroupEntry {
-                binding: 0,
-                resource: globals_buf.as_entire_binding(),
-            }],
-        });
+        let bind = self.matrix_bind_group(globals, "globals");
         let vbuf = (!vertices.is_empty()).then(|| {
             d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("vertices"),
