@@ -76,6 +76,27 @@ fn an_empty_scene_gives_an_empty_gbuffer() {
     assert!(g.albedo.iter().all(|a| *a == Vec3::ZERO));
 }
 
+/// Per-pixel error of `test` against `reference`, relative with a floor of 2% of the mean
+/// (so that nearly black pixels do not dominate), worst channel.
+fn relative_error(test: Vec3, reference: Vec3, mean: f32) -> f32 {
+    ((test - reference).abs() / (reference + Vec3::splat(0.02 * mean))).max_element()
+}
+
+/// The reference's mean over `covered` pixels, and the sorted relative errors there.
+fn relative_errors(test: &[Vec3], reference: &[Vec3], covered: &[usize]) -> (f32, Vec<f32>) {
+    let mean = covered
+        .iter()
+        .map(|&i| reference[i].element_sum() / 3.0)
+        .sum::<f32>()
+        / covered.len() as f32;
+    let mut errors: Vec<f32> = covered
+        .iter()
+        .map(|&i| relative_error(test[i], reference[i], mean))
+        .collect();
+    errors.sort_by(f32::total_cmp);
+    (mean, errors)
+}
+
 fn lit_scene() -> cloudlight_scenes::Scene {
     use cloudlight_scenes::{
         Light, LightKind, Material, Mesh, Motion, Object, Scene, model::SunPath,
@@ -188,20 +209,8 @@ fn raster_direct_light_matches_the_path_tracer_direct_image() {
     let covered: Vec<usize> = (0..(w * h) as usize)
         .filter(|&i| g.position[i].w > 0.5)
         .collect();
-    let mean = covered
-        .iter()
-        .map(|&i| reference[i].element_sum() / 3.0)
-        .sum::<f32>()
-        / covered.len() as f32;
+    let (mean, errors) = relative_errors(&direct, &reference, &covered);
     assert!(mean > 0.0);
-    let mut errors: Vec<f32> = covered
-        .iter()
-        .map(|&i| {
-            ((direct[i] - reference[i]).abs() / (reference[i] + Vec3::splat(0.02 * mean)))
-                .max_element()
-        })
-        .collect();
-    errors.sort_by(f32::total_cmp);
     let p50 = errors[errors.len() / 2];
     let p95 = errors[errors.len() * 95 / 100];
     eprintln!(
@@ -313,29 +322,12 @@ fn raster_direct_light_of_the_cornell_box_matches_the_path_tracer() {
                 })
         })
         .collect();
-    let mean = covered
-        .iter()
-        .map(|&i| reference[i].element_sum() / 3.0)
-        .sum::<f32>()
-        / covered.len() as f32;
-    let mut errors: Vec<f32> = covered
-        .iter()
-        .map(|&i| {
-            ((direct[i] - reference[i]).abs() / (reference[i] + Vec3::splat(0.02 * mean)))
-                .max_element()
-        })
-        .collect();
-    errors.sort_by(f32::total_cmp);
+    let (mean, errors) = relative_errors(&direct, &reference, &covered);
     let q = |p: usize| errors[errors.len() * p / 100];
     if let Ok(dir) = std::env::var("CLOUDLIGHT_DEBUG_IMAGES") {
         let dir = std::path::Path::new(&dir);
         let err_img: Vec<Vec3> = (0..(w * h) as usize)
-            .map(|i| {
-                Vec3::splat(
-                    ((direct[i] - reference[i]).abs() / (reference[i] + Vec3::splat(0.02 * mean)))
-                        .max_element(),
-                )
-            })
+            .map(|i| Vec3::splat(relative_error(direct[i], reference[i], mean)))
             .collect();
         crate::image_io::write_png(&dir.join("cornell_raster.png"), w, h, &direct, 0.0).unwrap();
         crate::image_io::write_png(&dir.join("cornell_traced.png"), w, h, &reference, 0.0).unwrap();
