@@ -8,6 +8,7 @@
 pub mod bvh;
 pub mod image_io;
 pub mod metrics;
+pub mod photon;
 pub mod plan;
 pub mod raster;
 pub mod raybench;

@@ -1,0 +1,517 @@
+//! Photon tracing for the photon technique (CloudLight §4.3): which lights emit how many
+//! fixed-size batches ([`BatchPlan`]), tracing one batch from one light with the BVH
+//! ([`PhotonTracer`]), bit-packing batches for the wire ([`pack`]) and the client's set of
+//! the newest batch per (light, slot) ([`store`]).
+//!
+//! Phases of one iteration:
+//! 1. **Lights** ([`photon_lights`]): every punctual light, the sun, and every emissive
+//!    object (one light per object) at the scene time, with its power summed over channels.
+//! 2. **Budget** ([`BatchPlan::new`]): photons per watt × power → a whole number of batches
+//!    per light (at least one for a light that emits anything); each photon carries
+//!    Φ_light / (batches × batch size).
+//! 3. **Trace** ([`PhotonTracer::trace_batch`]): emit from the light, follow diffuse bounces
+//!    (cosine sampling, Russian roulette with survival = max albedo, so power stays
+//!    unbiased) and store a photon at every hit *after the first* — first hits are direct
+//!    light, which the client shades itself (storing them would count it twice).
+//!
+//! Each photon stores where it landed, the direction it travelled, its power and the radius
+//! of its splat. The radius is one value per iteration chosen so that about
+//! `photons_per_disk` photons fall in a disk on the scene's surfaces:
+//! r = √(k·A / (π·N)) — more photons, smaller disks, less blur (the budget trades bias and
+//! noise together). Streams are counter-based per (seed, light, slot, generation, photon),
+//! so a batch is the same bytes on any thread count and any node.
+
+use cloudlight_scenes::{LightState, Scene, WorldTriangle};
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::bvh::SceneBvh;
+use crate::sampling::{Rng, basis, cosine_hemisphere, uniform_sphere, uniform_triangle};
+
+pub mod pack;
+pub mod store;
+
+pub use pack::{PackError, PackFormat, PackedBatch};
+pub use store::{Manifest, ManifestLight, PhotonSet};
+
+/// Largest batch size accepted (a batch is one message; 10⁷ compact photons are 120 MB).
+pub const MAX_BATCH_SIZE: u32 = 10_000_000;
+
+/// Settings of the photon tracer.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PhotonSettings {
+    /// Photons emitted per watt of emitted power (summed over channels).
+    pub photons_per_watt: f64,
+    /// Photons per batch (each batch comes from one light).
+    pub batch_size: u32,
+    /// Diffuse bounces stored per path (photons at hits 2 ..= bounces + 1).
+    pub bounces: u32,
+    /// Photons expected inside one splat disk; sets the radius.
+    pub photons_per_disk: f32,
+    /// A fixed splat radius in meters instead of the one from `photons_per_disk`.
+    pub radius_m: Option<f32>,
+}
+
+impl Default for PhotonSettings {
+    fn default() -> Self {
+        // The paper's Cornell box: 10k photons in one batch (1.42 W summed over channels).
+        PhotonSettings {
+            photons_per_watt: 7_050.0,
+            batch_size: 10_000,
+            bounces: 6,
+            photons_per_disk: 40.0,
+            radius_m: None,
+        }
+    }
+}
+
+impl PhotonSettings {
+    /// Settings whose photons per watt give about `photons` photons per iteration in `scene`.
+    pub fn for_budget(scene: &Scene, photons: u64, batch_size: u32) -> Self {
+        let watts: f64 = photon_lights(scene, 0.0).iter().map(|l| l.watts()).sum();
+        PhotonSettings {
+            photons_per_watt: if watts > 0.0 {
+                photons as f64 / watts
+            } else {
+                0.0
+            },
+            batch_size,
+            ..Default::default()
+        }
+    }
+}
+
+/// Where and how a light emits photons.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Emitter {
+    /// A point or spot light at `position`; `cos_cone` = −1 for a point light.
+    Punctual {
+        /// Position, meters.
+        position: Vec3,
+        /// Cone axis (unit).
+        axis: Vec3,
+        /// Cosine of the cone half-angle.
+        cos_cone: f32,
+    },
+    /// Parallel light over a disk that covers the scene.
+    Directional {
+        /// Unit direction of travel.
+        direction: Vec3,
+        /// Disk centre, upstream of the scene.
+        origin: Vec3,
+        /// Disk radius, meters.
+        radius: f32,
+    },
+    /// An emissive object: Lambertian emission from its triangles' front sides, chosen by
+    /// area.
+    Surface {
+        /// World-space triangles.
+        triangles: Vec<[Vec3; 3]>,
+        /// Cumulative areas, m².
+        cdf: Vec<f32>,
+    },
+}
+
+/// One light as the photon tracer sees it at one scene time.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PhotonLight {
+    /// Stable identity: index into the scene's lights, then `lights.len() + object index`
+    /// for emissive objects.
+    pub id: u32,
+    /// Name, for reports.
+    pub name: String,
+    /// Emitted power per channel, watts.
+    pub power_w: Vec3,
+    /// Emission geometry.
+    pub emitter: Emitter,
+}
+
+impl PhotonLight {
+    /// Watts summed over channels (what the photon budget counts).
+    pub fn watts(&self) -> f64 {
+        self.power_w.element_sum() as f64
+    }
+}
+
+/// The scene's lights at `t_s` as photon emitters (lights that emit nothing are left out).
+pub fn photon_lights(scene: &Scene, t_s: f64) -> Vec<PhotonLight> {
+    let (lo, hi) = scene.bounds_at(t_s);
+    let (center, half_diag) = if lo.is_finite() && hi.is_finite() {
+        ((lo + hi) * 0.5, ((hi - lo).length() * 0.5).max(1e-6))
+    } else {
+        (Vec3::ZERO, 1.0)
+    };
+    let mut out = Vec::new();
+    for (i, light) in scene.lights.iter().enumerate() {
+        let (power_w, emitter) = match light.at(t_s) {
+            LightState::Point {
+                position,
+                intensity,
+            } => (
+                intensity * 4.0 * std::f32::consts::PI,
+                Emitter::Punctual {
+                    position,
+                    axis: Vec3::Z,
+                    cos_cone: -1.0,
+                },
+            ),
+            LightState::Spot {
+                position,
+                direction,
+                cos_cone,
+                intensity,
+            } => (
+                intensity * std::f32::consts::TAU * (1.0 - cos_cone),
+                Emitter::Punctual {
+                    position,
+                    axis: direction,
+                    cos_cone,
+                },
+            ),
+            LightState::Surface {
+                position,
+                normal,
+                intensity,
+            } => (
+                intensity * std::f32::consts::PI,
+                Emitter::Surface {
+                    triangles: vec![tiny_triangle(position, normal, half_diag * 1e-4)],
+                    cdf: vec![1.0],
+                },
+            ),
+            LightState::Directional {
+                direction,
+                irradiance,
+            } => {
+                let radius = half_diag * 1.01;
+                (
+                    irradiance * std::f32::consts::PI * radius * radius,
+                    Emitter::Directional {
+                        direction,
+                        origin: center - direction * radius * 1.5,
+                        radius,
+                    },
+                )
+            }
+        };
+        if power_w.max_element() > 0.0 && power_w.is_finite() {
+            out.push(PhotonLight {
+                id: i as u32,
+                name: light.name.clone(),
+                power_w,
+                emitter,
+            });
+        }
+    }
+    // Emissive objects: one light each.
+    let triangles = scene.triangles_at(t_s);
+    let mut first = 0;
+    for (k, object) in scene.objects.iter().enumerate() {
+        let count = object.mesh.triangle_count();
+        let tris = &triangles[first..first + count];
+        first += count;
+        let emission = scene.materials[object.material as usize].emission;
+        if emission.max_element() <= 0.0 || !emission.is_finite() {
+            continue;
+        }
+        if let Some(light) = surface_light(
+            (scene.lights.len() + k) as u32,
+            &object.name,
+            emission,
+            tris,
+        ) {
+            out.push(light);
+        }
+    }
+    out
+}
+
+fn tiny_triangle(position: Vec3, normal: Vec3, size: f32) -> [Vec3; 3] {
+    let (t, b) = basis(normal.normalize_or(Vec3::Y));
+    [position, position + t * size, position + b * size]
+}
+
+fn surface_light(
+    id: u32,
+    name: &str,
+    emission: Vec3,
+    tris: &[WorldTriangle],
+) -> Option<PhotonLight> {
+    let mut cdf = Vec::new();
+    let mut kept = Vec::new();
+    let mut total = 0.0f32;
+    for t in tris {
+        let area = 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length();
+        if area > 0.0 && area.is_finite() {
+            total += area;
+            cdf.push(total);
+            kept.push(t.v);
+        }
+    }
+    (total > 0.0).then(|| PhotonLight {
+        id,
+        name: name.to_string(),
+        power_w: emission * std::f32::consts::PI * total,
+        emitter: Emitter::Surface {
+            triangles: kept,
+            cdf,
+        },
+    })
+}
+
+/// How many batches each light emits per iteration.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BatchPlan {
+    /// Photons per batch.
+    pub batch_size: u32,
+    /// (light id, batches), in light order.
+    pub batches: Vec<(u32, u32)>,
+}
+
+impl BatchPlan {
+    /// Batches per light: photons_per_watt × watts / batch size, rounded, at least one.
+    pub fn new(lights: &[PhotonLight], settings: &PhotonSettings) -> Self {
+        let batch_size = settings.batch_size.clamp(1, MAX_BATCH_SIZE);
+        let batches = lights
+            .iter()
+            .map(|l| {
+                let photons = l.watts() * settings.photons_per_watt.max(0.0);
+                let n = (photons / batch_size as f64).round();
+                let n = if n.is_finite() {
+                    n.clamp(1.0, 1e6)
+                } else {
+                    1.0
+                };
+                (l.id, n as u32)
+            })
+            .collect();
+        BatchPlan {
+            batch_size,
+            batches,
+        }
+    }
+
+    /// Batches of light `id` (0 if it has none).
+    pub fn batches_of(&self, id: u32) -> u32 {
+        self.batches
+            .iter()
+            .find(|(l, _)| *l == id)
+            .map_or(0, |(_, n)| *n)
+    }
+
+    /// Batches in one iteration.
+    pub fn total_batches(&self) -> u64 {
+        self.batches.iter().map(|(_, n)| *n as u64).sum()
+    }
+
+    /// Photons emitted in one iteration.
+    pub fn total_photons(&self) -> u64 {
+        self.total_batches() * self.batch_size as u64
+    }
+}
+
+/// One stored photon.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Photon {
+    /// Where it landed, meters.
+    pub position: Vec3,
+    /// Unit direction it travelled (into the surface).
+    pub direction: Vec3,
+    /// Power per channel, watts.
+    pub power: Vec3,
+    /// Splat radius, meters.
+    pub radius: f32,
+}
+
+/// Traces batches of one scene at one scene time.
+pub struct PhotonTracer<'a> {
+    scene: &'a Scene,
+    bvh: &'a SceneBvh,
+    settings: PhotonSettings,
+    seed: u64,
+    eps: f32,
+    radius: f32,
+}
+
+impl<'a> PhotonTracer<'a> {
+    /// A tracer for `scene` (whose BVH at the scene time is `bvh`) emitting `plan`'s photons
+    /// per iteration (which sets the splat radius).
+    pub fn new(
+        scene: &'a Scene,
+        bvh: &'a SceneBvh,
+        settings: PhotonSettings,
+        plan: &BatchPlan,
+        seed: u64,
+    ) -> Self {
+        let (lo, hi) = bounds(bvh.triangles());
+        let extent = (hi - lo).length();
+        let extent = if extent.is_finite() && extent > 0.0 {
+            extent
+        } else {
+            1.0
+        };
+        let area: f32 = bvh
+            .triangles()
+            .iter()
+            .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length())
+            .filter(|a| a.is_finite())
+            .sum();
+        let n = plan.total_photons().max(1) as f32;
+        let auto = (settings.photons_per_disk.max(1.0) * area / (std::f32::consts::PI * n)).sqrt();
+        let radius = settings
+            .radius_m
+            .unwrap_or(auto)
+            .clamp(extent * 1e-4, extent * 0.25);
+        PhotonTracer {
+            scene,
+            bvh,
+            settings,
+            seed,
+            eps: extent * 1e-5,
+            radius,
+        }
+    }
+
+    /// The splat radius of this iteration's photons, meters.
+    pub fn radius(&self) -> f32 {
+        self.radius
+    }
+
+    /// Traces batch `slot` of `light` (of `slots` batches) for its `generation`: emits
+    /// `batch_size` photons and returns those stored.
+    pub fn trace_batch(
+        &self,
+        light: &PhotonLight,
+        slot: u32,
+        slots: u32,
+        generation: u64,
+    ) -> Vec<Photon> {
+        let n = self.settings.batch_size.clamp(1, MAX_BATCH_SIZE);
+        let emitted_total = n as f32 * slots.max(1) as f32;
+        let power = light.power_w / emitted_total;
+        let stream =
+            (light.id as u64) << 44 ^ (slot as u64) << 24 ^ generation.wrapping_mul(0x9E37);
+        const CHUNK: u32 = 1024;
+        let chunks: Vec<Vec<Photon>> = (0..n.div_ceil(CHUNK))
+            .into_par_iter()
+            .map(|c| {
+                let mut out = Vec::new();
+                for i in c * CHUNK..((c + 1) * CHUNK).min(n) {
+                    let mut rng = Rng::new(self.seed ^ stream, i as u64);
+                    self.trace_one(light, power, &mut rng, &mut out);
+                }
+                out
+            })
+            .collect();
+        chunks.concat()
+    }
+
+    fn trace_one(&self, light: &PhotonLight, power: Vec3, rng: &mut Rng, out: &mut Vec<Photon>) {
+        let Some((mut o, mut d)) = emit(&light.emitter, rng, self.eps) else {
+            return;
+        };
+        let mut power = power;
+        for depth in 0..=self.settings.bounces {
+            let Some(hit) = self.bvh.closest_hit(o, d, f32::INFINITY) else {
+                return;
+            };
+            let tri = &self.bvh.triangles()[hit.triangle as usize];
+            let material = &self.scene.materials[tri.material as usize];
+            let ng = self.bvh.geometric_normal(hit.triangle);
+            let ng = if ng.dot(d) < 0.0 { ng } else { -ng };
+            let mut n = self.bvh.shading_normal(&hit);
+            if n.dot(ng) < 0.0 {
+                n = -n;
+            }
+            let x = o + d * hit.t;
+            if depth >= 1 {
+                out.push(Photon {
+                    position: x,
+                    direction: d,
+                    power,
+                    radius: self.radius,
+                });
+            }
+            if depth == self.settings.bounces {
+                return;
+            }
+            let albedo = material.albedo
+                * material
+                    .texture
+                    .as_ref()
+                    .map_or(Vec3::ONE, |t| t.sample(self.bvh.hit_uv(&hit)));
+            // Russian roulette: survive with the largest albedo channel.
+            let q = albedo.max_element().min(1.0);
+            if q <= 0.0 || rng.next_f32() >= q {
+                return;
+            }
+            power *= albedo / q;
+            let (t, b) = basis(n);
+            let l = cosine_hemisphere(rng.next_f32(), rng.next_f32());
+            d = (t * l.x + b * l.y + n * l.z).normalize();
+            o = x + ng * self.eps;
+        }
+    }
+}
+
+/// Origin and unit direction of one emitted photon.
+fn emit(emitter: &Emitter, rng: &mut Rng, eps: f32) -> Option<(Vec3, Vec3)> {
+    match emitter {
+        Emitter::Punctual {
+            position,
+            axis,
+            cos_cone,
+        } => {
+            let (u1, u2) = (rng.next_f32(), rng.next_f32());
+            if *cos_cone <= -1.0 {
+                return Some((*position, uniform_sphere(u1, u2)));
+            }
+            // Uniform in the cone: cos θ uniform in [cos_cone, 1].
+            let z = 1.0 - u1 * (1.0 - cos_cone);
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let phi = std::f32::consts::TAU * u2;
+            let (t, b) = basis(*axis);
+            Some((
+                *position,
+                t * (r * phi.cos()) + b * (r * phi.sin()) + *axis * z,
+            ))
+        }
+        Emitter::Directional {
+            direction,
+            origin,
+            radius,
+        } => {
+            let (t, b) = basis(*direction);
+            let p = crate::sampling::concentric_disk(rng.next_f32(), rng.next_f32()) * *radius;
+            Some((*origin + t * p.x + b * p.y, *direction))
+        }
+        Emitter::Surface { triangles, cdf } => {
+            let total = *cdf.last()?;
+            let x = rng.next_f32() * total;
+            let i = cdf.partition_point(|c| *c <= x).min(triangles.len() - 1);
+            let v = triangles[i];
+            let bary = uniform_triangle(rng.next_f32(), rng.next_f32());
+            let p = v[0] * (1.0 - bary.x - bary.y) + v[1] * bary.x + v[2] * bary.y;
+            let n = (v[1] - v[0]).cross(v[2] - v[0]).normalize_or(Vec3::Y);
+            let (t, b) = basis(n);
+            let l = cosine_hemisphere(rng.next_f32(), rng.next_f32());
+            let d = (t * l.x + b * l.y + n * l.z).normalize();
+            Some((p + n * eps, d))
+        }
+    }
+}
+
+fn bounds(triangles: &[WorldTriangle]) -> (Vec3, Vec3) {
+    let mut lo = Vec3::splat(f32::INFINITY);
+    let mut hi = Vec3::splat(f32::NEG_INFINITY);
+    for t in triangles {
+        for v in t.v {
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    (lo, hi)
+}
+
+#[cfg(test)]
+mod tests;

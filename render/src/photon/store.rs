@@ -1,0 +1,214 @@
+//! The client's photons: the newest batch per (light, slot), and how current they are.
+//!
+//! The batcher sends batches as they complete and, after each iteration, a [`Manifest`]:
+//! the generation and batch count of every light as of a scene time. A [`PhotonSet`]
+//! replaces a slot's batch with a newer generation (ignoring older ones that arrive late),
+//! drops slots and lights the manifest no longer lists, and knows the newest scene time
+//! whose manifest it holds completely: the light it shows is *valid as of* that time, so
+//! `now − valid_as_of` is the age of the indirect light on screen.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use super::{PackError, PackedBatch, Photon};
+
+/// One light's entry in a manifest.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ManifestLight {
+    /// Light id.
+    pub light: u32,
+    /// Generation of its current batch set.
+    pub generation: u64,
+    /// Batches in the set.
+    pub slots: u32,
+}
+
+/// The complete photon set as of one scene time.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// Batcher iteration (increasing).
+    pub iteration: u64,
+    /// Scene time the set is valid for, seconds.
+    pub scene_time_s: f64,
+    /// Every light that emits, with its current generation.
+    pub lights: Vec<ManifestLight>,
+}
+
+/// What [`PhotonSet::insert`] did with a batch.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Inserted {
+    /// A slot that was empty.
+    New,
+    /// Replaced an older (or equal, re-sent) batch of the slot.
+    Replaced,
+    /// Older than what is held: ignored.
+    Stale,
+    /// Invalid: ignored.
+    Rejected(PackError),
+}
+
+struct Held {
+    generation: u64,
+    scene_time_s: f64,
+    photons: Vec<Photon>,
+    bytes: usize,
+}
+
+/// Counters of a [`PhotonSet`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct SetStats {
+    /// Batches accepted.
+    pub accepted: u64,
+    /// Batches that replaced a held one.
+    pub replaced: u64,
+    /// Batches ignored as older than what is held.
+    pub stale: u64,
+    /// Batches rejected as invalid.
+    pub rejected: u64,
+    /// Manifests applied.
+    pub manifests: u64,
+}
+
+/// The client's set of photon batches.
+#[derive(Default)]
+pub struct PhotonSet {
+    held: BTreeMap<(u32, u32), Held>,
+    manifest: Option<Manifest>,
+    valid_as_of: Option<f64>,
+    stats: SetStats,
+    version: u64,
+}
+
+impl PhotonSet {
+    /// An empty set.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Takes a batch: decoded and kept unless it is invalid or older than the slot's.
+    pub fn insert(&mut self, batch: &PackedBatch) -> Inserted {
+        let photons = match batch.unpack() {
+            Ok(p) => p,
+            Err(e) => {
+                self.stats.rejected += 1;
+                return Inserted::Rejected(e);
+            }
+        };
+        let listed = self.manifest.as_ref().and_then(|m| {
+            m.lights
+                .iter()
+                .find(|l| l.light == batch.light)
+                .map(|l| l.generation)
+        });
+        let key = (batch.light, batch.slot);
+        let held_gen = self.held.get(&key).map(|h| h.generation);
+        if listed.is_some_and(|g| g > batch.generation)
+            || held_gen.is_some_and(|g| g > batch.generation)
+        {
+            self.stats.stale += 1;
+            return Inserted::Stale;
+        }
+        self.held.insert(
+            key,
+            Held {
+                generation: batch.generation,
+                scene_time_s: batch.scene_time_s,
+                photons,
+                bytes: batch.data.len(),
+            },
+        );
+        // The light now has `slots` batches: forget slots beyond them.
+        self.held
+            .retain(|&(l, s), _| l != batch.light || s < batch.slots);
+        self.stats.accepted += 1;
+        self.version += 1;
+        self.refresh_validity();
+        if held_gen.is_some() {
+            self.stats.replaced += 1;
+            Inserted::Replaced
+        } else {
+            Inserted::New
+        }
+    }
+
+    /// Takes a manifest (older ones than the last are ignored): lights it does not list are
+    /// dropped, and the set becomes valid as of its time once every listed batch is held.
+    pub fn apply_manifest(&mut self, manifest: Manifest) {
+        if self
+            .manifest
+            .as_ref()
+            .is_some_and(|m| m.iteration > manifest.iteration)
+        {
+            return;
+        }
+        let before = self.held.len();
+        self.held
+            .retain(|&(l, s), _| manifest.lights.iter().any(|m| m.light == l && s < m.slots));
+        if self.held.len() != before {
+            self.version += 1;
+        }
+        self.manifest = Some(manifest);
+        self.stats.manifests += 1;
+        self.refresh_validity();
+    }
+
+    fn refresh_validity(&mut self) {
+        let Some(m) = &self.manifest else {
+            return;
+        };
+        let complete = m.lights.iter().all(|l| {
+            (0..l.slots).all(|s| {
+                self.held
+                    .get(&(l.light, s))
+                    .is_some_and(|h| h.generation >= l.generation)
+            })
+        });
+        if complete && self.valid_as_of.is_none_or(|t| t < m.scene_time_s) {
+            self.valid_as_of = Some(m.scene_time_s);
+        }
+    }
+
+    /// Scene time the held photons are complete and current for, if ever.
+    pub fn valid_as_of(&self) -> Option<f64> {
+        self.valid_as_of
+    }
+
+    /// Every held photon.
+    pub fn photons(&self) -> impl Iterator<Item = &Photon> {
+        self.held.values().flat_map(|h| h.photons.iter())
+    }
+
+    /// Photons held.
+    pub fn photon_count(&self) -> usize {
+        self.held.values().map(|h| h.photons.len()).sum()
+    }
+
+    /// Batches held.
+    pub fn batch_count(&self) -> usize {
+        self.held.len()
+    }
+
+    /// Packed bytes held (the memory footprint of the set on the wire format).
+    pub fn packed_bytes(&self) -> usize {
+        self.held.values().map(|h| h.bytes).sum()
+    }
+
+    /// Scene time of the oldest batch held.
+    pub fn oldest_batch_time(&self) -> Option<f64> {
+        self.held
+            .values()
+            .map(|h| h.scene_time_s)
+            .min_by(f64::total_cmp)
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> SetStats {
+        self.stats
+    }
+
+    /// Increases whenever the held photons change (to skip re-uploading them).
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+}

@@ -1,0 +1,369 @@
+//! Checks of photon tracing, batching, packing and the client's photon set.
+
+use cloudlight_scenes::{Light, LightKind, Material, Mesh, Motion, Object, Scene};
+use glam::Vec3;
+
+use super::pack::BatchHeader;
+use super::store::Inserted;
+use super::*;
+use crate::bvh::BvhKind;
+use crate::sampling::Rng;
+
+/// A closed unit cube of albedo `a` (inside faces) with a point light of `watts` per
+/// channel at its centre.
+fn closed_box(a: f32, watts: f32) -> Scene {
+    let mut mesh = Mesh::default();
+    mesh.push_box(Vec3::ZERO, Vec3::ONE);
+    Scene {
+        name: "closed box".into(),
+        materials: vec![Material::diffuse("wall", Vec3::splat(a))],
+        objects: vec![Object {
+            name: "box".into(),
+            mesh: mesh.flipped(),
+            material: 0,
+            motion: Motion::identity(),
+        }],
+        lights: vec![Light {
+            name: "bulb".into(),
+            kind: LightKind::Point,
+            power_w: Vec3::splat(watts),
+            motion: Motion::Static(glam::Affine3A::from_translation(Vec3::splat(0.5))),
+            sun_path: None,
+        }],
+        cameras: Vec::new(),
+    }
+}
+
+/// Traces one whole iteration; returns (photons, plan, radius).
+fn iteration(scene: &Scene, settings: PhotonSettings, seed: u64) -> (Vec<Photon>, BatchPlan) {
+    let bvh = SceneBvh::at(scene, 0.0, BvhKind::default());
+    let lights = photon_lights(scene, 0.0);
+    let plan = BatchPlan::new(&lights, &settings);
+    let tracer = PhotonTracer::new(scene, &bvh, settings, &plan, seed);
+    let mut out = Vec::new();
+    for l in &lights {
+        let slots = plan.batches_of(l.id);
+        for s in 0..slots {
+            out.extend(tracer.trace_batch(l, s, slots, 0));
+        }
+    }
+    (out, plan)
+}
+
+fn total_power(photons: &[Photon]) -> Vec3 {
+    photons.iter().map(|p| p.power).sum()
+}
+
+#[test]
+fn stored_power_is_the_emitted_power_times_the_bounce_albedo() {
+    // Closed box: every photon hits a wall; the power reaching hit k ≥ 2 is Φ·a^(k−1), and
+    // hits 2 ..= bounces + 1 are stored: Σ_{k=1}^{B} Φ·a^k.
+    let (a, watts, bounces) = (0.5f32, 2.0f32, 10u32);
+    let scene = closed_box(a, watts);
+    let settings = PhotonSettings {
+        photons_per_watt: 200_000.0 / (3.0 * watts as f64),
+        batch_size: 50_000,
+        bounces,
+        ..Default::default()
+    };
+    let (photons, plan) = iteration(&scene, settings, 3);
+    assert_eq!(plan.batches, vec![(0, 4)]);
+    let expect: f32 = (1..=bounces).map(|k| watts * a.powi(k as i32)).sum();
+    let got = total_power(&photons);
+    for c in got.to_array() {
+        assert!(
+            (c / expect - 1.0).abs() < 0.02,
+            "stored {got}, expected {expect}"
+        );
+    }
+    // Double counting guard: nothing is stored at the first hit, so with one bounce the
+    // stored power is Φ·a, not Φ·(1 + a).
+    let one = PhotonSettings {
+        bounces: 1,
+        ..settings
+    };
+    let got = total_power(&iteration(&scene, one, 3).0).x;
+    assert!((got / (watts * a) - 1.0).abs() < 0.02, "{got}");
+    // Every photon lies on the box and travels into a wall.
+    for p in photons.iter().take(5000) {
+        let d = p.position.min(Vec3::ONE - p.position).min_element();
+        assert!(d.abs() < 1e-3, "{}", p.position);
+        assert!(p.power.is_finite() && p.radius > 0.0);
+    }
+}
+
+#[test]
+fn each_light_emits_whole_batches_and_batches_are_deterministic() {
+    let scene = cloudlight_scenes::builtin("city:2000").unwrap();
+    let lights = photon_lights(&scene, 0.0);
+    assert!(lights.len() >= 5, "{} lights", lights.len());
+    let settings = PhotonSettings {
+        photons_per_watt: 0.05,
+        batch_size: 1000,
+        ..Default::default()
+    };
+    let plan = BatchPlan::new(&lights, &settings);
+    assert_eq!(plan.batches.len(), lights.len());
+    for (l, (id, n)) in lights.iter().zip(&plan.batches) {
+        assert_eq!(l.id, *id);
+        assert!(*n >= 1);
+        let want = (l.watts() * 0.05 / 1000.0).round().max(1.0) as u32;
+        assert_eq!(*n, want, "{}", l.name);
+    }
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let tracer = PhotonTracer::new(&scene, &bvh, settings, &plan, 11);
+    let a = tracer.trace_batch(&lights[0], 0, 2, 5);
+    let b = tracer.trace_batch(&lights[0], 0, 2, 5);
+    let c = tracer.trace_batch(&lights[0], 1, 2, 5);
+    assert_eq!(a, b);
+    assert_ne!(a, c);
+}
+
+#[test]
+fn the_cornell_box_defaults_match_the_paper_budget() {
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let (photons, plan) = iteration(&scene, PhotonSettings::default(), 1);
+    assert_eq!(plan.batches.len(), 1);
+    assert_eq!(plan.total_photons(), 10_000);
+    // The paper stores 3.4k of 10k; with more bounces we keep more, but the count must be
+    // of that order and the power below the emitted power.
+    assert!(
+        (2_000..20_000).contains(&photons.len()),
+        "{}",
+        photons.len()
+    );
+    let emitted = scene.emitted_power_w();
+    let stored = total_power(&photons);
+    assert!(
+        stored.x < emitted.x * 1.5 && stored.x > 0.0,
+        "{stored} vs {emitted}"
+    );
+}
+
+fn random_photons(n: usize, seed: u64) -> Vec<Photon> {
+    let mut rng = Rng::new(seed, 0);
+    (0..n)
+        .map(|_| Photon {
+            position: Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 2.0
+                - Vec3::splat(0.3),
+            direction: crate::sampling::uniform_sphere(rng.next_f32(), rng.next_f32()),
+            power: Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32())
+                * 10f32.powf(-3.0 * rng.next_f32())
+                * 1e-4,
+            radius: 0.02 + 0.03 * rng.next_f32(),
+        })
+        .collect()
+}
+
+fn header() -> BatchHeader {
+    BatchHeader {
+        light: 3,
+        slot: 1,
+        slots: 4,
+        generation: 9,
+        scene_time_s: 1.25,
+        emitted: 1000,
+    }
+}
+
+#[test]
+fn packing_round_trips_within_the_stated_bounds() {
+    let photons = random_photons(20_000, 4);
+    for (format, pos_step, power_bits, max_deg, radius_bits) in [
+        (PackFormat::Compact12, Some(65535.0f32), 7u32, 1.0f32, 6u32),
+        (PackFormat::Wide20, None, 9, 0.06, 8),
+    ] {
+        let b = PackedBatch::pack(header(), &photons, format);
+        assert_eq!(b.data.len(), photons.len() * format.bytes_per_photon());
+        assert!(format.bytes_per_photon() <= 20);
+        let back = b.unpack().unwrap();
+        assert_eq!(back.len(), photons.len());
+        let extent = Vec3::from_array(b.extent);
+        let [r0, r1] = b.radius_range;
+        let mut worst_deg = 0.0f32;
+        for (p, q) in photons.iter().zip(&back) {
+            let tol = match pos_step {
+                Some(steps) => extent / steps * 0.5 + Vec3::splat(1e-6),
+                None => Vec3::splat(1e-7),
+            };
+            assert!(
+                ((p.position - q.position).abs() - tol).max_element() <= 0.0,
+                "{format:?} position {} vs {}",
+                p.position,
+                q.position
+            );
+            let m = p.power.max_element();
+            let ptol = m / ((1u32 << power_bits) - 1) as f32 + b.power_scale * 2f32.powi(-31);
+            assert!(
+                (p.power - q.power).abs().max_element() <= ptol * 1.001,
+                "{format:?} power {} vs {}",
+                p.power,
+                q.power
+            );
+            worst_deg = worst_deg.max(p.direction.angle_between(q.direction).to_degrees());
+            let rtol = (r1 / r0).ln() / ((1u32 << radius_bits) - 1) as f32 * 0.5 + 1e-5;
+            assert!(
+                (q.radius / p.radius).ln().abs() <= rtol,
+                "{format:?} radius"
+            );
+        }
+        assert!(worst_deg <= max_deg, "{format:?}: {worst_deg}°");
+    }
+}
+
+#[test]
+fn garbage_batches_are_rejected_never_panic() {
+    let photons = random_photons(100, 5);
+    let good = PackedBatch::pack(header(), &photons, PackFormat::Compact12);
+    let mut rng = Rng::new(6, 0);
+    // Flipped bits in the data, truncated data, forged headers.
+    let mut flipped = good.clone();
+    flipped.data[17] ^= 0x10;
+    assert_eq!(flipped.unpack(), Err(PackError::Checksum));
+    let mut short = good.clone();
+    short.data.pop();
+    assert!(matches!(short.unpack(), Err(PackError::Length { .. })));
+    let mut forged = good.clone();
+    forged.slot = 7;
+    assert!(forged.unpack().is_err());
+    // Random bytes of the right length, with and without a matching checksum.
+    for i in 0..200 {
+        let mut b = good.clone();
+        for x in &mut b.data {
+            *x = rng.next_u64() as u8;
+        }
+        if i % 2 == 0 {
+            assert_eq!(b.unpack(), Err(PackError::Checksum));
+        } else {
+            // A sender that packs garbage deliberately: decodes to finite photons or errors.
+            b.power_scale = f32::from_bits(rng.next_u64() as u32);
+            b.origin[0] = f32::from_bits(rng.next_u64() as u32);
+            let b = PackedBatch { checksum: 0, ..b };
+            let _ = b.unpack();
+        }
+    }
+}
+
+#[test]
+fn extremes_are_finite() {
+    // 1e-6 W and 1e6 W lights: power scales linearly and stays finite through packing.
+    let base = closed_box(0.5, 1.0);
+    let settings = PhotonSettings {
+        photons_per_watt: 2000.0 / 3.0,
+        batch_size: 2000,
+        ..Default::default()
+    };
+    let (reference, _) = iteration(&base, settings, 2);
+    let ref_power = total_power(&reference).x;
+    for watts in [1e-6f32, 1e6] {
+        let scene = closed_box(0.5, watts);
+        let s = PhotonSettings {
+            photons_per_watt: 2000.0 / (3.0 * watts as f64),
+            ..settings
+        };
+        let (photons, plan) = iteration(&scene, s, 2);
+        assert_eq!(plan.total_photons(), 2000);
+        let p = total_power(&photons).x;
+        assert!(((p / watts) / ref_power - 1.0).abs() < 1e-3, "{watts}: {p}");
+        let packed = PackedBatch::pack(header(), &photons, PackFormat::Compact12);
+        let back = packed.unpack().unwrap();
+        let q: f32 = back.iter().map(|p| p.power.x).sum();
+        assert!(
+            q.is_finite() && ((q / p) - 1.0).abs() < 0.01,
+            "{watts}: {q} vs {p}"
+        );
+    }
+    // No lights: nothing to emit, nothing stored.
+    let mut dark = base.clone();
+    dark.lights.clear();
+    let (photons, plan) = iteration(&dark, settings, 2);
+    assert!(photons.is_empty() && plan.batches.is_empty());
+    // Batch sizes 1 and 1,000,000.
+    for batch_size in [1u32, 1_000_000] {
+        let s = PhotonSettings {
+            photons_per_watt: batch_size as f64 / 3.0,
+            batch_size,
+            ..settings
+        };
+        let (photons, plan) = iteration(&base, s, 2);
+        assert_eq!(plan.total_photons(), batch_size as u64);
+        assert!(
+            photons
+                .iter()
+                .all(|p| p.power.is_finite() && p.position.is_finite())
+        );
+        let b = PackedBatch::pack(header(), &photons, PackFormat::Compact12);
+        assert_eq!(b.unpack().unwrap().len(), photons.len());
+    }
+    // An empty batch packs and unpacks.
+    let empty = PackedBatch::pack(header(), &[], PackFormat::Wide20);
+    assert_eq!(empty.unpack().unwrap(), Vec::new());
+}
+
+fn batch(light: u32, slot: u32, slots: u32, generation: u64, t: f64) -> PackedBatch {
+    PackedBatch::pack(
+        BatchHeader {
+            light,
+            slot,
+            slots,
+            generation,
+            scene_time_s: t,
+            emitted: 10,
+        },
+        &random_photons(10, generation * 100 + slot as u64),
+        PackFormat::Compact12,
+    )
+}
+
+fn manifest(iteration: u64, t: f64, lights: &[(u32, u64, u32)]) -> Manifest {
+    Manifest {
+        iteration,
+        scene_time_s: t,
+        lights: lights
+            .iter()
+            .map(|&(light, generation, slots)| ManifestLight {
+                light,
+                generation,
+                slots,
+            })
+            .collect(),
+    }
+}
+
+#[test]
+fn the_set_keeps_the_newest_batch_per_slot() {
+    let mut set = PhotonSet::new();
+    assert_eq!(set.insert(&batch(0, 0, 2, 1, 0.0)), Inserted::New);
+    assert_eq!(set.insert(&batch(0, 1, 2, 1, 0.0)), Inserted::New);
+    assert_eq!(set.valid_as_of(), None);
+    set.apply_manifest(manifest(1, 0.0, &[(0, 1, 2)]));
+    assert_eq!(set.valid_as_of(), Some(0.0));
+    assert_eq!(set.photon_count(), 20);
+    // The light moves: generation 2 replaces slot 0; the set is not complete for the new
+    // manifest until slot 1 arrives too.
+    assert_eq!(set.insert(&batch(0, 0, 2, 2, 0.5)), Inserted::Replaced);
+    set.apply_manifest(manifest(2, 0.5, &[(0, 2, 2)]));
+    assert_eq!(set.valid_as_of(), Some(0.0));
+    // A late batch of generation 1 is stale.
+    assert_eq!(set.insert(&batch(0, 1, 2, 1, 0.0)), Inserted::Stale);
+    assert_eq!(set.insert(&batch(0, 1, 2, 2, 0.5)), Inserted::Replaced);
+    assert_eq!(set.valid_as_of(), Some(0.5));
+    // The light now has one batch: slot 1 goes.
+    assert_eq!(set.insert(&batch(0, 0, 1, 3, 0.7)), Inserted::Replaced);
+    assert_eq!(set.batch_count(), 1);
+    // A second light appears; then the first goes dark (not listed).
+    set.insert(&batch(5, 0, 1, 1, 0.8));
+    set.apply_manifest(manifest(3, 0.8, &[(0, 3, 1), (5, 1, 1)]));
+    assert_eq!(set.valid_as_of(), Some(0.8));
+    set.apply_manifest(manifest(4, 0.9, &[(5, 1, 1)]));
+    assert_eq!(set.batch_count(), 1);
+    assert_eq!(set.valid_as_of(), Some(0.9));
+    // An old manifest is ignored; a garbage batch is counted.
+    set.apply_manifest(manifest(2, 0.5, &[(0, 2, 2)]));
+    assert_eq!(set.batch_count(), 1);
+    let mut bad = batch(5, 0, 1, 9, 1.0);
+    bad.data[0] ^= 1;
+    assert!(matches!(set.insert(&bad), Inserted::Rejected(_)));
+    let stats = set.stats();
+    assert_eq!((stats.rejected, stats.stale), (1, 1));
+}
