@@ -501,6 +501,87 @@ fn emit(emitter: &Emitter, rng: &mut Rng, eps: f32) -> Option<(Vec3, Vec3)> {
     }
 }
 
+/// One whole iteration, traced and packed (what benchmarks and tests measure; the batcher
+/// stage does the same batch by batch).
+#[derive(Clone, Debug)]
+pub struct Iteration {
+    /// Batches per light.
+    pub plan: BatchPlan,
+    /// Splat radius, meters.
+    pub radius: f32,
+    /// The packed batches, in light and slot order.
+    pub batches: Vec<PackedBatch>,
+    /// Photons stored.
+    pub stored: usize,
+    /// Time spent tracing.
+    pub trace_time: std::time::Duration,
+    /// Time spent packing.
+    pub pack_time: std::time::Duration,
+}
+
+impl Iteration {
+    /// Bytes of photon data (the batches' payloads).
+    pub fn data_bytes(&self) -> usize {
+        self.batches.iter().map(|b| b.data.len()).sum()
+    }
+
+    /// Every photon, decoded from the packed batches (as a client sees them).
+    pub fn unpacked(&self) -> Vec<Photon> {
+        self.batches
+            .iter()
+            .flat_map(|b| b.unpack().unwrap_or_default())
+            .collect()
+    }
+}
+
+/// Traces and packs every batch of every light of `scene` at `t_s` (BVH `bvh`).
+pub fn trace_iteration(
+    scene: &Scene,
+    bvh: &SceneBvh,
+    t_s: f64,
+    settings: PhotonSettings,
+    seed: u64,
+    format: PackFormat,
+) -> Iteration {
+    let lights = photon_lights(scene, t_s);
+    let plan = BatchPlan::new(&lights, &settings);
+    let tracer = PhotonTracer::new(scene, bvh, settings, &plan, seed);
+    let mut batches = Vec::new();
+    let (mut trace_time, mut pack_time) = Default::default();
+    let mut stored = 0;
+    for light in &lights {
+        let slots = plan.batches_of(light.id);
+        for slot in 0..slots {
+            let start = std::time::Instant::now();
+            let photons = tracer.trace_batch(light, slot, slots, 0);
+            trace_time += start.elapsed();
+            let start = std::time::Instant::now();
+            stored += photons.len();
+            batches.push(PackedBatch::pack(
+                pack::BatchHeader {
+                    light: light.id,
+                    slot,
+                    slots,
+                    generation: 0,
+                    scene_time_s: t_s,
+                    emitted: plan.batch_size,
+                },
+                &photons,
+                format,
+            ));
+            pack_time += start.elapsed();
+        }
+    }
+    Iteration {
+        radius: tracer.radius(),
+        plan,
+        batches,
+        stored,
+        trace_time,
+        pack_time,
+    }
+}
+
 fn bounds(triangles: &[WorldTriangle]) -> (Vec3, Vec3) {
     let mut lo = Vec3::splat(f32::INFINITY);
     let mut hi = Vec3::splat(f32::NEG_INFINITY);

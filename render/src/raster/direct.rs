@@ -30,6 +30,16 @@ impl Default for ShadowSettings {
     }
 }
 
+/// The GPU targets of one view after the direct pass.
+pub(crate) struct DirectView {
+    /// G-buffer position, normal and albedo.
+    pub(crate) targets: [wgpu::Texture; 3],
+    /// Direct radiance (Rgba32Float).
+    pub(crate) direct: wgpu::Texture,
+    /// Bounding diagonal of the triangles, meters.
+    pub(crate) scene_extent: f32,
+}
+
 /// Must match `LightGpu` in direct.wgsl.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -178,6 +188,44 @@ impl Raster {
         height: u32,
         shadows: ShadowSettings,
     ) -> Result<(GBuffer, Vec<Vec3>), RasterError> {
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        let view = self.encode_direct(
+            &mut enc, scene, triangles, lights, camera, width, height, shadows,
+        )?;
+        let planes = self.read_back(
+            enc,
+            &[
+                (&view.targets[0], 16),
+                (&view.targets[1], 8),
+                (&view.targets[2], 8),
+                (&view.direct, 16),
+            ],
+            width,
+            height,
+        )?;
+        let g = GBuffer {
+            width,
+            height,
+            position: planes[0].clone(),
+            normal: planes[1].iter().map(|v| v.truncate()).collect(),
+            albedo: planes[2].iter().map(|v| v.truncate()).collect(),
+        };
+        Ok((g, planes[3].iter().map(|v| v.truncate()).collect()))
+    }
+
+    /// Records the shadow, G-buffer and direct-lighting passes into `enc`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn encode_direct(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        scene: &Scene,
+        triangles: &[WorldTriangle],
+        lights: &[LightState],
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        shadows: ShadowSettings,
+    ) -> Result<DirectView, RasterError> {
         let d = &self.device;
         let mut lo = Vec3::splat(f32::INFINITY);
         let mut hi = Vec3::splat(f32::NEG_INFINITY);
@@ -217,7 +265,6 @@ impl Raster {
             .iter()
             .flat_map(|t| t.v.map(|v| v.to_array()))
             .collect();
-        let mut enc = d.create_command_encoder(&Default::default());
         let vbuf = (!positions.is_empty()).then(|| {
             d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("shadow vertices"),
@@ -256,7 +303,7 @@ impl Raster {
                 pass.draw(0..positions.len() as u32, 0..1);
             }
         }
-        let targets = self.encode_gbuffer(&mut enc, scene, triangles, camera, width, height);
+        let targets = self.encode_gbuffer(enc, scene, triangles, camera, width, height);
         let out = d.create_texture(&wgpu::TextureDescriptor {
             label: Some("direct"),
             size: wgpu::Extent3d {
@@ -379,24 +426,10 @@ impl Raster {
             pass.set_bind_group(0, &bind, &[]);
             pass.draw(0..3, 0..1);
         }
-        let planes = self.read_back(
-            enc,
-            &[
-                (&targets[0], 16),
-                (&targets[1], 8),
-                (&targets[2], 8),
-                (&out, 16),
-            ],
-            width,
-            height,
-        )?;
-        let g = GBuffer {
-            width,
-            height,
-            position: planes[0].clone(),
-            normal: planes[1].iter().map(|v| v.truncate()).collect(),
-            albedo: planes[2].iter().map(|v| v.truncate()).collect(),
-        };
-        Ok((g, planes[3].iter().map(|v| v.truncate()).collect()))
+        Ok(DirectView {
+            targets,
+            direct: out,
+            scene_extent: extent,
+        })
     }
 }

@@ -1,5 +1,6 @@
 //! Raster on wgpu, headless: the client-side G-buffer (world position, normal, albedo) and
-//! direct lighting with shadow maps ([`direct`]), read back to the CPU.
+//! direct lighting with shadow maps ([`direct`]), the photon client's screen-space splatting
+//! and bilateral upsample ([`splat`]), read back to the CPU.
 //!
 //! On a GPU-less Linux box wgpu gets an adapter from Mesa's software drivers (Vulkan
 //! lavapipe from `mesa-vulkan-drivers`, or EGL/GL llvmpipe from `libegl-mesa0` +
@@ -10,8 +11,10 @@ use glam::{Mat4, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
 pub mod direct;
+pub mod splat;
 
 pub use direct::ShadowSettings;
+pub use splat::{PhotonFrame, SplatSettings};
 
 /// Why the raster cannot run.
 #[derive(Debug, thiserror::Error)]
@@ -51,6 +54,7 @@ pub struct Raster {
     shadow: wgpu::RenderPipeline,
     direct_pipeline: wgpu::RenderPipeline,
     direct_layout: wgpu::BindGroupLayout,
+    splat: splat::SplatPipelines,
 }
 
 /// The G-buffer of one view, on the CPU (row-major from the top).
@@ -225,9 +229,19 @@ impl Raster {
             .await
             .map_err(|e| RasterError::NoAdapter(e.to_string()))?;
         let adapter_info = adapter.get_info();
+        // Photon splatting accumulates in f32 where the adapter can blend it (f16 loses
+        // precision when thousands of photons add up in one pixel).
+        let blend32 = adapter
+            .features()
+            .contains(wgpu::Features::FLOAT32_BLENDABLE);
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("cloudlight raster"),
+                required_features: if blend32 {
+                    wgpu::Features::FLOAT32_BLENDABLE
+                } else {
+                    wgpu::Features::empty()
+                },
                 ..Default::default()
             })
             .await
@@ -290,6 +304,14 @@ impl Raster {
             cache: None,
         });
         let (shadow, direct_pipeline, direct_layout) = direct_pipelines(&device, &layout);
+        let splat = splat::SplatPipelines::new(
+            &device,
+            if blend32 {
+                wgpu::TextureFormat::Rgba32Float
+            } else {
+                wgpu::TextureFormat::Rgba16Float
+            },
+        );
         Ok(Raster {
             device,
             queue,
@@ -299,6 +321,7 @@ impl Raster {
             shadow,
             direct_pipeline,
             direct_layout,
+            splat,
         })
     }
 

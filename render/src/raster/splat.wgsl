@@ -1,0 +1,166 @@
+// Photon splatting (Mara et al. 2013, "2.5D bounds"; CloudLight §4.3) and the joint-bilateral
+// upsample. Layouts match raster/splat.rs (`SplatPhoton`, `SplatParams`).
+//
+// Splat: one screen-space quad per photon covering the projection of its sphere; each covered
+// pixel of the low-resolution accumulation buffer reads the full-resolution G-buffer at its
+// centre, keeps the photon only if the surface point lies within the photon's disk (flattened
+// along the surface normal) and faces the photon's arrival, and adds
+// Φ · κ(s) / N_κ(r) (cone kernel κ = 1 − s/r, N = π r² / 3): irradiance, W/m².
+
+struct SplatParams {
+    clip_from_world: mat4x4<f32>,
+    // Full-resolution size (x, y), low-resolution size (z, w).
+    sizes: vec4<f32>,
+    // x: downsample factor, y: flatten (max |Δ·n| / r), z: depth sigma (m), w: normal power.
+    settings: vec4<f32>,
+};
+
+@group(0) @binding(0) var<uniform> params: SplatParams;
+@group(0) @binding(1) var gpos: texture_2d<f32>;
+@group(0) @binding(2) var gnrm: texture_2d<f32>;
+@group(0) @binding(3) var galb: texture_2d<f32>;
+@group(0) @binding(4) var accum: texture_2d<f32>;
+
+struct PhotonIn {
+    @location(0) position_radius: vec4<f32>,
+    @location(1) power: vec4<f32>,
+    @location(2) direction: vec4<f32>,
+};
+
+struct SplatOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) @interpolate(flat) position_radius: vec4<f32>,
+    @location(1) @interpolate(flat) power: vec4<f32>,
+    @location(2) @interpolate(flat) direction: vec4<f32>,
+};
+
+@vertex
+fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
+    var out: SplatOut;
+    out.position_radius = p.position_radius;
+    out.power = p.power;
+    out.direction = p.direction;
+    let c = p.position_radius.xyz;
+    let r = p.position_radius.w;
+    // Screen bounds of the sphere: project the corners of its bounding box; a sphere that
+    // reaches behind the eye covers the whole screen.
+    var lo = vec2<f32>(1e9);
+    var hi = vec2<f32>(-1e9);
+    var behind = false;
+    for (var k = 0u; k < 8u; k = k + 1u) {
+        let corner = c + r * vec3<f32>(
+            select(-1.0, 1.0, (k & 1u) != 0u),
+            select(-1.0, 1.0, (k & 2u) != 0u),
+            select(-1.0, 1.0, (k & 4u) != 0u));
+        let q = params.clip_from_world * vec4<f32>(corner, 1.0);
+        if (q.w <= 1e-6) {
+            behind = true;
+        } else {
+            lo = min(lo, q.xy / q.w);
+            hi = max(hi, q.xy / q.w);
+        }
+    }
+    if (behind) {
+        lo = vec2<f32>(-1.0);
+        hi = vec2<f32>(1.0);
+    }
+    // Grow by one low-resolution pixel so that partly covered pixels are kept.
+    let pad = 2.0 / params.sizes.zw;
+    lo = clamp(lo - pad, vec2<f32>(-1.0), vec2<f32>(1.0));
+    hi = clamp(hi + pad, vec2<f32>(-1.0), vec2<f32>(1.0));
+    // Two triangles: (0,0) (1,0) (0,1) (0,1) (1,0) (1,1).
+    let corners = array<vec2<f32>, 6>(
+        vec2<f32>(0.0, 0.0), vec2<f32>(1.0, 0.0), vec2<f32>(0.0, 1.0),
+        vec2<f32>(0.0, 1.0), vec2<f32>(1.0, 0.0), vec2<f32>(1.0, 1.0));
+    let t = corners[vi];
+    out.clip = vec4<f32>(mix(lo, hi, t), 0.5, 1.0);
+    if (hi.x <= lo.x || hi.y <= lo.y || r <= 0.0) {
+        out.clip = vec4<f32>(2.0, 2.0, 2.0, 1.0);
+    }
+    return out;
+}
+
+// The full-resolution texel that stands for low-resolution pixel `lp`.
+fn full_texel(lp: vec2<i32>) -> vec2<i32> {
+    let ds = i32(params.settings.x);
+    let full = vec2<i32>(params.sizes.xy) - vec2<i32>(1);
+    return min(lp * ds + vec2<i32>(ds / 2), full);
+}
+
+@fragment
+fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
+    let px = full_texel(vec2<i32>(in.clip.xy));
+    let g = textureLoad(gpos, px, 0);
+    if (g.w < 0.5) {
+        discard;
+    }
+    let n = normalize(textureLoad(gnrm, px, 0).xyz);
+    let r = in.position_radius.w;
+    let delta = g.xyz - in.position_radius.xyz;
+    let dn = dot(delta, n);
+    if (abs(dn) > params.settings.y * r) {
+        discard;
+    }
+    let s2 = max(dot(delta, delta) - dn * dn, 0.0);
+    if (s2 >= r * r || dot(n, in.direction.xyz) >= 0.0) {
+        discard;
+    }
+    let kappa = 1.0 - sqrt(s2) / r;
+    let norm = 3.14159265 * r * r / 3.0;
+    return vec4<f32>(in.power.rgb * (kappa / norm), 1.0);
+}
+
+@vertex
+fn vs_full(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
+    let uv = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u));
+    return vec4<f32>(uv * 2.0 - 1.0, 0.0, 1.0);
+}
+
+// Joint-bilateral upsample of the accumulated irradiance to full resolution, times ρ/π:
+// indirect radiance. Taps: the four nearest low-resolution pixels, weighted bilinearly ×
+// exp(−|plane distance| / σ) × max(0, n·n')^p; the nearest tap in plane distance is the
+// fallback when every weight vanishes.
+@fragment
+fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<f32> {
+    let px = vec2<i32>(frag.xy);
+    let g = textureLoad(gpos, px, 0);
+    if (g.w < 0.5) {
+        return vec4<f32>(0.0);
+    }
+    let n = normalize(textureLoad(gnrm, px, 0).xyz);
+    let albedo = textureLoad(galb, px, 0).rgb;
+    let ds = params.settings.x;
+    let low = vec2<i32>(params.sizes.zw) - vec2<i32>(1);
+    let lp = (frag.xy) / ds - vec2<f32>(0.5);
+    let base = vec2<i32>(floor(lp));
+    let f = lp - floor(lp);
+    var sum = vec3<f32>(0.0);
+    var wsum = 0.0;
+    var best = vec3<f32>(0.0);
+    var best_d = 1e30;
+    for (var k = 0u; k < 4u; k = k + 1u) {
+        let o = vec2<i32>(i32(k & 1u), i32(k >> 1u));
+        let t = clamp(base + o, vec2<i32>(0), low);
+        let tg = textureLoad(gpos, full_texel(t), 0);
+        if (tg.w < 0.5) {
+            continue;
+        }
+        let tn = normalize(textureLoad(gnrm, full_texel(t), 0).xyz);
+        let e = textureLoad(accum, t, 0).rgb;
+        let plane = abs(dot(tg.xyz - g.xyz, n));
+        let bw = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1);
+        let w = bw * exp(-plane / params.settings.z) * pow(max(dot(n, tn), 0.0), params.settings.w);
+        sum += w * e;
+        wsum += w;
+        let d = plane + (1.0 - dot(n, tn));
+        if (d < best_d) {
+            best_d = d;
+            best = e;
+        }
+    }
+    var irradiance = best;
+    if (wsum > 1e-4) {
+        irradiance = sum / wsum;
+    }
+    return vec4<f32>(albedo / 3.14159265 * irradiance, 1.0);
+}
