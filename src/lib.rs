@@ -9,11 +9,11 @@ pub use cloudlight_runtime as runtime;
 pub use cloudlight_scenes as scenes;
 pub use cloudlight_transport as transport;
 
-/// The built-in default topology, used by `cloudlight run` without a file.
-///
-/// Until a lighting technique exists it is the probe pipeline on one node; the photon
-/// technique on the Cornell box replaces it when it arrives.
-pub const DEFAULT_TOPOLOGY: &str = include_str!("../examples/topologies/probe-local.toml");
+/// The built-in default topology, used by `cloudlight run` without a file: the photon
+/// technique on the Cornell box (its light moving), traced on a cloud node and streamed to
+/// two clients over emulated campus links, for four seconds.
+pub const DEFAULT_TOPOLOGY: &str = include_str!("../examples/topologies/photons-cloud.toml");
 
 /// File name under which diagnostics name the built-in default topology.
-pub const DEFAULT_TOPOLOGY_NAME: &str = "<built-in default: examples/topologies/probe-local.toml>";
+pub const DEFAULT_TOPOLOGY_NAME: &str =
+    "<built-in default: examples/topologies/photons-cloud.toml>";

@@ -231,9 +231,9 @@ fn main() -> ExitCode {
                 Some(path) => Plan::load(path, &registry),
                 None => {
                     eprintln!(
-                        "No topology given: running the built-in default, the probe pipeline on one node \
-                         (examples/topologies/probe-local.toml). No lighting technique is implemented yet; \
-                         once the photon technique exists, the default becomes photons on the Cornell box."
+                        "No topology given: running the built-in default, the photon technique on the \
+                         Cornell box with a moving light: a cloud node traces photons and streams them to two \
+                         clients over emulated campus links (examples/topologies/photons-cloud.toml)."
                     );
                     Plan::from_str(DEFAULT_TOPOLOGY_NAME, DEFAULT_TOPOLOGY, &registry)
                 }
@@ -382,6 +382,19 @@ fn execute(
                 report.started,
                 out.join("metrics.json").display()
             );
+            for stage in &report.metrics.stages {
+                let Some(r) = &stage.report else { continue };
+                if let Some(dir) = r.get("frames_dir").and_then(|d| d.as_str()) {
+                    println!(
+                        "frames of {}: {} ({} PNGs)",
+                        stage.name,
+                        dir,
+                        r.get("frames_written")
+                            .and_then(|n| n.as_u64())
+                            .unwrap_or(0)
+                    );
+                }
+            }
             ExitCode::SUCCESS
         }
         Err(RunError::StageFailed {

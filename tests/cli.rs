@@ -50,9 +50,11 @@ fn validate_reports_errors_with_file_line_and_key() {
 
 #[test]
 fn run_without_topology_runs_the_default_and_writes_metrics() {
+    // The default: photons on the Cornell box, traced on a cloud node and streamed to two
+    // clients that write their frames.
     let dir = tempfile::tempdir().unwrap();
     let out = cloudlight()
-        .args(["run", "--duration", "1", "--out"])
+        .args(["run", "--duration", "2", "--out"])
         .arg(dir.path())
         .output()
         .unwrap();
@@ -63,18 +65,25 @@ fn run_without_topology_runs_the_default_and_writes_metrics() {
     );
     assert!(String::from_utf8_lossy(&out.stderr).contains("built-in default"));
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(text.contains("source.out -> relay.in"), "{text}");
+    assert!(text.contains("batcher.out -> client[0].in"), "{text}");
+    assert!(text.contains("frames of client[1]: "), "{text}");
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("metrics.json")).unwrap()).unwrap();
     assert_eq!(json["status"], "finished");
-    let sink = json["stages"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|s| s["name"] == "sink")
-        .unwrap();
-    assert!(sink["report"]["received"].as_u64().unwrap() > 10, "{sink}");
-    assert_eq!(sink["report"]["corrupt"], 0);
+    for client in ["client[0]", "client[1]"] {
+        let stage = json["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == client)
+            .unwrap();
+        let r = &stage["report"];
+        assert!(r["photons_stored"].as_u64().unwrap() > 1000, "{stage}");
+        assert_eq!(r["batches_rejected"], 0);
+        let frames = std::path::Path::new(r["frames_dir"].as_str().unwrap());
+        assert!(frames.starts_with(dir.path()), "{frames:?}");
+        assert!(frames.join("frame_00000.png").is_file(), "{frames:?}");
+    }
 }
 
 #[test]

@@ -2,9 +2,11 @@
 //!
 //! A stage is a thin shell over a kernel of `cloudlight-render`: receive → compute → send.
 //! Stages never open sockets or look at placement; the runtime moves their messages.
-//! Lighting stages arrive with their techniques; for now this crate holds the probe
-//! technique used to qualify topologies and links.
+//! Techniques: `photons` (photon_batcher → photon_reconstructor) and `probe`, the diagnostic
+//! used to qualify topologies and links.
 
+pub mod photon_batcher;
+pub mod photon_reconstructor;
 pub mod probe;
 pub mod wire;
 
@@ -13,6 +15,8 @@ use cloudlight_runtime::StageRegistry;
 /// Every stage kind this build knows, for topology files to name.
 pub fn registry() -> StageRegistry {
     let mut r = StageRegistry::new();
+    photon_batcher::register(&mut r);
+    photon_reconstructor::register(&mut r);
     probe::register(&mut r);
     r
 }

@@ -102,3 +102,13 @@ mod tests {
         }
     }
 }
+
+/// What the photon batcher sends each client: packed batches as they complete, and after
+/// each iteration a manifest of the complete set (see `cloudlight_render::photon::store`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum PhotonMsg {
+    /// One light's batch for one slot.
+    Batch(cloudlight_render::photon::PackedBatch),
+    /// The generations and batch counts of every light as of a scene time.
+    Manifest(cloudlight_render::photon::Manifest),
+}

@@ -263,6 +263,9 @@ pub struct StageSetup {
     pub seed: u64,
     /// The stage's `params` table from the topology.
     pub params: toml::Table,
+    /// The run's output folder, where stages may write files (frames, dumps); `None` when
+    /// the run writes nothing.
+    pub out_dir: Option<std::path::PathBuf>,
 }
 
 impl StageSetup {

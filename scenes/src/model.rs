@@ -517,21 +517,24 @@ impl Scene {
     pub fn triangles_at(&self, t_s: f64) -> Vec<WorldTriangle> {
         let mut out = Vec::with_capacity(self.triangle_count());
         for o in &self.objects {
-            let m = o.motion.world_from_local(t_s);
-            let nm = Mat3::from(m.matrix3).inverse().transpose();
-            let mesh = &o.mesh;
-            for tri in &mesh.indices {
-                let i = tri.map(|k| k as usize);
-                let uv = |k: usize| mesh.uvs.get(k).copied().unwrap_or(Vec2::ZERO);
-                out.push(WorldTriangle {
-                    v: i.map(|k| m.transform_point3(mesh.positions[k])),
-                    n: i.map(|k| (nm * mesh.normals[k]).normalize_or_zero()),
-                    uv: i.map(uv),
-                    material: o.material,
-                });
-            }
+            push_object_triangles(o, t_s, &mut out);
         }
         out
+    }
+
+    /// The triangles of object `index` in world space at scene time `t_s`.
+    pub fn object_triangles_at(&self, index: usize, t_s: f64) -> Vec<WorldTriangle> {
+        let mut out = Vec::new();
+        if let Some(o) = self.objects.get(index) {
+            push_object_triangles(o, t_s, &mut out);
+        }
+        out
+    }
+
+    /// Whether any object moves (lights and the sun aside): whether geometry, and so a BVH,
+    /// changes over time.
+    pub fn has_moving_geometry(&self) -> bool {
+        self.objects.iter().any(|o| o.motion.is_animated())
     }
 
     /// Emissive surfaces at scene time `t_s` as Lambertian point emitters: each emissive
@@ -613,5 +616,21 @@ impl Scene {
             })
             .sum();
         punctual + surfaces
+    }
+}
+
+fn push_object_triangles(o: &Object, t_s: f64, out: &mut Vec<WorldTriangle>) {
+    let m = o.motion.world_from_local(t_s);
+    let nm = Mat3::from(m.matrix3).inverse().transpose();
+    let mesh = &o.mesh;
+    for tri in &mesh.indices {
+        let i = tri.map(|k| k as usize);
+        let uv = |k: usize| mesh.uvs.get(k).copied().unwrap_or(Vec2::ZERO);
+        out.push(WorldTriangle {
+            v: i.map(|k| m.transform_point3(mesh.positions[k])),
+            n: i.map(|k| (nm * mesh.normals[k]).normalize_or_zero()),
+            uv: i.map(uv),
+            material: o.material,
+        });
     }
 }

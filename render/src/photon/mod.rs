@@ -32,7 +32,7 @@ pub mod pack;
 pub mod store;
 
 pub use pack::{PackError, PackFormat, PackedBatch};
-pub use store::{Manifest, ManifestLight, PhotonSet};
+pub use store::{Inserted, Manifest, ManifestLight, PhotonSet};
 
 /// Largest batch size accepted (a batch is one message; 10⁷ compact photons are 120 MB).
 pub const MAX_BATCH_SIZE: u32 = 10_000_000;
@@ -135,7 +135,11 @@ impl PhotonLight {
 
 /// The scene's lights at `t_s` as photon emitters (lights that emit nothing are left out).
 pub fn photon_lights(scene: &Scene, t_s: f64) -> Vec<PhotonLight> {
-    let (lo, hi) = scene.bounds_at(t_s);
+    photon_lights_in(scene, t_s, scene.bounds_at(t_s))
+}
+
+/// [`photon_lights`] when the scene's bounds at `t_s` are known (e.g. from its BVH).
+pub fn photon_lights_in(scene: &Scene, t_s: f64, (lo, hi): (Vec3, Vec3)) -> Vec<PhotonLight> {
     let (center, half_diag) = if lo.is_finite() && hi.is_finite() {
         ((lo + hi) * 0.5, ((hi - lo).length() * 0.5).max(1e-6))
     } else {
@@ -204,12 +208,7 @@ pub fn photon_lights(scene: &Scene, t_s: f64) -> Vec<PhotonLight> {
         }
     }
     // Emissive objects: one light each.
-    let triangles = scene.triangles_at(t_s);
-    let mut first = 0;
     for (k, object) in scene.objects.iter().enumerate() {
-        let count = object.mesh.triangle_count();
-        let tris = &triangles[first..first + count];
-        first += count;
         let emission = scene.materials[object.material as usize].emission;
         if emission.max_element() <= 0.0 || !emission.is_finite() {
             continue;
@@ -218,7 +217,7 @@ pub fn photon_lights(scene: &Scene, t_s: f64) -> Vec<PhotonLight> {
             (scene.lights.len() + k) as u32,
             &object.name,
             emission,
-            tris,
+            &scene.object_triangles_at(k, t_s),
         ) {
             out.push(light);
         }
@@ -343,24 +342,25 @@ impl<'a> PhotonTracer<'a> {
         plan: &BatchPlan,
         seed: u64,
     ) -> Self {
-        let (lo, hi) = bounds(bvh.triangles());
+        let (lo, hi) = bvh_bounds(bvh);
         let extent = (hi - lo).length();
         let extent = if extent.is_finite() && extent > 0.0 {
             extent
         } else {
             1.0
         };
-        let area: f32 = bvh
-            .triangles()
-            .iter()
-            .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length())
-            .filter(|a| a.is_finite())
-            .sum();
-        let n = plan.total_photons().max(1) as f32;
-        let auto = (settings.photons_per_disk.max(1.0) * area / (std::f32::consts::PI * n)).sqrt();
         let radius = settings
             .radius_m
-            .unwrap_or(auto)
+            .unwrap_or_else(|| {
+                let area: f32 = bvh
+                    .triangles()
+                    .par_iter()
+                    .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length())
+                    .filter(|a| a.is_finite())
+                    .sum();
+                let n = plan.total_photons().max(1) as f32;
+                (settings.photons_per_disk.max(1.0) * area / (std::f32::consts::PI * n)).sqrt()
+            })
             .clamp(extent * 1e-4, extent * 0.25);
         PhotonTracer {
             scene,
@@ -582,16 +582,20 @@ pub fn trace_iteration(
     }
 }
 
-fn bounds(triangles: &[WorldTriangle]) -> (Vec3, Vec3) {
-    let mut lo = Vec3::splat(f32::INFINITY);
-    let mut hi = Vec3::splat(f32::NEG_INFINITY);
-    for t in triangles {
-        for v in t.v {
-            lo = lo.min(v);
-            hi = hi.max(v);
-        }
-    }
-    (lo, hi)
+/// Bounds of a BVH's triangles (min, max), meters.
+pub fn bvh_bounds(bvh: &SceneBvh) -> (Vec3, Vec3) {
+    bvh.triangles()
+        .par_iter()
+        .map(|t| {
+            (
+                t.v[0].min(t.v[1]).min(t.v[2]),
+                t.v[0].max(t.v[1]).max(t.v[2]),
+            )
+        })
+        .reduce(
+            || (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+            |a, b| (a.0.min(b.0), a.1.max(b.1)),
+        )
 }
 
 #[cfg(test)]

@@ -261,6 +261,7 @@ impl Cluster {
                 scene: plan.topology.scene.clone(),
                 seed: plan.topology.seed,
                 params: decl.params.clone(),
+                out_dir: cluster.options.out_dir.clone(),
             };
             let fail = |error: String| RunError::Start {
                 stage: inst.name.clone(),
