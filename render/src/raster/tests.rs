@@ -510,3 +510,71 @@ fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
     }
     assert!(errors[3] < 0.01, "{errors:?}");
 }
+
+#[test]
+fn extreme_photon_sets_give_finite_frames() {
+    // Lights of 1e-6 W and 1e6 W, a scene without lights (no photons), and one photon per
+    // batch: the client's frame stays finite and scales with the light.
+    use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
+    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
+    let base = cloudlight_scenes::builtin("cornell").unwrap();
+    let camera = base.cameras[0].camera;
+    let frame = |scene: &cloudlight_scenes::Scene, settings: PhotonSettings| {
+        let tris = scene.triangles_at(0.0);
+        let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
+        let it = trace_iteration(scene, &bvh, 0.0, settings, 1, PackFormat::Compact12);
+        let lights = scene.surface_light_samples(0.0, 1);
+        let f = raster
+            .photon_frame(
+                scene,
+                &tris,
+                &lights,
+                &camera,
+                32,
+                32,
+                ShadowSettings {
+                    size: 128,
+                    ..Default::default()
+                },
+                &it.unpacked(),
+                SplatSettings::default(),
+            )
+            .unwrap();
+        assert!(
+            f.combined()
+                .iter()
+                .all(|v| v.is_finite() && v.min_element() >= 0.0),
+            "non-finite or negative pixel"
+        );
+        f.indirect.iter().copied().sum::<Vec3>().x
+    };
+    let settings = PhotonSettings::for_budget(&base, 4000, 4000);
+    let unit = frame(&base, settings);
+    assert!(unit > 0.0);
+    for scale in [1e-6f32, 1e6] {
+        let mut scene = base.clone();
+        for m in &mut scene.materials {
+            m.emission *= scale;
+        }
+        let s = PhotonSettings {
+            photons_per_watt: settings.photons_per_watt / scale as f64,
+            ..settings
+        };
+        let sum = frame(&scene, s);
+        assert!(
+            (sum / (unit * scale) - 1.0).abs() < 0.02,
+            "{scale}: {sum} vs {unit}"
+        );
+    }
+    let mut dark = base.clone();
+    for m in &mut dark.materials {
+        m.emission = Vec3::ZERO;
+    }
+    assert_eq!(frame(&dark, settings), 0.0);
+    let one = PhotonSettings {
+        batch_size: 1,
+        photons_per_watt: settings.photons_per_watt / 4000.0,
+        ..settings
+    };
+    assert!(frame(&base, one).is_finite());
+}

@@ -1,0 +1,249 @@
+//! The photon technique end to end in one process: a batcher on a cloud node streams packed
+//! batches over emulated links (real UDP sockets on loopback) to reconstructors on client
+//! nodes.
+
+mod common;
+
+use std::time::Duration;
+
+use cloudlight::actors::wire::PhotonMsg;
+use cloudlight::render::photon::{Manifest, PackFormat, PackedBatch, pack::BatchHeader};
+use cloudlight::runtime::{
+    MetricsSnapshot, NextTick, RunOptions, Stage, StageCtx, StageKind, StageRegistry,
+};
+use common::{plan_text, run_plan};
+
+fn report<'a>(m: &'a MetricsSnapshot, stage: &str) -> &'a serde_json::Value {
+    m.stages
+        .iter()
+        .find(|s| s.name == stage)
+        .and_then(|s| s.report.as_ref())
+        .unwrap_or_else(|| panic!("no report from {stage}"))
+}
+
+fn f(v: &serde_json::Value, key: &str) -> f64 {
+    v[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key} missing in {v}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_behind_a_slow_lossy_link_show_current_indirect_light() {
+    // 50 ms each way and 2% loss between the cloud and each client. The Cornell box's light
+    // moves all the time, so every iteration re-traces its batch: clients must show indirect
+    // light soon after start, replace stale batches as new ones arrive, and the age of what
+    // they show must stay bounded (about one iteration + the link's latency + queueing).
+    let text = r#"
+techniques = ["photons"]
+scene = "cornell-animated"
+seed = 4
+duration_s = 4.0
+cluster = "photon-tests"
+secret = "s"
+[[node]]
+name = "cloud"
+address = "127.0.0.1:0"
+[[node]]
+name = "home"
+address = "127.0.0.1:0"
+[[stage]]
+name = "batcher"
+kind = "photon_batcher"
+node = "cloud"
+params = { photons = 5000, batch_size = 2500, interval_ms = 100.0 }
+[[stage]]
+name = "viewer"
+kind = "photon_reconstructor"
+node = "home"
+params = { width = 48, height = 36, fps = 4.0, light_samples = 1, shadow_size = 128 }
+[[stage]]
+name = "counter"
+kind = "photon_reconstructor"
+node = "home"
+params = { render = false, fps = 20.0 }
+[[edge]]
+from = "batcher.out"
+to = "viewer.in"
+[[edge]]
+from = "batcher.out"
+to = "counter.in"
+[[link]]
+between = ["cloud", "home"]
+latency_ms = 50.0
+jitter_ms = 5.0
+loss = 0.02
+"#;
+    let registry = cloudlight::actors::registry();
+    let plan = plan_text(text, &registry);
+    let out = tempfile::tempdir().unwrap();
+    let run = run_plan(
+        &plan,
+        &registry,
+        RunOptions {
+            out_dir: Some(out.path().to_path_buf()),
+            ..RunOptions::default()
+        },
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+    let m = &run.metrics;
+    let batcher = report(m, "batcher");
+    assert!(f(batcher, "iterations") >= 10.0, "{batcher}");
+    assert_eq!(f(batcher, "batches"), 2.0, "{batcher}");
+    for client in ["viewer", "counter"] {
+        let r = report(m, client);
+        eprintln!("{client}: {r}");
+        assert_eq!(r["indirect_shown"], true, "{client}: {r}");
+        assert!(f(r, "first_indirect_s") < 1.5, "{client}: {r}");
+        assert!(f(r, "batches_replaced") >= 10.0, "{client}: {r}");
+        assert_eq!(f(r, "batches_rejected"), 0.0);
+        assert!(f(r, "photons_stored") > 1000.0, "{client}: {r}");
+        assert!(f(r, "age_ms_max") < 1000.0, "{client}: {r}");
+        assert!(f(r, "age_ms_p50") < 500.0, "{client}: {r}");
+    }
+    assert!(f(report(m, "viewer"), "frames") >= 3.0);
+    // Each cut edge crossed the lossy link and recovered its losses.
+    let cut: Vec<_> = m.edges.iter().filter_map(|e| e.wire.as_ref()).collect();
+    assert!(!cut.is_empty());
+    assert!(
+        cut.iter().map(|w| w.retransmissions).sum::<u64>() > 0,
+        "{cut:?}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zero_and_fifty_clients_run_cleanly() {
+    for clients in [0usize, 50] {
+        let mut text = String::from(
+            r#"
+techniques = ["photons"]
+scene = "cornell-animated"
+duration_s = 2.0
+[[node]]
+name = "cloud"
+address = "127.0.0.1:0"
+[[node]]
+name = "home"
+address = "127.0.0.1:0"
+[[stage]]
+name = "batcher"
+kind = "photon_batcher"
+node = "cloud"
+params = { photons = 2000, batch_size = 1000, interval_ms = 100.0 }
+"#,
+        );
+        if clients > 0 {
+            text += &format!(
+                r#"
+[[stage]]
+name = "client"
+kind = "photon_reconstructor"
+node = "home"
+replicas = {clients}
+params = {{ render = false, fps = 10.0 }}
+[[edge]]
+from = "batcher.out"
+to = "client.in"
+"#
+            );
+        }
+        let registry = cloudlight::actors::registry();
+        let plan = plan_text(&text, &registry);
+        let run = run_plan(&plan, &registry, RunOptions::default())
+            .await
+            .unwrap_or_else(|e| panic!("{clients} clients: {e}"));
+        let batcher = report(&run.metrics, "batcher");
+        assert!(f(batcher, "iterations") >= 5.0, "{batcher}");
+        for i in 0..clients {
+            let r = report(&run.metrics, &format!("client[{i}]"));
+            assert_eq!(r["indirect_shown"], true, "client[{i}]: {r}");
+            assert!(f(r, "age_ms_max").is_finite());
+        }
+    }
+}
+
+/// Sends batches whose bytes are garbage, then a manifest.
+struct GarbageBatcher {
+    sent: u32,
+}
+
+#[async_trait::async_trait]
+impl Stage for GarbageBatcher {
+    async fn on_tick(&mut self, ctx: &mut StageCtx) -> anyhow::Result<NextTick> {
+        if self.sent == 20 {
+            let m = Manifest {
+                iteration: 1,
+                scene_time_s: 0.0,
+                lights: Vec::new(),
+            };
+            ctx.send("out", 0.0, PhotonMsg::Manifest(m)).await?;
+            return Ok(NextTick::Never);
+        }
+        let photons = vec![
+            cloudlight::render::photon::Photon {
+                position: cloudlight::scenes::glam::Vec3::ONE,
+                direction: cloudlight::scenes::glam::Vec3::NEG_Y,
+                power: cloudlight::scenes::glam::Vec3::ONE,
+                radius: 0.1,
+            };
+            8
+        ];
+        let header = BatchHeader {
+            light: 0,
+            slot: 0,
+            slots: 1,
+            generation: self.sent as u64,
+            scene_time_s: 0.0,
+            emitted: 8,
+        };
+        let mut b = PackedBatch::pack(header, &photons, PackFormat::Compact12);
+        for (i, x) in b.data.iter_mut().enumerate() {
+            *x = ((i as u32).wrapping_mul(2_654_435_761) ^ self.sent) as u8;
+        }
+        self.sent += 1;
+        ctx.send("out", 0.0, PhotonMsg::Batch(b)).await?;
+        Ok(NextTick::After(Duration::from_millis(5)))
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn garbage_batches_are_rejected_and_counted() {
+    let mut registry: StageRegistry = cloudlight::actors::registry();
+    registry.register(
+        StageKind::new("garbage", "photons", "sends corrupt photon batches", |_| {
+            Ok(Box::new(GarbageBatcher { sent: 0 }))
+        })
+        .output::<PhotonMsg>("out"),
+    );
+    let text = r#"
+techniques = ["photons"]
+scene = "cornell"
+duration_s = 1.0
+[[node]]
+name = "cloud"
+address = "127.0.0.1:0"
+[[node]]
+name = "home"
+address = "127.0.0.1:0"
+[[stage]]
+name = "garbage"
+kind = "garbage"
+node = "cloud"
+[[stage]]
+name = "client"
+kind = "photon_reconstructor"
+node = "home"
+params = { render = false }
+[[edge]]
+from = "garbage.out"
+to = "client.in"
+"#;
+    let plan = plan_text(text, &registry);
+    let run = run_plan(&plan, &registry, RunOptions::default())
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    let r = report(&run.metrics, "client");
+    assert_eq!(f(r, "batches_rejected"), 20.0, "{r}");
+    assert_eq!(f(r, "photons_stored"), 0.0, "{r}");
+    assert_eq!(f(r, "manifests"), 1.0, "{r}");
+}
