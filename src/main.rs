@@ -10,6 +10,9 @@ use cloudlight::runtime::{Plan, RunError, RunOptions, RunReport, StageRegistry};
 use cloudlight::{DEFAULT_TOPOLOGY, DEFAULT_TOPOLOGY_NAME};
 use indicatif::{ProgressBar, ProgressStyle};
 
+mod bench_photons;
+mod plot;
+
 /// CloudLight-rs: indirect lighting computed on cloud nodes and streamed to clients.
 ///
 /// Logs go to stderr; set RUST_LOG (e.g. RUST_LOG=debug) to change what is shown.
@@ -115,6 +118,107 @@ enum BenchCommand {
         /// Frames timed.
         #[arg(long, default_value_t = 5)]
         rounds: usize,
+    },
+    /// The paper's Table 2 rows for a technique, one column per scene: batches, photons per
+    /// batch, memory footprint, iteration interval, trace, packing and send time,
+    /// server-to-client Mbps, photons stored on the client and the client's indirect time.
+    ///
+    /// Runs the real stages (a cloud node and one client node over loopback) with every
+    /// light re-traced each `--interval-ms`, then times the client's splatting on wgpu.
+    /// Prints a Markdown table and JSON (also written to --json PATH if given).
+    Table2 {
+        /// Technique (only `photons` so far).
+        #[arg(long, default_value = "photons")]
+        technique: String,
+        /// Scenes, comma-separated: `cornell`, `city:N`, a .gltf/.glb file.
+        #[arg(long, value_delimiter = ',', default_value = "cornell")]
+        scene: Vec<String>,
+        /// Photons per iteration, one per scene (the last repeats).
+        #[arg(long, value_delimiter = ',', default_value = "10000")]
+        photons: Vec<u64>,
+        /// Photons per batch.
+        #[arg(long, default_value_t = 10_000)]
+        batch_size: u32,
+        /// Iteration period, milliseconds.
+        #[arg(long, default_value_t = 33.0)]
+        interval_ms: f64,
+        /// Seconds each scene runs.
+        #[arg(long, default_value_t = 5.0)]
+        seconds: f64,
+        /// Client frame width for the indirect time.
+        #[arg(long, default_value_t = 1280)]
+        width: u32,
+        /// Client frame height for the indirect time.
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+        /// Also write the JSON report to this file.
+        #[arg(long, value_name = "PATH")]
+        json: Option<PathBuf>,
+    },
+    /// Scaling over client counts (the paper's Figure 5): server time per iteration, total
+    /// Mbps and age of indirect light for each count, as a table, JSON and a PNG plot.
+    Scaling {
+        /// Technique (only `photons` so far).
+        #[arg(long, default_value = "photons")]
+        technique: String,
+        /// Client counts, comma-separated.
+        #[arg(long, value_delimiter = ',', default_value = "1,2,5,10,20,50")]
+        clients: Vec<usize>,
+        /// Scene.
+        #[arg(long, default_value = "cornell-animated")]
+        scene: String,
+        /// Photons per iteration.
+        #[arg(long, default_value_t = 10_000)]
+        photons: u64,
+        /// Photons per batch.
+        #[arg(long, default_value_t = 10_000)]
+        batch_size: u32,
+        /// Iteration period, milliseconds.
+        #[arg(long, default_value_t = 33.0)]
+        interval_ms: f64,
+        /// Seconds per client count.
+        #[arg(long, default_value_t = 4.0)]
+        seconds: f64,
+        /// Emulate no link (plain loopback) instead of the campus link (5 ms ± 1 ms,
+        /// 1 Gbit/s, 0.1% loss).
+        #[arg(long)]
+        no_link: bool,
+        /// Output folder for scaling.json and scaling.png [default: runs/bench-scaling-<time>].
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+    },
+    /// Speed/accuracy trade over photon budgets: relMSE and HDR-FLIP of the client's
+    /// indirect-only buffer against the path tracer's indirect-only image of the same view
+    /// and time, with update time and Mbps, for 12- and 20-byte photons; a table, JSON and a
+    /// PNG plot.
+    Quality {
+        /// Technique (only `photons` so far).
+        #[arg(long, default_value = "photons")]
+        technique: String,
+        /// Scene.
+        #[arg(long, default_value = "cornell")]
+        scene: String,
+        /// Photon budgets per iteration, comma-separated.
+        #[arg(long, value_delimiter = ',', default_value = "2500,10000,40000,160000")]
+        budgets: Vec<u64>,
+        /// Photons per batch.
+        #[arg(long, default_value_t = 10_000)]
+        batch_size: u32,
+        /// Reference samples per pixel.
+        #[arg(long, default_value_t = 4096)]
+        spp: u32,
+        /// Image width.
+        #[arg(long, default_value_t = 128)]
+        width: u32,
+        /// Image height.
+        #[arg(long, default_value_t = 128)]
+        height: u32,
+        /// Update rate the Mbps column assumes (capped by the update time), Hz.
+        #[arg(long, default_value_t = 30.0)]
+        rate_hz: f64,
+        /// Output folder [default: runs/bench-quality-<time>].
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
     },
     /// Ray casting on a scene: BVH build time, and million rays per second for coherent
     /// camera rays (1280x720) and incoherent diffuse-bounce rays, for CWBVH and BVH2 at each
@@ -258,6 +362,89 @@ fn main() -> ExitCode {
         Command::Bench {
             what: BenchCommand::Transport(args),
         } => bench_transport(args),
+        Command::Bench {
+            what:
+                BenchCommand::Table2 {
+                    technique,
+                    scene,
+                    photons,
+                    batch_size,
+                    interval_ms,
+                    seconds,
+                    width,
+                    height,
+                    json,
+                },
+        } => photons_only(&technique)
+            .and_then(|()| {
+                let rt = async_runtime().ok_or_else(|| anyhow::anyhow!("no async runtime"))?;
+                bench_photons::table2(
+                    &rt,
+                    &scene,
+                    &photons,
+                    batch_size,
+                    interval_ms,
+                    seconds,
+                    width,
+                    height,
+                    json.as_deref(),
+                )
+            })
+            .map_or_else(report_error, |()| ExitCode::SUCCESS),
+        Command::Bench {
+            what:
+                BenchCommand::Scaling {
+                    technique,
+                    clients,
+                    scene,
+                    photons,
+                    batch_size,
+                    interval_ms,
+                    seconds,
+                    no_link,
+                    out,
+                },
+        } => photons_only(&technique)
+            .and_then(|()| {
+                let rt = async_runtime().ok_or_else(|| anyhow::anyhow!("no async runtime"))?;
+                let b = bench_photons::ClusterBench {
+                    scene,
+                    photons,
+                    batch_size,
+                    interval_ms,
+                    seconds,
+                    format: cloudlight::render::photon::PackFormat::Compact12,
+                    link: if no_link {
+                        String::new()
+                    } else {
+                        bench_photons::CAMPUS_LINK.to_string()
+                    },
+                };
+                let out = out.unwrap_or_else(|| bench_photons::default_out("scaling"));
+                bench_photons::scaling(&rt, &b, &clients, &out)
+            })
+            .map_or_else(report_error, |()| ExitCode::SUCCESS),
+        Command::Bench {
+            what:
+                BenchCommand::Quality {
+                    technique,
+                    scene,
+                    budgets,
+                    batch_size,
+                    spp,
+                    width,
+                    height,
+                    rate_hz,
+                    out,
+                },
+        } => photons_only(&technique)
+            .and_then(|()| {
+                let out = out.unwrap_or_else(|| bench_photons::default_out("quality"));
+                bench_photons::quality(
+                    &scene, &budgets, batch_size, spp, width, height, rate_hz, &out,
+                )
+            })
+            .map_or_else(report_error, |()| ExitCode::SUCCESS),
         Command::Reference(args) => reference(args),
         Command::Plan { scene } => plan(&scene),
         Command::Bench {
@@ -527,6 +714,22 @@ fn bench_transport(args: TransportBenchArgs) -> ExitCode {
 }
 
 /// The multi-threaded tokio runtime every command runs on; says why when it cannot start.
+/// Benchmarks exist for the photon technique only so far.
+fn photons_only(technique: &str) -> anyhow::Result<()> {
+    match technique {
+        "photons" => Ok(()),
+        "voxels" | "irradiance" => anyhow::bail!(
+            "technique `{technique}` is not implemented yet; benchmarks exist for `photons`"
+        ),
+        other => anyhow::bail!("unknown technique `{other}` (photons, voxels, irradiance)"),
+    }
+}
+
+fn report_error(e: anyhow::Error) -> ExitCode {
+    eprintln!("error: {e:#}");
+    ExitCode::FAILURE
+}
+
 fn async_runtime() -> Option<tokio::runtime::Runtime> {
     match tokio::runtime::Builder::new_multi_thread()
         .enable_all()

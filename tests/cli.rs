@@ -325,3 +325,128 @@ fn plan_describes_the_scene_and_the_allocations() {
     assert_eq!(bad.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&bad.stderr).contains("nowhere.gltf"));
 }
+
+#[test]
+fn photon_benchmarks_write_tables_json_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("table2.json");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "table2",
+            "--technique",
+            "photons",
+            "--scene",
+            "cornell",
+            "--seconds",
+            "1",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for row in [
+        "Number of batches",
+        "Photons per batch",
+        "Memory footprint",
+        "Iteration interval",
+        "Photon trace",
+        "Photon packing",
+        "Send",
+        "Server-to-client bandwidth",
+        "Local device stored photons",
+        "Client indirect",
+    ] {
+        assert!(text.contains(row), "{row} missing: {text}");
+    }
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let col = &report["columns"][0];
+    assert_eq!(col["batches"], 1.0);
+    assert!(
+        col["server_to_client_mbps"].as_f64().unwrap() > 0.0,
+        "{col}"
+    );
+    assert!(
+        col["client_stored_photons"].as_f64().unwrap() > 1000.0,
+        "{col}"
+    );
+
+    let scaling = dir.path().join("scaling");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "scaling",
+            "--technique",
+            "photons",
+            "--clients",
+            "1,3",
+            "--seconds",
+            "1",
+            "--out",
+        ])
+        .arg(&scaling)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scaling.join("scaling.json")).unwrap()).unwrap();
+    let rows = report["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2);
+    assert_eq!(rows[1]["clients_showing_indirect"], 3);
+    assert!(scaling.join("scaling.png").metadata().unwrap().len() > 1000);
+
+    let quality = dir.path().join("quality");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "quality",
+            "--technique",
+            "photons",
+            "--budgets",
+            "1000,8000",
+            "--spp",
+            "64",
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--out",
+        ])
+        .arg(&quality)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(quality.join("quality.json")).unwrap()).unwrap();
+    for row in report["rows"].as_array().unwrap() {
+        for key in ["relmse_12", "relmse_20", "flip", "update_ms", "mbps_12"] {
+            assert!(row[key].as_f64().unwrap().is_finite(), "{key}: {row}");
+        }
+    }
+    assert!(quality.join("quality.png").metadata().unwrap().len() > 1000);
+
+    let out = cloudlight()
+        .args(["bench", "table2", "--technique", "voxels"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("not implemented yet"));
+}
