@@ -202,6 +202,84 @@ to = "sink"
     );
 }
 
+#[test]
+fn a_photon_client_that_rejoins_gets_the_current_set() {
+    // The static Cornell box: the batcher traces its one batch once and never again. A client
+    // node killed and restarted still gets the current set, from the batcher's re-send.
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_ports(2);
+    let topo = dir.path().join("photons.toml");
+    std::fs::write(
+        &topo,
+        format!(
+            r#"techniques = ["photons"]
+scene = "cornell"
+cluster = "photon-rejoin"
+duration_s = 7.0
+[transport]
+peer_timeout_ms = 500
+[[node]]
+name = "cloud"
+address = "127.0.0.1:{}"
+[[node]]
+name = "home"
+address = "127.0.0.1:{}"
+[[stage]]
+name = "batcher"
+kind = "photon_batcher"
+node = "cloud"
+params = {{ photons = 5000, batch_size = 5000, interval_ms = 50.0, resend_s = 0.5 }}
+[[stage]]
+name = "client"
+kind = "photon_reconstructor"
+node = "home"
+params = {{ render = false }}
+[[edge]]
+from = "batcher"
+to = "client"
+"#,
+            ports[0], ports[1]
+        ),
+    )
+    .unwrap();
+    let cloud = node(&topo, "cloud", dir.path(), &[]);
+    let mut home = node(&topo, "home", dir.path(), &["--duration", "60"]);
+    std::thread::sleep(Duration::from_millis(1500));
+    home.kill().unwrap();
+    home.wait().unwrap();
+    std::thread::sleep(Duration::from_millis(1000));
+    let again = node(
+        &topo,
+        "home",
+        &dir.path().join("again"),
+        &["--duration", "2.5"],
+    );
+    let out = finish(again, Duration::from_secs(30));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out_cloud = finish(cloud, Duration::from_secs(30));
+    assert!(
+        out_cloud.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out_cloud.stderr)
+    );
+    let client = sink_report(&dir.path().join("again"), "home", "client");
+    assert_eq!(client["indirect_shown"], true, "{client}");
+    assert!(
+        client["photons_stored"].as_u64().unwrap() > 1000,
+        "{client}"
+    );
+    let batcher = sink_report(dir.path(), "cloud", "batcher");
+    assert_eq!(
+        batcher["batches_traced"], 1,
+        "a static light is traced once: {batcher}"
+    );
+    assert!(batcher["resends"].as_u64().unwrap() >= 4, "{batcher}");
+}
+
 /// Creates two network namespaces joined by a veth pair, and removes them on drop.
 struct Namespaces {
     names: [String; 2],

@@ -247,3 +247,40 @@ to = "client.in"
     assert_eq!(f(r, "photons_stored"), 0.0, "{r}");
     assert_eq!(f(r, "manifests"), 1.0, "{r}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn only_lights_that_change_are_retraced() {
+    // The city's sun moves over the day; its street lamps do not. After the first iteration
+    // only the sun's batches are traced again.
+    let text = r#"
+techniques = ["photons"]
+scene = "city:2000"
+duration_s = 1.5
+[[node]]
+name = "cloud"
+address = "127.0.0.1:0"
+[[stage]]
+name = "batcher"
+kind = "photon_batcher"
+node = "cloud"
+params = { photons = 4000, batch_size = 500, interval_ms = 100.0 }
+"#;
+    let registry = cloudlight::actors::registry();
+    let plan = plan_text(text, &registry);
+    let run = run_plan(&plan, &registry, RunOptions::default())
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    let b = report(&run.metrics, "batcher");
+    let generations = b["generations"].as_object().unwrap();
+    assert!(generations.len() >= 5, "{b}");
+    let iterations = f(b, "iterations") as u64;
+    assert!(iterations >= 5, "{b}");
+    for (light, generation) in generations {
+        let g = generation.as_u64().unwrap();
+        if light == "sun" {
+            assert!(g >= iterations - 1, "the sun moves: {b}");
+        } else {
+            assert_eq!(g, 1, "{light} is static: {b}");
+        }
+    }
+}

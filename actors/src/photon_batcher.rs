@@ -211,9 +211,15 @@ impl PhotonBatcher {
             .map(|b| b.data.len())
             .sum();
         let batches: usize = self.sets.values().map(|s| s.batches.len()).sum();
+        let generations: serde_json::Map<String, serde_json::Value> = self
+            .sets
+            .values()
+            .map(|s| (s.light.name.clone(), s.generation.into()))
+            .collect();
         serde_json::json!({
             "iterations": f.iterations,
             "lights": self.sets.len(),
+            "generations": generations,
             "batches": batches,
             "batch_size": self.settings.batch_size,
             "photons_per_watt": self.settings.photons_per_watt,
