@@ -9,7 +9,7 @@
 
 use std::collections::HashSet;
 
-use cloudlight_scenes::{LightKind, Scene};
+use cloudlight_scenes::Scene;
 use glam::Vec3;
 
 /// Technique settings the plan uses.
@@ -45,9 +45,10 @@ impl Default for PlanSettings {
 pub struct LightPlan {
     /// Light name.
     pub name: String,
-    /// Watts summed over channels (directional: irradiance × the scene's ground area).
+    /// Watts summed over channels (directional: irradiance × the disk the photon tracer
+    /// emits from, which covers the scene).
     pub power_w: f64,
-    /// Photons per iteration.
+    /// Photons per iteration (whole batches, at least one).
     pub photons: u64,
     /// Batches per iteration.
     pub batches: u64,
@@ -66,7 +67,7 @@ pub struct ScenePlan {
     pub animated: bool,
     /// Emitted power of lights and emissive surfaces, W per channel.
     pub emitted_w: Vec3,
-    /// Photon budget per light (emissive surfaces count as one light).
+    /// Photon budget per light (each emissive object counts as one light).
     pub lights: Vec<LightPlan>,
     /// Occupied voxels per octree level, root (level 0) first.
     pub voxels_per_level: Vec<u64>,
@@ -86,39 +87,28 @@ pub fn plan(scene: &Scene, s: &PlanSettings) -> ScenePlan {
         .iter()
         .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length() as f64)
         .sum();
-    let ground = ((hi.x - lo.x) * (hi.z - lo.z)).max(0.0) as f64;
-    let budget = |name: &str, power_w: f64| {
-        let photons = (power_w * s.photons_per_watt).round() as u64;
-        LightPlan {
-            name: name.to_string(),
-            power_w,
-            photons,
-            batches: photons.div_ceil(s.batch_size.max(1)),
-        }
-    };
-    let mut lights: Vec<LightPlan> = scene
-        .lights
+    // Photon budget: the photon tracer's own lights and batch plan.
+    let photon_lights = crate::photon::photon_lights_in(scene, 0.0, (lo, hi));
+    let batch_plan = crate::photon::BatchPlan::new(
+        &photon_lights,
+        &crate::photon::PhotonSettings {
+            photons_per_watt: s.photons_per_watt,
+            batch_size: s.batch_size.clamp(1, crate::photon::MAX_BATCH_SIZE as u64) as u32,
+            ..Default::default()
+        },
+    );
+    let lights: Vec<LightPlan> = photon_lights
         .iter()
-        .map(|l| match &l.kind {
-            LightKind::Directional { irradiance_w_m2 } => {
-                budget(&l.name, irradiance_w_m2.element_sum() as f64 * ground)
+        .map(|l| {
+            let batches = batch_plan.batches_of(l.id) as u64;
+            LightPlan {
+                name: l.name.clone(),
+                power_w: l.watts(),
+                photons: batches * batch_plan.batch_size as u64,
+                batches,
             }
-            _ => budget(&l.name, l.power_w.element_sum() as f64),
         })
         .collect();
-    let surface_power = scene.emitted_power_w()
-        - scene
-            .lights
-            .iter()
-            .filter(|l| !matches!(l.kind, LightKind::Directional { .. }))
-            .map(|l| l.power_w)
-            .sum::<Vec3>();
-    if surface_power.element_sum() > 0.0 {
-        lights.push(budget(
-            "emissive surfaces",
-            surface_power.element_sum() as f64,
-        ));
-    }
 
     // Voxelize at the leaf level; parents are the leaves shifted down.
     let levels = s.octree_levels.min(12);
