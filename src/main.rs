@@ -199,7 +199,11 @@ enum BenchCommand {
         #[arg(long, default_value = "cornell")]
         scene: String,
         /// Photon budgets per iteration, comma-separated.
-        #[arg(long, value_delimiter = ',', default_value = "2500,10000,40000,160000")]
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "2500,5000,10000,40000,160000"
+        )]
         budgets: Vec<u64>,
         /// Photons per batch.
         #[arg(long, default_value_t = 10_000)]

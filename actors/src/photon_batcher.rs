@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use cloudlight_render::photon::{
     BatchPlan, Manifest, ManifestLight, PackFormat, PackedBatch, PhotonLight, PhotonSettings,
-    PhotonTracer, bvh_bounds, pack::BatchHeader, photon_lights_in,
+    PhotonTracer, pack::BatchHeader, photon_lights_in,
 };
 use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_runtime::{EdgeSettings, NextTick, Policy, Stage, StageCtx, StageKind, StageSetup};
@@ -293,8 +293,7 @@ impl PhotonBatcher {
         let scene = self.scene.clone();
         let lights = {
             let bvh = bvh.clone();
-            tokio::task::spawn_blocking(move || photon_lights_in(&scene, t, bvh_bounds(&bvh)))
-                .await?
+            tokio::task::spawn_blocking(move || photon_lights_in(&scene, t, bvh.bounds())).await?
         };
         let plan = BatchPlan::new(&lights, &self.settings);
         let radius = {

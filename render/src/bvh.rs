@@ -60,6 +60,7 @@ pub struct SceneBvh {
     scale: f32,
     tree: Tree,
     build_time: Duration,
+    bounds: (Vec3, Vec3),
 }
 
 fn rt_triangle(t: &WorldTriangle, scale: f32) -> Triangle {
@@ -114,7 +115,13 @@ impl SceneBvh {
             scale,
             tree,
             build_time,
+            bounds: (lo, hi),
         }
+    }
+
+    /// Bounds of the (finite) triangle vertices, meters (min, max); infinite when empty.
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        self.bounds
     }
 
     /// The scene's BVH at scene time `t_s`.

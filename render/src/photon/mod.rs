@@ -342,7 +342,7 @@ impl<'a> PhotonTracer<'a> {
         plan: &BatchPlan,
         seed: u64,
     ) -> Self {
-        let (lo, hi) = bvh_bounds(bvh);
+        let (lo, hi) = bvh.bounds();
         let extent = (hi - lo).length();
         let extent = if extent.is_finite() && extent > 0.0 {
             extent
@@ -580,22 +580,6 @@ pub fn trace_iteration(
         trace_time,
         pack_time,
     }
-}
-
-/// Bounds of a BVH's triangles (min, max), meters.
-pub fn bvh_bounds(bvh: &SceneBvh) -> (Vec3, Vec3) {
-    bvh.triangles()
-        .par_iter()
-        .map(|t| {
-            (
-                t.v[0].min(t.v[1]).min(t.v[2]),
-                t.v[0].max(t.v[1]).max(t.v[2]),
-            )
-        })
-        .reduce(
-            || (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-            |a, b| (a.0.min(b.0), a.1.max(b.1)),
-        )
 }
 
 #[cfg(test)]
