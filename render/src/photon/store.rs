@@ -8,6 +8,7 @@
 //! `now − valid_as_of` is the age of the indirect light on screen.
 
 use std::collections::BTreeMap;
+use std::sync::OnceLock;
 
 use serde::{Deserialize, Serialize};
 
@@ -51,8 +52,23 @@ pub enum Inserted {
 struct Held {
     generation: u64,
     scene_time_s: f64,
-    photons: Vec<Photon>,
-    bytes: usize,
+    batch: PackedBatch,
+    /// Decoded on first use (a client that does not draw never pays for decoding).
+    photons: OnceLock<Vec<Photon>>,
+}
+
+impl Held {
+    fn photons(&self) -> &[Photon] {
+        self.photons.get_or_init(|| match self.batch.unpack() {
+            Ok(p) => p,
+            Err(e) => {
+                // Checked when inserted; only a batch that decodes to non-finite values
+                // gets here, and it is drawn as empty.
+                tracing::warn!("a photon batch that passed its checks does not decode: {e}");
+                Vec::new()
+            }
+        })
+    }
 }
 
 /// Counters of a [`PhotonSet`].
@@ -86,15 +102,13 @@ impl PhotonSet {
         Self::default()
     }
 
-    /// Takes a batch: decoded and kept unless it is invalid or older than the slot's.
+    /// Takes a batch: kept unless it is invalid (header, lengths, checksum) or older than
+    /// the slot's. Its photons are decoded when first asked for.
     pub fn insert(&mut self, batch: &PackedBatch) -> Inserted {
-        let photons = match batch.unpack() {
-            Ok(p) => p,
-            Err(e) => {
-                self.stats.rejected += 1;
-                return Inserted::Rejected(e);
-            }
-        };
+        if let Err(e) = batch.validate() {
+            self.stats.rejected += 1;
+            return Inserted::Rejected(e);
+        }
         let listed = self.manifest.as_ref().and_then(|m| {
             m.lights
                 .iter()
@@ -114,8 +128,8 @@ impl PhotonSet {
             Held {
                 generation: batch.generation,
                 scene_time_s: batch.scene_time_s,
-                photons,
-                bytes: batch.data.len(),
+                batch: batch.clone(),
+                photons: OnceLock::new(),
             },
         );
         // The light now has `slots` batches: forget slots beyond them.
@@ -174,14 +188,14 @@ impl PhotonSet {
         self.valid_as_of
     }
 
-    /// Every held photon.
+    /// Every held photon (decoding batches not decoded yet).
     pub fn photons(&self) -> impl Iterator<Item = &Photon> {
-        self.held.values().flat_map(|h| h.photons.iter())
+        self.held.values().flat_map(|h| h.photons().iter())
     }
 
     /// Photons held.
     pub fn photon_count(&self) -> usize {
-        self.held.values().map(|h| h.photons.len()).sum()
+        self.held.values().map(|h| h.batch.count as usize).sum()
     }
 
     /// Batches held.
@@ -191,7 +205,7 @@ impl PhotonSet {
 
     /// Packed bytes held (the memory footprint of the set on the wire format).
     pub fn packed_bytes(&self) -> usize {
-        self.held.values().map(|h| h.bytes).sum()
+        self.held.values().map(|h| h.batch.data.len()).sum()
     }
 
     /// Scene time of the oldest batch held.
