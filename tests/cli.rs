@@ -450,3 +450,50 @@ fn photon_benchmarks_write_tables_json_and_plots() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("not implemented yet"));
 }
+
+#[test]
+fn the_photon_example_topologies_run_with_the_batcher_anywhere() {
+    // Local (one node) and client-side tracing (a batcher on each client's node): the same
+    // stages, placed by the topology alone. Each client logs its frames to frames.csv.
+    for (file, clients) in [
+        ("photons-local.toml", vec!["client"]),
+        ("photons-client-traces.toml", vec!["client[0]", "client[1]"]),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let out = cloudlight()
+            .arg("run")
+            .arg(example(file))
+            .args(["--duration", "1.5", "--out"])
+            .arg(dir.path())
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{file}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.path().join("metrics.json")).unwrap())
+                .unwrap();
+        for client in clients {
+            let stage = json["stages"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|s| s["name"] == client)
+                .unwrap();
+            assert!(
+                stage["report"]["photons_stored"].as_u64().unwrap() > 1000,
+                "{file} {client}: {stage}"
+            );
+            let folder = client.replace('[', "-").replace(']', "");
+            let csv = std::fs::read_to_string(dir.path().join(folder).join("frames.csv")).unwrap();
+            let mut lines = csv.lines();
+            assert_eq!(
+                lines.next(),
+                Some("frame,scene_time_s,frame_ms,age_ms,photons_stored")
+            );
+            assert!(lines.count() >= 2, "{file} {client}: {csv}");
+        }
+    }
+}

@@ -6,9 +6,11 @@
 //! a low-resolution buffer and bilaterally upsampled (`Raster::photon_frame`). Per frame it
 //! records the frame time, the age of the indirect light shown (scene time now minus the
 //! time its photon set is complete and current for) and the photons stored; it can write
-//! its frames as PNGs under the run's output folder. With `render = false` it only keeps
-//! the set and measures ages (for client-count experiments without a GPU per client).
+//! its frames as PNGs under the run's output folder, and logs every frame (scene time, frame
+//! time, age, photons) to `frames.csv` there. With `render = false` it only keeps the set
+//! and measures ages (for client-count experiments without a GPU per client).
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
@@ -104,6 +106,8 @@ pub struct PhotonReconstructor {
     photons_version: u64,
     static_triangles: Option<Arc<Vec<WorldTriangle>>>,
     frames_dir: Option<PathBuf>,
+    /// `frames.csv`: one line per frame (or age sample when not rendering).
+    log: Option<std::io::BufWriter<std::fs::File>>,
     exposure: Option<f32>,
     frames: u64,
     frames_written: u64,
@@ -148,22 +152,30 @@ impl PhotonReconstructor {
         } else {
             None
         };
-        let frames_dir = match (&setup.out_dir, params.write_frames && params.render) {
-            (Some(out), true) => {
-                let dir = out.join(
-                    setup
-                        .info
-                        .name
-                        .replace(['[', ']'], "-")
-                        .trim_end_matches('-'),
-                );
+        // Everything this client writes goes to OUT/<instance>/.
+        let dir = match &setup.out_dir {
+            Some(out) => {
+                let name = setup.info.name.replace(['[', ']'], "-");
+                let dir = out.join(name.trim_end_matches('-'));
                 std::fs::create_dir_all(&dir).map_err(|e| {
-                    anyhow::anyhow!("cannot create the frames folder {}: {e}", dir.display())
+                    anyhow::anyhow!("cannot create the client's folder {}: {e}", dir.display())
                 })?;
                 Some(dir)
             }
-            _ => None,
+            None => None,
         };
+        let log = match &dir {
+            Some(d) => {
+                let path = d.join("frames.csv");
+                let file = std::fs::File::create(&path)
+                    .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+                let mut f = std::io::BufWriter::new(file);
+                writeln!(f, "frame,scene_time_s,frame_ms,age_ms,photons_stored")?;
+                Some(f)
+            }
+            None => None,
+        };
+        let frames_dir = dir.filter(|_| params.write_frames && params.render);
         Ok(PhotonReconstructor {
             params,
             scene,
@@ -174,6 +186,7 @@ impl PhotonReconstructor {
             photons_version: 0,
             static_triangles: None,
             frames_dir,
+            log,
             exposure: None,
             frames: 0,
             frames_written: 0,
@@ -224,9 +237,10 @@ impl PhotonReconstructor {
         }
     }
 
-    async fn render(&mut self, t: f64) -> anyhow::Result<()> {
+    /// Renders (and maybe writes) the frame for scene time `t`; returns its time in ms.
+    async fn render(&mut self, t: f64) -> anyhow::Result<Option<f64>> {
         let Some(raster) = self.raster.clone() else {
-            return Ok(());
+            return Ok(None);
         };
         if self.photons_version != self.set.version() {
             self.photons = Arc::new(self.set.photons().copied().collect());
@@ -279,9 +293,8 @@ impl PhotonReconstructor {
                 )
             })
             .await??;
-        let _ = self
-            .frame_us
-            .record(start.elapsed().as_micros().max(1) as u64);
+        let frame_time = start.elapsed();
+        let _ = self.frame_us.record(frame_time.as_micros().max(1) as u64);
         self.frames += 1;
         if let Some(dir) = &self.frames_dir
             && (self.frames - 1).is_multiple_of(self.params.write_every.max(1))
@@ -298,7 +311,7 @@ impl PhotonReconstructor {
             .await??;
             self.frames_written += 1;
         }
-        Ok(())
+        Ok(Some(frame_time.as_secs_f64() * 1000.0))
     }
 }
 
@@ -354,7 +367,19 @@ impl Stage for PhotonReconstructor {
         let due = *self.next_due.get_or_insert_with(Instant::now);
         let t = ctx.clock().scene_time_at_s(now_unix_ns());
         self.record_age(t);
-        self.render(t).await?;
+        let frame_ms = self.render(t).await?;
+        if let Some(log) = &mut self.log {
+            let age = self.set.valid_as_of().map_or(String::new(), |v| {
+                format!("{:.3}", (t - v).max(0.0) * 1000.0)
+            });
+            let ms = frame_ms.map_or(String::new(), |m| format!("{m:.3}"));
+            writeln!(
+                log,
+                "{},{t:.4},{ms},{age},{}",
+                self.frames,
+                self.set.photon_count()
+            )?;
+        }
         ctx.report(self.report());
         let interval = Duration::from_secs_f64(1.0 / self.params.fps);
         let now = Instant::now();
@@ -364,6 +389,9 @@ impl Stage for PhotonReconstructor {
     }
 
     async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
+        if let Some(log) = &mut self.log {
+            log.flush()?;
+        }
         ctx.report(self.report());
         Ok(())
     }
