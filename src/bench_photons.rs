@@ -432,6 +432,7 @@ pub fn scaling(
         &out.join("scaling.png"),
         &format!("Photons, {}: cost per client count", b.scene),
         "clients",
+        true,
         &[
             ("server ms per iteration", series("server_iteration_ms")),
             ("total Mbps (wire)", series("total_wire_mbps")),
@@ -581,12 +582,17 @@ pub fn quality(
     };
     let plot = crate::plot::lines(
         &out.join("quality.png"),
-        &format!("Photons, {scene_spec}: accuracy against bandwidth and update time"),
-        "Mbps (12 B photons)",
+        &format!("Photons, {scene_spec}: accuracy, bandwidth and update time per budget"),
+        "photons per iteration",
+        true,
         &[
-            ("relMSE (12 B) vs Mbps", points("mbps_12", "relmse_12")),
-            ("HDR-FLIP vs Mbps", points("mbps_12", "flip")),
-            ("update ms vs Mbps", points("mbps_12", "update_ms")),
+            ("relMSE (12 B photons)", points("photons", "relmse_12")),
+            ("HDR-FLIP", points("photons", "flip")),
+            (
+                &format!("Mbps at {rate_hz} Hz (12 B)"),
+                points("photons", "mbps_12"),
+            ),
+            ("update ms (trace + pack)", points("photons", "update_ms")),
         ],
     )?;
     println!(

@@ -13,6 +13,13 @@ const FONT_PATHS: [&str; 3] = [
     "/usr/share/fonts/dejavu/DejaVuSans.ttf",
 ];
 
+const COLOURS: [RGBColor; 4] = [
+    RGBColor(200, 30, 30),
+    RGBColor(30, 90, 200),
+    RGBColor(30, 140, 60),
+    RGBColor(140, 60, 160),
+];
+
 /// Registers DejaVu Sans as plotters' `sans-serif` once.
 fn font() -> anyhow::Result<()> {
     static FONT: OnceLock<Result<(), String>> = OnceLock::new();
@@ -31,11 +38,13 @@ fn font() -> anyhow::Result<()> {
     .map_err(|e| anyhow::anyhow!(e))
 }
 
-/// Draws each `(label, points)` series in its own panel, stacked, and writes `path` (PNG).
+/// Draws each `(label, points)` series in its own panel, stacked, and writes `path` (PNG);
+/// `log_x` puts the x axis on a log scale.
 pub fn lines(
     path: &Path,
     title: &str,
     x_label: &str,
+    log_x: bool,
     series: &[(&str, Vec<(f64, f64)>)],
 ) -> anyhow::Result<PathBuf> {
     font()?;
@@ -54,29 +63,41 @@ pub fn lines(
             let (x0, x1) = range(finite.iter().map(|p| p.0));
             let (y0, y1) = range(finite.iter().map(|p| p.1));
             let (y0, y1) = (y0.min(0.0), y1 * 1.1);
-            let mut chart = ChartBuilder::on(area)
+            let mut builder = ChartBuilder::on(area);
+            builder
                 .margin(12)
                 .x_label_area_size(40)
-                .y_label_area_size(70)
-                .build_cartesian_2d(x0..x1, y0..y1)?;
-            chart
-                .configure_mesh()
-                .x_desc(x_label)
-                .y_desc(*label)
-                .label_style(("sans-serif", 14))
-                .draw()?;
-            const COLOURS: [RGBColor; 4] = [
-                RGBColor(200, 30, 30),
-                RGBColor(30, 90, 200),
-                RGBColor(30, 140, 60),
-                RGBColor(140, 60, 160),
-            ];
+                .y_label_area_size(70);
             let colour = COLOURS[i % COLOURS.len()];
-            chart.draw_series(LineSeries::new(
-                finite.iter().copied(),
-                colour.stroke_width(2),
-            ))?;
-            chart.draw_series(finite.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
+            if log_x {
+                let (x0, x1) = (x0.max(1e-9), x1.max(x0.max(1e-9) * 10.0));
+                let mut chart =
+                    builder.build_cartesian_2d((x0 * 0.8..x1 * 1.25).log_scale(), y0..y1)?;
+                chart
+                    .configure_mesh()
+                    .x_desc(x_label)
+                    .y_desc(*label)
+                    .label_style(("sans-serif", 14))
+                    .draw()?;
+                chart.draw_series(LineSeries::new(
+                    finite.iter().copied(),
+                    colour.stroke_width(2),
+                ))?;
+                chart.draw_series(finite.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
+            } else {
+                let mut chart = builder.build_cartesian_2d(x0..x1, y0..y1)?;
+                chart
+                    .configure_mesh()
+                    .x_desc(x_label)
+                    .y_desc(*label)
+                    .label_style(("sans-serif", 14))
+                    .draw()?;
+                chart.draw_series(LineSeries::new(
+                    finite.iter().copied(),
+                    colour.stroke_width(2),
+                ))?;
+                chart.draw_series(finite.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
+            }
         }
         root.present()?;
         Ok(())
