@@ -55,49 +55,43 @@ pub fn lines(
         let root = root.titled(title, ("sans-serif", 22))?;
         let areas = root.split_evenly((panels, 1));
         for (i, ((label, points), area)) in series.iter().zip(areas.iter()).enumerate() {
+            // A log x axis is drawn as log10(x) on a linear axis, labelled with x.
             let finite: Vec<(f64, f64)> = points
                 .iter()
                 .copied()
-                .filter(|(x, y)| x.is_finite() && y.is_finite())
+                .filter(|(x, y)| x.is_finite() && y.is_finite() && (!log_x || *x > 0.0))
+                .map(|(x, y)| (if log_x { x.log10() } else { x }, y))
                 .collect();
             let (x0, x1) = range(finite.iter().map(|p| p.0));
             let (y0, y1) = range(finite.iter().map(|p| p.1));
             let (y0, y1) = (y0.min(0.0), y1 * 1.1);
-            let mut builder = ChartBuilder::on(area);
-            builder
+            let pad = (x1 - x0) * 0.05;
+            let mut chart = ChartBuilder::on(area)
                 .margin(12)
                 .x_label_area_size(40)
-                .y_label_area_size(70);
+                .y_label_area_size(70)
+                .build_cartesian_2d(x0 - pad..x1 + pad, y0..y1)?;
+            let x_text = |v: &f64| {
+                let x = if log_x { 10f64.powf(*v) } else { *v };
+                if x.abs() >= 1000.0 || log_x {
+                    format!("{:.0}", x)
+                } else {
+                    format!("{x:.1}")
+                }
+            };
+            chart
+                .configure_mesh()
+                .x_desc(x_label)
+                .y_desc(*label)
+                .x_label_formatter(&x_text)
+                .label_style(("sans-serif", 14))
+                .draw()?;
             let colour = COLOURS[i % COLOURS.len()];
-            if log_x {
-                let (x0, x1) = (x0.max(1e-9), x1.max(x0.max(1e-9) * 10.0));
-                let mut chart =
-                    builder.build_cartesian_2d((x0 * 0.8..x1 * 1.25).log_scale(), y0..y1)?;
-                chart
-                    .configure_mesh()
-                    .x_desc(x_label)
-                    .y_desc(*label)
-                    .label_style(("sans-serif", 14))
-                    .draw()?;
-                chart.draw_series(LineSeries::new(
-                    finite.iter().copied(),
-                    colour.stroke_width(2),
-                ))?;
-                chart.draw_series(finite.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
-            } else {
-                let mut chart = builder.build_cartesian_2d(x0..x1, y0..y1)?;
-                chart
-                    .configure_mesh()
-                    .x_desc(x_label)
-                    .y_desc(*label)
-                    .label_style(("sans-serif", 14))
-                    .draw()?;
-                chart.draw_series(LineSeries::new(
-                    finite.iter().copied(),
-                    colour.stroke_width(2),
-                ))?;
-                chart.draw_series(finite.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
-            }
+            chart.draw_series(LineSeries::new(
+                finite.iter().copied(),
+                colour.stroke_width(2),
+            ))?;
+            chart.draw_series(finite.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
         }
         root.present()?;
         Ok(())

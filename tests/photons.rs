@@ -27,17 +27,13 @@ fn f(v: &serde_json::Value, key: &str) -> f64 {
         .unwrap_or_else(|| panic!("{key} missing in {v}"))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn clients_behind_a_slow_lossy_link_show_current_indirect_light() {
-    // 50 ms each way and 2% loss between the cloud and each client. The Cornell box's light
-    // moves all the time, so every iteration re-traces its batch: clients must show indirect
-    // light soon after start, replace stale batches as new ones arrive, and the age of what
-    // they show must stay bounded (about one iteration + the link's latency + queueing).
-    let text = r#"
-techniques = ["photons"]
-scene = "cornell-animated"
+/// A topology of a `cloud` and a `home` node on loopback (free ports) followed by `body`.
+fn cloud_and_home(scene: &str, duration_s: f64, body: &str) -> String {
+    format!(
+        r#"techniques = ["photons"]
+scene = "{scene}"
 seed = 4
-duration_s = 4.0
+duration_s = {duration_s}
 cluster = "photon-tests"
 secret = "s"
 [[node]]
@@ -46,6 +42,20 @@ address = "127.0.0.1:0"
 [[node]]
 name = "home"
 address = "127.0.0.1:0"
+{body}"#
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_behind_a_slow_lossy_link_show_current_indirect_light() {
+    // 50 ms each way and 2% loss between the cloud and each client. The Cornell box's light
+    // moves all the time, so every iteration re-traces its batch: clients must show indirect
+    // light soon after start, replace stale batches as new ones arrive, and the age of what
+    // they show must stay bounded (about one iteration + the link's latency + queueing).
+    let text = cloud_and_home(
+        "cornell-animated",
+        4.0,
+        r#"
 [[stage]]
 name = "batcher"
 kind = "photon_batcher"
@@ -72,9 +82,10 @@ between = ["cloud", "home"]
 latency_ms = 50.0
 jitter_ms = 5.0
 loss = 0.02
-"#;
+"#,
+    );
     let registry = cloudlight::actors::registry();
-    let plan = plan_text(text, &registry);
+    let plan = plan_text(&text, &registry);
     let out = tempfile::tempdir().unwrap();
     let run = run_plan(
         &plan,
@@ -114,17 +125,10 @@ loss = 0.02
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn zero_and_fifty_clients_run_cleanly() {
     for clients in [0usize, 50] {
-        let mut text = String::from(
+        let mut text = cloud_and_home(
+            "cornell-animated",
+            2.0,
             r#"
-techniques = ["photons"]
-scene = "cornell-animated"
-duration_s = 2.0
-[[node]]
-name = "cloud"
-address = "127.0.0.1:0"
-[[node]]
-name = "home"
-address = "127.0.0.1:0"
 [[stage]]
 name = "batcher"
 kind = "photon_batcher"
@@ -215,16 +219,10 @@ async fn garbage_batches_are_rejected_and_counted() {
         })
         .output::<PhotonMsg>("out"),
     );
-    let text = r#"
-techniques = ["photons"]
-scene = "cornell"
-duration_s = 1.0
-[[node]]
-name = "cloud"
-address = "127.0.0.1:0"
-[[node]]
-name = "home"
-address = "127.0.0.1:0"
+    let text = cloud_and_home(
+        "cornell",
+        1.0,
+        r#"
 [[stage]]
 name = "garbage"
 kind = "garbage"
@@ -237,8 +235,9 @@ params = { render = false }
 [[edge]]
 from = "garbage.out"
 to = "client.in"
-"#;
-    let plan = plan_text(text, &registry);
+"#,
+    );
+    let plan = plan_text(&text, &registry);
     let run = run_plan(&plan, &registry, RunOptions::default())
         .await
         .unwrap_or_else(|e| panic!("{e}"));

@@ -349,8 +349,8 @@ impl Stage for PhotonReconstructor {
                 if let Inserted::Rejected(e) = self.set.insert(b) {
                     tracing::warn!(
                         stage = ctx.name(),
-                        light = b.light,
-                        slot = b.slot,
+                        light = b.header.light,
+                        slot = b.header.slot,
                         "photon batch rejected: {e}"
                     );
                 }

@@ -59,7 +59,7 @@ impl PackFormat {
 
 /// Identity of a batch: which light, which of its slots, which generation of that light,
 /// and the scene time it was traced for.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct BatchHeader {
     /// Light id ([`super::PhotonLight::id`]).
     pub light: u32,
@@ -78,18 +78,8 @@ pub struct BatchHeader {
 /// A packed batch of photons, as sent.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PackedBatch {
-    /// Light id.
-    pub light: u32,
-    /// Slot among the light's batches.
-    pub slot: u32,
-    /// Batches of the light per iteration.
-    pub slots: u32,
-    /// Generation of the light's batch set.
-    pub generation: u64,
-    /// Scene time traced for, seconds.
-    pub scene_time_s: f64,
-    /// Photons emitted.
-    pub emitted: u32,
+    /// Which light, slot and generation, and the scene time traced for.
+    pub header: BatchHeader,
     /// Layout of `data`.
     pub format: PackFormat,
     /// Low corner of the photons' bounds, meters.
@@ -163,12 +153,7 @@ impl PackedBatch {
         }
         let power_scale = if power_scale > 0.0 { power_scale } else { 1.0 };
         let mut b = PackedBatch {
-            light: header.light,
-            slot: header.slot,
-            slots: header.slots,
-            generation: header.generation,
-            scene_time_s: header.scene_time_s,
-            emitted: header.emitted,
+            header,
             format,
             origin: lo.to_array(),
             extent: (hi - lo).to_array(),
@@ -200,12 +185,13 @@ impl PackedBatch {
 
     fn compute_checksum(&self) -> u32 {
         let mut h = crc32fast::Hasher::new();
-        h.update(&self.light.to_le_bytes());
-        h.update(&self.slot.to_le_bytes());
-        h.update(&self.slots.to_le_bytes());
-        h.update(&self.generation.to_le_bytes());
-        h.update(&self.scene_time_s.to_le_bytes());
-        h.update(&self.emitted.to_le_bytes());
+        let id = &self.header;
+        h.update(&id.light.to_le_bytes());
+        h.update(&id.slot.to_le_bytes());
+        h.update(&id.slots.to_le_bytes());
+        h.update(&id.generation.to_le_bytes());
+        h.update(&id.scene_time_s.to_le_bytes());
+        h.update(&id.emitted.to_le_bytes());
         h.update(&[self.format as u8]);
         for v in self.origin.iter().chain(&self.extent) {
             h.update(&v.to_le_bytes());
@@ -231,10 +217,10 @@ impl PackedBatch {
         if self.compute_checksum() != self.checksum {
             return Err(PackError::Checksum);
         }
-        if self.slots == 0 || self.slot >= self.slots {
+        if self.header.slots == 0 || self.header.slot >= self.header.slots {
             return Err(PackError::Header("slot outside the light's slots"));
         }
-        if !self.scene_time_s.is_finite() {
+        if !self.header.scene_time_s.is_finite() {
             return Err(PackError::Header("scene time is not finite"));
         }
         let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());

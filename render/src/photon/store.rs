@@ -112,13 +112,13 @@ impl PhotonSet {
         let listed = self.manifest.as_ref().and_then(|m| {
             m.lights
                 .iter()
-                .find(|l| l.light == batch.light)
+                .find(|l| l.light == batch.header.light)
                 .map(|l| l.generation)
         });
-        let key = (batch.light, batch.slot);
+        let key = (batch.header.light, batch.header.slot);
         let held_gen = self.held.get(&key).map(|h| h.generation);
-        if listed.is_some_and(|g| g > batch.generation)
-            || held_gen.is_some_and(|g| g > batch.generation)
+        if listed.is_some_and(|g| g > batch.header.generation)
+            || held_gen.is_some_and(|g| g > batch.header.generation)
         {
             self.stats.stale += 1;
             return Inserted::Stale;
@@ -126,15 +126,15 @@ impl PhotonSet {
         self.held.insert(
             key,
             Held {
-                generation: batch.generation,
-                scene_time_s: batch.scene_time_s,
+                generation: batch.header.generation,
+                scene_time_s: batch.header.scene_time_s,
                 batch: batch.clone(),
                 photons: OnceLock::new(),
             },
         );
         // The light now has `slots` batches: forget slots beyond them.
         self.held
-            .retain(|&(l, s), _| l != batch.light || s < batch.slots);
+            .retain(|&(l, s), _| l != batch.header.light || s < batch.header.slots);
         self.stats.accepted += 1;
         self.version += 1;
         self.refresh_validity();

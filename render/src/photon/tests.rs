@@ -224,7 +224,7 @@ fn garbage_batches_are_rejected_never_panic() {
     short.data.pop();
     assert!(matches!(short.unpack(), Err(PackError::Length { .. })));
     let mut forged = good.clone();
-    forged.slot = 7;
+    forged.header.slot = 7;
     assert!(forged.unpack().is_err());
     // Random bytes of the right length, with and without a matching checksum.
     for i in 0..200 {

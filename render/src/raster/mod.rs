@@ -178,12 +178,31 @@ fn direct_pipelines(
         immediate_size: 0,
     });
     let shader = device.create_shader_module(wgpu::include_wgsl!("direct.wgsl"));
-    let direct = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-        label: Some("direct"),
-        layout: Some(&pipeline_layout),
+    let direct = fullscreen_pipeline(
+        device,
+        "direct",
+        &pipeline_layout,
+        &shader,
+        ("vs_main", "fs_main"),
+    );
+    (shadow, direct, layout)
+}
+
+/// A full-screen pass: vertex entry `vs` draws one triangle over the target, fragment
+/// entry `fs` writes one Rgba32Float target without blending.
+pub(crate) fn fullscreen_pipeline(
+    device: &wgpu::Device,
+    label: &str,
+    layout: &wgpu::PipelineLayout,
+    shader: &wgpu::ShaderModule,
+    (vs, fs): (&str, &str),
+) -> wgpu::RenderPipeline {
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout: Some(layout),
         vertex: wgpu::VertexState {
-            module: &shader,
-            entry_point: Some("vs_main"),
+            module: shader,
+            entry_point: Some(vs),
             compilation_options: Default::default(),
             buffers: &[],
         },
@@ -191,8 +210,8 @@ fn direct_pipelines(
         depth_stencil: None,
         multisample: Default::default(),
         fragment: Some(wgpu::FragmentState {
-            module: &shader,
-            entry_point: Some("fs_main"),
+            module: shader,
+            entry_point: Some(fs),
             compilation_options: Default::default(),
             targets: &[Some(wgpu::ColorTargetState {
                 format: wgpu::TextureFormat::Rgba32Float,
@@ -202,8 +221,31 @@ fn direct_pipelines(
         }),
         multiview_mask: None,
         cache: None,
-    });
-    (shadow, direct, layout)
+    })
+}
+
+/// A render pass into one colour target, cleared first, without depth.
+pub(crate) fn clear_pass<'e>(
+    enc: &'e mut wgpu::CommandEncoder,
+    label: &str,
+    view: &wgpu::TextureView,
+) -> wgpu::RenderPass<'e> {
+    enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some(label),
+        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+            view,
+            depth_slice: None,
+            resolve_target: None,
+            ops: wgpu::Operations {
+                load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                store: wgpu::StoreOp::Store,
+            },
+        })],
+        depth_stencil_attachment: None,
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    })
 }
 
 /// clip_from_world of a camera (wgpu clip space: y up, z in [0, 1]).

@@ -161,31 +161,13 @@ impl SplatPipelines {
             multiview_mask: None,
             cache: None,
         });
-        let upsample = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("upsample"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some("vs_full"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: Default::default(),
-            depth_stencil: None,
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some("fs_upsample"),
-                compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: wgpu::TextureFormat::Rgba32Float,
-                    blend: None,
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let upsample = super::fullscreen_pipeline(
+            device,
+            "upsample",
+            &pipeline_layout,
+            &shader,
+            ("vs_full", "fs_upsample"),
+        );
         SplatPipelines {
             layout,
             splat,
@@ -323,22 +305,7 @@ impl Raster {
             let dummy = texture(1, 1, pipes.accum_format, "unused");
             let dummy_view = dummy.create_view(&Default::default());
             let bind_splat = bind(&dummy_view);
-            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("splat"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &tv[3],
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
+            let mut pass = super::clear_pass(&mut enc, "splat", &tv[3]);
             if let Some(buf) = &instance_buf {
                 pass.set_pipeline(&pipes.splat);
                 pass.set_bind_group(0, &bind_splat, &[]);
@@ -349,22 +316,7 @@ impl Raster {
         {
             let bind_up = bind(&tv[3]);
             let out_view = indirect.create_view(&Default::default());
-            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("upsample"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &out_view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
+            let mut pass = super::clear_pass(&mut enc, "upsample", &out_view);
             pass.set_pipeline(&pipes.upsample);
             pass.set_bind_group(0, &bind_up, &[]);
             pass.draw(0..3, 0..1);
