@@ -203,14 +203,10 @@ impl Raster {
             width,
             height,
         )?;
-        let g = GBuffer {
-            width,
-            height,
-            position: planes[0].clone(),
-            normal: planes[1].iter().map(|v| v.truncate()).collect(),
-            albedo: planes[2].iter().map(|v| v.truncate()).collect(),
-        };
-        Ok((g, planes[3].iter().map(|v| v.truncate()).collect()))
+        Ok((
+            GBuffer::from_planes(width, height, &planes),
+            super::rgb(&planes[3]),
+        ))
     }
 
     /// Records the shadow, G-buffer and direct-lighting passes into `enc`.

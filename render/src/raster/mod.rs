@@ -72,6 +72,24 @@ pub struct GBuffer {
     pub albedo: Vec<Vec3>,
 }
 
+impl GBuffer {
+    /// A G-buffer from read-back planes: position, normal, albedo (the first three).
+    pub(crate) fn from_planes(width: u32, height: u32, planes: &[Vec<Vec4>]) -> Self {
+        GBuffer {
+            width,
+            height,
+            position: planes[0].clone(),
+            normal: rgb(&planes[1]),
+            albedo: rgb(&planes[2]),
+        }
+    }
+}
+
+/// The rgb of a read-back plane.
+pub(crate) fn rgb(plane: &[Vec4]) -> Vec<Vec3> {
+    plane.iter().map(|v| v.truncate()).collect()
+}
+
 /// Vertex layout of the G-buffer pass (must match `VertexIn` in gbuffer.wgsl).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -516,13 +534,7 @@ impl Raster {
             width,
             height,
         )?;
-        Ok(GBuffer {
-            width,
-            height,
-            position: planes[0].clone(),
-            normal: planes[1].iter().map(|v| v.truncate()).collect(),
-            albedo: planes[2].iter().map(|v| v.truncate()).collect(),
-        })
+        Ok(GBuffer::from_planes(width, height, &planes))
     }
 
     /// Submits `enc` with copies of `textures` (Rgba32Float: 16 bytes per pixel, Rgba16Float:

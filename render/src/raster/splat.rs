@@ -333,17 +333,10 @@ impl Raster {
             width,
             height,
         )?;
-        let rgb = |i: usize| planes[i].iter().map(|v| v.truncate()).collect::<Vec<_>>();
         Ok(PhotonFrame {
-            gbuffer: GBuffer {
-                width,
-                height,
-                position: planes[0].clone(),
-                normal: rgb(1),
-                albedo: rgb(2),
-            },
-            direct: rgb(3),
-            indirect: rgb(4),
+            gbuffer: GBuffer::from_planes(width, height, &planes),
+            direct: super::rgb(&planes[3]),
+            indirect: super::rgb(&planes[4]),
         })
     }
 }
