@@ -290,9 +290,7 @@ impl Quantizer {
             return 0;
         }
         let max = ((1u64 << bits) - 1) as f32;
-        ((r / self.r_lo).ln() / self.log_ratio * max)
-            .round()
-            .clamp(0.0, max) as u64
+        quantize((r / self.r_lo).ln() / self.log_ratio * max, max)
     }
 
     fn radius(&self, code: u64, bits: u32) -> f32 {
@@ -306,7 +304,8 @@ impl Quantizer {
             PackFormat::Compact12 => {
                 let rel = ((p.position - self.origin) / self.extent.max(Vec3::splat(1e-30)))
                     .clamp(Vec3::ZERO, Vec3::ONE);
-                let q = (rel * 65535.0).round();
+                // Truncating after +½ rounds (rel is in [0, 1]).
+                let q = rel * 65535.0 + Vec3::splat(0.5);
                 let (ou, ov) = oct_quantize(p.direction, 8);
                 let (e, m) = shared_exponent(power, 7);
                 let bits: u128 = q.x as u128
@@ -384,7 +383,7 @@ fn oct_quantize(d: Vec3, bits: u32) -> (u64, u64) {
         Vec2::new(n.x, n.y)
     };
     let max = ((1u64 << bits) - 1) as f32;
-    let q = |v: f32| ((v * 0.5 + 0.5) * max).round().clamp(0.0, max) as u64;
+    let q = |v: f32| quantize((v * 0.5 + 0.5) * max, max);
     (q(e.x), q(e.y))
 }
 
@@ -408,15 +407,28 @@ fn shared_exponent(c: Vec3, bits: u32) -> (u64, [u64; 3]) {
     if m <= 2f32.powi(-32) {
         return (0, [0; 3]);
     }
-    let e = m.log2().ceil().clamp(-31.0, 0.0) as i32;
-    let scale = 2f32.powi(e);
+    // ⌈log2 m⌉ from the float's bits (m is normal here).
+    let b = m.to_bits();
+    let e = (((b >> 23) & 0xff) as i32 - 127 + i32::from(b & 0x7f_ffff != 0)).clamp(-31, 0);
+    let inv_scale = pow2(-e);
     let max = ((1u64 << bits) - 1) as f32;
-    let q = |v: f32| (v / scale * max).round().clamp(0.0, max) as u64;
+    let q = |v: f32| quantize(v * inv_scale * max, max);
     ((e + 31) as u64, [q(c.x), q(c.y), q(c.z)])
 }
 
 fn from_shared_exponent(e: u64, m: [u64; 3], bits: u32) -> Vec3 {
-    let scale = 2f32.powi(e as i32 - 31);
+    let scale = pow2(e as i32 - 31);
     let max = ((1u64 << bits) - 1) as f32;
-    Vec3::new(m[0] as f32, m[1] as f32, m[2] as f32) / max * scale
+    Vec3::new(m[0] as f32, m[1] as f32, m[2] as f32) * (scale / max)
+}
+
+/// `v` rounded to the nearest integer in [0, max] (NaN → 0). Adds ½ and truncates: `round()`
+/// is a libm call on baseline x86-64, and packing calls this eight times per photon.
+fn quantize(v: f32, max: f32) -> u64 {
+    (v.clamp(0.0, max) + 0.5) as u64
+}
+
+/// 2^e for e in [−126, 127], exactly.
+fn pow2(e: i32) -> f32 {
+    f32::from_bits(((e + 127) as u32) << 23)
 }
