@@ -496,9 +496,16 @@ pub fn quality(
     let mut rows = Vec::new();
     for &budget in budgets {
         let mut row = json!({ "photons": budget });
-        for format in [PackFormat::Compact12, PackFormat::Wide20] {
+        // 12-byte photons; 20-byte photons of the same budget (the packing's own error);
+        // 20-byte photons of the same bytes (12/20 of the budget: what the bandwidth buys).
+        let equal_bytes = (budget * 12 / 20).max(1);
+        for (format, photons, tag) in [
+            (PackFormat::Compact12, budget, "12"),
+            (PackFormat::Wide20, budget, "20"),
+            (PackFormat::Wide20, equal_bytes, "20_equal_bytes"),
+        ] {
             let settings =
-                PhotonSettings::for_budget(&scene, budget, batch_size.min(budget.max(1) as u32));
+                PhotonSettings::for_budget(&scene, photons, batch_size.min(photons as u32));
             let it = trace_iteration(&scene, &bvh, 0.0, settings, 5, format);
             let frame = raster.photon_frame(
                 &scene,
@@ -518,14 +525,10 @@ pub fn quality(
             let update_ms = (it.trace_time + it.pack_time).as_secs_f64() * 1000.0;
             let bytes = it.data_bytes() as f64;
             let rate = rate_hz.min(1000.0 / update_ms.max(1e-3));
-            let tag = match format {
-                PackFormat::Compact12 => "12",
-                PackFormat::Wide20 => "20",
-            };
             row[format!("relmse_{tag}")] = json!(e);
             row[format!("kbytes_{tag}")] = json!(bytes / 1e3);
             row[format!("mbps_{tag}")] = json!(bytes * 8.0 * rate / 1e6);
-            if format == PackFormat::Compact12 {
+            if tag == "12" {
                 let flip = flip_hdr(
                     &frame.indirect,
                     &reference,
@@ -550,12 +553,12 @@ pub fn quality(
         rows.push(row);
     }
     println!(
-        "| photons | stored | radius cm | update ms | KB/update (12 B) | Mbps @ {rate_hz} Hz (12 B) | relMSE (12 B) | relMSE (20 B) | HDR-FLIP (12 B) |"
+        "| photons | stored | radius cm | update ms | KB/update (12 B) | Mbps @ {rate_hz} Hz (12 B) | relMSE (12 B) | relMSE (20 B) | relMSE (20 B, same bytes) | HDR-FLIP (12 B) |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for r in &rows {
         println!(
-            "| {} | {} | {:.2} | {:.1} | {:.1} | {:.2} | {:.5} | {:.5} | {:.4} |",
+            "| {} | {} | {:.2} | {:.1} | {:.1} | {:.2} | {:.5} | {:.5} | {:.5} | {:.4} |",
             r["photons"],
             r["stored"],
             num(r, "radius_m") * 100.0,
@@ -564,6 +567,7 @@ pub fn quality(
             num(r, "mbps_12"),
             num(r, "relmse_12"),
             num(r, "relmse_20"),
+            num(r, "relmse_20_equal_bytes"),
             num(r, "flip"),
         );
     }

@@ -437,7 +437,14 @@ fn photon_benchmarks_write_tables_json_and_plots() {
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(quality.join("quality.json")).unwrap()).unwrap();
     for row in report["rows"].as_array().unwrap() {
-        for key in ["relmse_12", "relmse_20", "flip", "update_ms", "mbps_12"] {
+        for key in [
+            "relmse_12",
+            "relmse_20",
+            "relmse_20_equal_bytes",
+            "flip",
+            "update_ms",
+            "mbps_12",
+        ] {
             assert!(row[key].as_f64().unwrap().is_finite(), "{key}: {row}");
         }
     }
