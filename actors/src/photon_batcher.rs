@@ -3,8 +3,9 @@
 //! Every `interval_ms` it evaluates the scene's lights at the current scene time, re-traces
 //! the batches of each light that changed (or every light, with `retrace = "always"`: the
 //! paper's continuous tracing), packs each batch and sends it as soon as it is done, then
-//! sends a manifest of the complete set. Every `resend_s` it sends the whole current set
-//! again, so that a client that joined late or lost batches to a `latest` edge catches up.
+//! sends a manifest of the complete set. A light's set that has not gone out for `resend_s`
+//! is sent again, so that a client that joined late or lost batches to a `latest` edge
+//! catches up (a light re-traced meanwhile is not re-sent).
 //! One batcher feeds every client: its cost does not depend on their number.
 
 use std::collections::{BTreeMap, HashMap};
@@ -64,7 +65,8 @@ pub struct BatcherParams {
     /// `changed` (default) or `always`.
     #[serde(default)]
     pub retrace: Retrace,
-    /// Re-send the whole current set this often, seconds (0: never).
+    /// Re-send a light's current set when it has not gone out for this long, seconds
+    /// (0: never).
     #[serde(default = "default_resend")]
     pub resend_s: f64,
     /// `compact12` (default) or `wide20`.
@@ -96,6 +98,8 @@ struct LightSet {
     light: PhotonLight,
     generation: u64,
     batches: BTreeMap<u32, PackedBatch>,
+    /// When these batches were last sent (traced or re-sent).
+    sent_at: Instant,
 }
 
 /// Figures the batcher reports.
@@ -122,7 +126,6 @@ pub struct PhotonBatcher {
     bvh: Option<Arc<SceneBvh>>,
     sets: BTreeMap<u32, LightSet>,
     iteration: u64,
-    last_resend: Instant,
     next_due: Option<Instant>,
     figures: Figures,
 }
@@ -183,7 +186,6 @@ impl PhotonBatcher {
             bvh: None,
             sets: BTreeMap::new(),
             iteration: 0,
-            last_resend: Instant::now(),
             next_due: None,
             figures: Figures {
                 iterations: 0,
@@ -373,6 +375,7 @@ impl PhotonBatcher {
                     light,
                     generation,
                     batches,
+                    sent_at: Instant::now(),
                 },
             );
         }
@@ -381,21 +384,27 @@ impl PhotonBatcher {
         }
         let manifest = self.manifest(t);
         self.send(ctx, t, PhotonMsg::Manifest(manifest)).await?;
-        if self.params.resend_s > 0.0
-            && self.last_resend.elapsed().as_secs_f64() >= self.params.resend_s
-        {
-            self.last_resend = Instant::now();
-            self.figures.resends += 1;
-            let all: Vec<PackedBatch> = self
+        // Re-send the sets that have not gone out for `resend_s` (lights re-traced since
+        // went out anyway).
+        if self.params.resend_s > 0.0 {
+            let period = Duration::from_secs_f64(self.params.resend_s);
+            let due: Vec<PackedBatch> = self
                 .sets
-                .values()
-                .flat_map(|s| s.batches.values().cloned())
+                .values_mut()
+                .filter(|s| s.sent_at.elapsed() >= period)
+                .flat_map(|s| {
+                    s.sent_at = Instant::now();
+                    s.batches.values().cloned().collect::<Vec<_>>()
+                })
                 .collect();
-            for b in all {
-                self.send(ctx, t, PhotonMsg::Batch(b)).await?;
+            if !due.is_empty() {
+                self.figures.resends += 1;
+                for b in due {
+                    self.send(ctx, t, PhotonMsg::Batch(b)).await?;
+                }
+                let manifest = self.manifest(t);
+                self.send(ctx, t, PhotonMsg::Manifest(manifest)).await?;
             }
-            let manifest = self.manifest(t);
-            self.send(ctx, t, PhotonMsg::Manifest(manifest)).await?;
         }
         self.figures.iterations += 1;
         let _ = self
