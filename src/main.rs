@@ -575,6 +575,12 @@ fn execute(
             );
             for stage in &report.metrics.stages {
                 let Some(r) = &stage.report else { continue };
+                if let Some(summary) = r.get("summary").and_then(|d| d.as_str()) {
+                    println!("{}: {summary}", stage.name);
+                }
+            }
+            for stage in &report.metrics.stages {
+                let Some(r) = &stage.report else { continue };
                 if let Some(dir) = r.get("frames_dir").and_then(|d| d.as_str()) {
                     println!(
                         "frames of {}: {} ({} PNGs)",

@@ -218,7 +218,19 @@ impl PhotonBatcher {
             .values()
             .map(|s| (s.light.name.clone(), s.generation.into()))
             .collect();
+        let summary = format!(
+            "{} iterations (p50 {:.1} ms: trace {:.1}, pack {:.2}), {} batches of {} photons, {:.0} kB per set, {:.1} Mbps sent",
+            f.iterations,
+            ms(&f.iteration_us, 0.5),
+            ms(&f.trace_us, 0.5),
+            ms(&f.pack_us, 0.5),
+            batches,
+            self.settings.batch_size,
+            footprint as f64 / 1e3,
+            f.bytes_sent as f64 * 8.0 / elapsed / 1e6
+        );
         serde_json::json!({
+            "summary": summary,
             "iterations": f.iterations,
             "lights": self.sets.len(),
             "generations": generations,

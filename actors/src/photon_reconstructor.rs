@@ -202,7 +202,32 @@ impl PhotonReconstructor {
 
     fn report(&self) -> serde_json::Value {
         let stats = self.set.stats();
+        let age = if self.age_us.is_empty() {
+            "no indirect light shown yet".to_string()
+        } else {
+            format!(
+                "age of indirect light p50 {:.0} ms, max {:.0} ms",
+                ms(&self.age_us, 0.5),
+                self.age_max_s * 1000.0
+            )
+        };
+        let frames = if self.raster.is_some() {
+            format!(
+                "{} frames (p50 {:.0} ms), ",
+                self.frames,
+                ms(&self.frame_us, 0.5)
+            )
+        } else {
+            String::new()
+        };
+        let summary = format!(
+            "{frames}{age}, {} photons in {} batches, {} rejected",
+            self.set.photon_count(),
+            self.set.batch_count(),
+            stats.rejected
+        );
         serde_json::json!({
+            "summary": summary,
             "frames": self.frames,
             "frames_written": self.frames_written,
             "frames_dir": self.frames_dir.as_ref().map(|d| d.display().to_string()),
