@@ -8,7 +8,7 @@
 //! catches up (a light re-traced meanwhile is not re-sent).
 //! One batcher feeds every client: its cost does not depend on their number.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashSet};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -257,15 +257,21 @@ impl PhotonBatcher {
         })
     }
 
-    fn bvh_at(&mut self, t: f64) -> Arc<SceneBvh> {
-        match &self.bvh {
-            Some(b) if !self.scene.has_moving_geometry() => b.clone(),
-            _ => {
-                let b = Arc::new(SceneBvh::at(&self.scene, t, BvhKind::default()));
-                self.bvh = Some(b.clone());
-                b
-            }
+    /// The BVH at scene time `t`: built once for static geometry, again each iteration when
+    /// objects move (on a blocking thread: a million triangles take half a second).
+    async fn bvh_at(&mut self, t: f64) -> anyhow::Result<Arc<SceneBvh>> {
+        if let Some(b) = &self.bvh
+            && !self.scene.has_moving_geometry()
+        {
+            return Ok(b.clone());
         }
+        let scene = self.scene.clone();
+        let b = Arc::new(
+            tokio::task::spawn_blocking(move || SceneBvh::at(&scene, t, BvhKind::default()))
+                .await?,
+        );
+        self.bvh = Some(b.clone());
+        Ok(b)
     }
 
     async fn send(&mut self, ctx: &mut StageCtx, t: f64, msg: PhotonMsg) -> anyhow::Result<()> {
@@ -303,7 +309,7 @@ impl PhotonBatcher {
     async fn iterate(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
         let started = Instant::now();
         let t = ctx.scene_time_s();
-        let bvh = self.bvh_at(t);
+        let bvh = self.bvh_at(t).await?;
         let scene = self.scene.clone();
         let lights = {
             let bvh = bvh.clone();
@@ -324,8 +330,8 @@ impl PhotonBatcher {
         };
         self.iteration += 1;
         let mut stored = 0u64;
-        let live: HashMap<u32, ()> = lights.iter().map(|l| (l.id, ())).collect();
-        self.sets.retain(|id, _| live.contains_key(id));
+        let live: HashSet<u32> = lights.iter().map(|l| l.id).collect();
+        self.sets.retain(|id, _| live.contains(id));
         for light in lights {
             let slots = plan.batches_of(light.id);
             let changed = match self.sets.get(&light.id) {
