@@ -8,6 +8,20 @@ fn cloudlight() -> Command {
     c
 }
 
+/// Asserts that a command succeeded, showing its stderr otherwise.
+fn ok(out: &std::process::Output) {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A JSON file written by a command.
+fn read_json(path: impl AsRef<std::path::Path>) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
 fn example(name: &str) -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("examples/topologies")
@@ -58,17 +72,12 @@ fn run_without_topology_runs_the_default_and_writes_metrics() {
         .arg(dir.path())
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ok(&out);
     assert!(String::from_utf8_lossy(&out.stderr).contains("built-in default"));
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(text.contains("batcher.out -> client[0].in"), "{text}");
     assert!(text.contains("frames of client[1]: "), "{text}");
-    let json: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.path().join("metrics.json")).unwrap()).unwrap();
+    let json = read_json(dir.path().join("metrics.json"));
     assert_eq!(json["status"], "finished");
     for client in ["client[0]", "client[1]"] {
         let stage = json["stages"]
@@ -160,11 +169,7 @@ fn node_runs_only_its_stages_and_names_the_peers_it_waits_for() {
         .arg(dir.path())
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ok(&out);
     assert!(dir.path().join("metrics.json").exists());
 
     let out = cloudlight()
@@ -220,14 +225,10 @@ fn bench_transport_reports_an_intact_transfer_through_a_lossy_link() {
         .arg(&json)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ok(&out);
     let table = String::from_utf8_lossy(&out.stdout);
     assert!(table.contains("byte-identical"), "{table}");
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let r = read_json(&json);
     assert_eq!(r["delivered"], 300);
     assert_eq!(r["byte_identical"], true);
     assert_eq!(r["in_order"], true);
@@ -264,11 +265,7 @@ fn reference_writes_three_float_images_and_pngs() {
         .arg(dir.path())
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ok(&out);
     for name in ["full", "direct", "indirect"] {
         let (w, h, px) =
             cloudlight::render::image_io::read_exr(&dir.path().join(format!("{name}.exr")))
@@ -350,11 +347,7 @@ fn photon_benchmarks_write_tables_json_and_plots() {
         .output()
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ok(&out);
     for row in [
         "Number of batches",
         "Photons per batch",
@@ -369,7 +362,7 @@ fn photon_benchmarks_write_tables_json_and_plots() {
     ] {
         assert!(text.contains(row), "{row} missing: {text}");
     }
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let report = read_json(&json);
     let col = &report["columns"][0];
     assert_eq!(col["batches"], 1.0);
     assert!(
@@ -397,13 +390,8 @@ fn photon_benchmarks_write_tables_json_and_plots() {
         .arg(&scaling)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(scaling.join("scaling.json")).unwrap()).unwrap();
+    ok(&out);
+    let report = read_json(scaling.join("scaling.json"));
     let rows = report["rows"].as_array().unwrap();
     assert_eq!(rows.len(), 2);
     assert_eq!(rows[1]["clients_showing_indirect"], 3);
@@ -429,13 +417,8 @@ fn photon_benchmarks_write_tables_json_and_plots() {
         .arg(&quality)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(quality.join("quality.json")).unwrap()).unwrap();
+    ok(&out);
+    let report = read_json(quality.join("quality.json"));
     for row in report["rows"].as_array().unwrap() {
         for key in [
             "relmse_12",
@@ -479,9 +462,7 @@ fn the_photon_example_topologies_run_with_the_batcher_anywhere() {
             "{file}: {}",
             String::from_utf8_lossy(&out.stderr)
         );
-        let json: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(dir.path().join("metrics.json")).unwrap())
-                .unwrap();
+        let json = read_json(dir.path().join("metrics.json"));
         for client in clients {
             let stage = json["stages"]
                 .as_array()
