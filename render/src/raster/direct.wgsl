@@ -1,5 +1,6 @@
 // Direct lighting from a G-buffer with shadow maps: point (six cube faces), spot and
-// directional lights. Layouts match raster/direct.rs (`LightGpu`, `ShadowView`, `Params`).
+// directional lights. Layouts match raster/shadow.rs (`LightGpu`, `Params`); the G-buffer
+// and the output hold f32 bits (position, radiance) and f16 pairs (normal, albedo).
 
 struct LightGpu {
     // xyz: position (m); w: kind (0 point, 1 spot, 2 directional, 3 surface sample).
@@ -22,9 +23,9 @@ struct Params {
     pad: f32,
 };
 
-@group(0) @binding(0) var gpos: texture_2d<f32>;
-@group(0) @binding(1) var gnrm: texture_2d<f32>;
-@group(0) @binding(2) var galb: texture_2d<f32>;
+@group(0) @binding(0) var gpos: texture_2d<u32>;
+@group(0) @binding(1) var gnrm: texture_2d<u32>;
+@group(0) @binding(2) var galb: texture_2d<u32>;
 @group(0) @binding(3) var shadow_maps: texture_depth_2d_array;
 @group(0) @binding(4) var shadow_sampler: sampler_comparison;
 @group(0) @binding(5) var<storage, read> lights: array<LightGpu>;
@@ -63,14 +64,16 @@ fn visibility(view_index: u32, p: vec3<f32>) -> f32 {
 }
 
 @fragment
-fn fs_main(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<f32> {
+fn fs_main(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     let px = vec2<i32>(frag.xy);
-    let g = textureLoad(gpos, px, 0);
+    let g = bitcast<vec4<f32>>(textureLoad(gpos, px, 0));
     if (g.w < 0.5) {
-        return vec4<f32>(0.0);
+        return vec4<u32>(0u);
     }
-    let n = normalize(textureLoad(gnrm, px, 0).xyz);
-    let albedo = textureLoad(galb, px, 0).rgb;
+    let gn = textureLoad(gnrm, px, 0).xy;
+    let n = normalize(vec3<f32>(unpack2x16float(gn.x), unpack2x16float(gn.y).x));
+    let ga = textureLoad(galb, px, 0).xy;
+    let albedo = vec3<f32>(unpack2x16float(ga.x), unpack2x16float(ga.y).x);
     let p = g.xyz + n * params.normal_offset_m;
     var e = vec3<f32>(0.0);
     for (var k = 0u; k < params.light_count; k = k + 1u) {
@@ -105,5 +108,5 @@ fn fs_main(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<f32> {
         }
         e += l.intensity.rgb * falloff * c / dist2 * visibility(view, p);
     }
-    return vec4<f32>(albedo / 3.14159265 * e, 1.0);
+    return bitcast<vec4<u32>>(vec4<f32>(albedo / 3.14159265 * e, 1.0));
 }

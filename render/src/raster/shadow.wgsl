@@ -1,5 +1,6 @@
 // Shadow pass: depth of the scene from one shadow view (one layer of the shadow array).
-// `View` matches ShadowView in raster/direct.rs.
+// `View` is one 256-byte slot of the views buffer (raster/shadow.rs), bound with a dynamic
+// offset.
 
 struct View {
     clip_from_world: mat4x4<f32>,

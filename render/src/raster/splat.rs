@@ -1,12 +1,14 @@
-//! The photon client's frame: direct light with shadow maps, photons splatted in screen
-//! space into a low-resolution additive buffer, a joint-bilateral upsample to indirect
-//! radiance, read back as direct + indirect (see `splat.wgsl` for the kernel).
+//! The photon technique's indirect pass ([`PhotonSplatPass`]): photons splatted in screen
+//! space into a low-resolution additive buffer, then a joint-bilateral upsample to indirect
+//! radiance (see `splat.wgsl` for the kernel). The photons are uploaded once per set
+//! ([`PhotonSplatPass::set_photons`]), not once per frame.
 
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use glam::Vec3;
-use wgpu::util::DeviceExt;
 
-use super::{GBuffer, Raster, RasterError, ShadowSettings, clip_from_world};
+use super::frame::{FrameInputs, FrameRenderer, IndirectContext, IndirectPass, Readback, Target};
+use super::pipelines::SplatPhoton;
+use super::{GBuffer, Raster, RasterError, ShadowSettings};
 use crate::photon::Photon;
 
 /// Splatting settings.
@@ -57,15 +59,6 @@ impl PhotonFrame {
     }
 }
 
-/// Must match `PhotonIn` in splat.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct SplatPhoton {
-    position_radius: [f32; 4],
-    power: [f32; 4],
-    direction: [f32; 4],
-}
-
 /// Must match `SplatParams` in splat.wgsl.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -73,213 +66,50 @@ struct SplatParams {
     clip_from_world: [f32; 16],
     sizes: [f32; 4],
     settings: [f32; 4],
+    scale: [f32; 4],
 }
 
-/// The splat and upsample pipelines and their layout.
-pub(crate) struct SplatPipelines {
-    layout: wgpu::BindGroupLayout,
-    splat: wgpu::RenderPipeline,
-    upsample: wgpu::RenderPipeline,
-    accum_format: wgpu::TextureFormat,
+/// Targets and bind groups of the pass for one frame renderer.
+struct SplatTargets {
+    renderer_id: u64,
+    accum: Target,
+    splat: wgpu::BindGroup,
+    upsample: wgpu::BindGroup,
+    low: (u32, u32),
 }
 
-impl SplatPipelines {
-    /// `accum_format` must be blendable (Rgba32Float needs `FLOAT32_BLENDABLE`).
-    pub(crate) fn new(device: &wgpu::Device, accum_format: wgpu::TextureFormat) -> Self {
-        let shader = device.create_shader_module(wgpu::include_wgsl!("splat.wgsl"));
-        let texture = |binding| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::FRAGMENT,
-            ty: wgpu::BindingType::Texture {
-                sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                view_dimension: wgpu::TextureViewDimension::D2,
-                multisampled: false,
-            },
-            count: None,
-        };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("splat"),
-            entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 0,
-                    visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                    count: None,
-                },
-                texture(1),
-                texture(2),
-                texture(3),
-                texture(4),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("splat"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let additive = wgpu::BlendComponent {
-            src_factor: wgpu::BlendFactor::One,
-            dst_factor: wgpu::BlendFactor::One,
-            operation: wgpu::BlendOperation::Add,
-        };
-        let splat = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("splat"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some("vs_splat"),
-                compilation_options: Default::default(),
-                buffers: &[Some(wgpu::VertexBufferLayout {
-                    array_stride: std::mem::size_of::<SplatPhoton>() as u64,
-                    step_mode: wgpu::VertexStepMode::Instance,
-                    attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x4, 2 => Float32x4],
-                })],
-            },
-            primitive: wgpu::PrimitiveState {
-                cull_mode: None,
-                ..Default::default()
-            },
-            depth_stencil: None,
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some("fs_splat"),
-                compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: accum_format,
-                    blend: Some(wgpu::BlendState {
-                        color: additive,
-                        alpha: additive,
-                    }),
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
+/// The photon client's indirect pass.
+pub struct PhotonSplatPass {
+    settings: SplatSettings,
+    photons: Option<wgpu::Buffer>,
+    count: u32,
+    /// Σ over photons of their largest power channel, watts (sets the accumulation scale).
+    power_w: f32,
+    params: wgpu::Buffer,
+    targets: Option<SplatTargets>,
+}
+
+impl PhotonSplatPass {
+    /// A pass without photons.
+    pub fn new(raster: &Raster, settings: SplatSettings) -> Self {
+        PhotonSplatPass {
+            settings,
+            photons: None,
+            count: 0,
+            power_w: 0.0,
+            params: raster.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("splat params"),
+                size: std::mem::size_of::<SplatParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
             }),
-            multiview_mask: None,
-            cache: None,
-        });
-        let upsample = super::fullscreen_pipeline(
-            device,
-            "upsample",
-            &pipeline_layout,
-            &shader,
-            ("vs_full", "fs_upsample"),
-        );
-        SplatPipelines {
-            layout,
-            splat,
-            upsample,
-            accum_format,
+            targets: None,
         }
     }
-}
 
-impl Raster {
-    /// A client frame: direct light of `lights` plus the indirect light of `photons`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn photon_frame(
-        &self,
-        scene: &Scene,
-        triangles: &[WorldTriangle],
-        lights: &[LightState],
-        camera: &Camera,
-        width: u32,
-        height: u32,
-        shadows: ShadowSettings,
-        photons: &[Photon],
-        splat: SplatSettings,
-    ) -> Result<PhotonFrame, RasterError> {
-        let d = &self.device;
-        let ds = splat.downsample.clamp(1, 8);
-        let (low_w, low_h) = (width.div_ceil(ds).max(1), height.div_ceil(ds).max(1));
-        let mut enc = d.create_command_encoder(&Default::default());
-        let view = self.encode_direct(
-            &mut enc, scene, triangles, lights, camera, width, height, shadows,
-        )?;
-        let (lo, hi) = scene.bounds_at(0.0);
-        let far =
-            ((hi - lo).length() + (camera.position - (lo + hi) * 0.5).length()).max(1e-3) * 2.0;
-        let clip = clip_from_world(camera, width as f32 / height as f32, far * 1e-5, far);
-        let params = SplatParams {
-            clip_from_world: clip.to_cols_array(),
-            sizes: [width as f32, height as f32, low_w as f32, low_h as f32],
-            settings: [
-                ds as f32,
-                splat.flatten,
-                (splat.depth_sigma * view.scene_extent).max(1e-6),
-                splat.normal_power,
-            ],
-        };
-        let params_buf = d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("splat params"),
-            contents: bytemuck::bytes_of(&params),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let texture = |w, h, format, label| {
-            d.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size: wgpu::Extent3d {
-                    width: w,
-                    height: h,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT
-                    | wgpu::TextureUsages::TEXTURE_BINDING
-                    | wgpu::TextureUsages::COPY_SRC,
-                view_formats: &[],
-            })
-        };
-        let pipes = &self.splat;
-        let accum = texture(low_w, low_h, pipes.accum_format, "photon accumulation");
-        let indirect = texture(
-            width,
-            height,
-            wgpu::TextureFormat::Rgba32Float,
-            "indirect radiance",
-        );
-        let tv: Vec<_> = view
-            .targets
-            .iter()
-            .chain([&accum])
-            .map(|t| t.create_view(&Default::default()))
-            .collect();
-        // The splat pass reads the accumulation binding too; bind the albedo there instead
-        // (it is not read by fs_splat) so that the target is not bound twice.
-        let bind = |accum_view: &wgpu::TextureView| {
-            d.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("splat"),
-                layout: &pipes.layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: params_buf.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: wgpu::BindingResource::TextureView(&tv[0]),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: wgpu::BindingResource::TextureView(&tv[1]),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: wgpu::BindingResource::TextureView(&tv[2]),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 4,
-                        resource: wgpu::BindingResource::TextureView(accum_view),
-                    },
-                ],
-            })
-        };
+    /// Photons splatted from now on (non-finite photons and those without a radius are
+    /// left out).
+    pub fn set_photons(&mut self, raster: &Raster, photons: &[Photon]) -> Result<(), RasterError> {
         let instances: Vec<SplatPhoton> = photons
             .iter()
             .filter(|p| {
@@ -294,49 +124,187 @@ impl Raster {
                 direction: p.direction.extend(0.0).to_array(),
             })
             .collect();
-        let instance_buf = (!instances.is_empty()).then(|| {
-            d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("photons"),
-                contents: bytemuck::cast_slice(&instances),
-                usage: wgpu::BufferUsages::VERTEX,
-            })
-        });
+        self.power_w = instances
+            .iter()
+            .map(|p| p.power[..3].iter().fold(0.0f32, |a, b| a.max(b.abs())))
+            .sum();
+        self.count = instances.len() as u32;
+        let bytes: &[u8] = bytemuck::cast_slice(&instances);
+        raster.checked("uploading photons", || {
+            match &self.photons {
+                Some(b) if b.size() >= bytes.len() as u64 && !bytes.is_empty() => {
+                    raster.queue.write_buffer(b, 0, bytes);
+                }
+                _ if bytes.is_empty() => {}
+                _ => {
+                    // Room for growth: sets change size a little from one generation to the next.
+                    let size =
+                        (bytes.len() as u64 * 5 / 4).next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
+                    let b = raster.device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("photons"),
+                        size,
+                        usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+                        mapped_at_creation: false,
+                    });
+                    raster.queue.write_buffer(&b, 0, bytes);
+                    self.photons = Some(b);
+                }
+            }
+            Ok(())
+        })
+    }
+
+    /// Photons uploaded.
+    pub fn photon_count(&self) -> u32 {
+        self.count
+    }
+
+    fn targets(&mut self, raster: &Raster, ctx: &IndirectContext<'_>) -> &SplatTargets {
+        let ds = self.settings.downsample.clamp(1, 8);
+        let low = (
+            ctx.width.div_ceil(ds).max(1),
+            ctx.height.div_ceil(ds).max(1),
+        );
+        if self
+            .targets
+            .as_ref()
+            .is_none_or(|t| t.renderer_id != ctx.renderer_id || t.low != low)
         {
-            let dummy = texture(1, 1, pipes.accum_format, "unused");
-            let dummy_view = dummy.create_view(&Default::default());
-            let bind_splat = bind(&dummy_view);
-            let mut pass = super::clear_pass(&mut enc, "splat", &tv[3]);
-            if let Some(buf) = &instance_buf {
-                pass.set_pipeline(&pipes.splat);
-                pass.set_bind_group(0, &bind_splat, &[]);
+            let accum = Target::new(
+                raster,
+                "photon accumulation",
+                low.0,
+                low.1,
+                raster.formats().accum,
+            );
+            // The splat pass reads no accumulation (it writes it): bind a stand-in there.
+            let stand_in = Target::new(raster, "unused", 1, 1, raster.formats().accum);
+            let g = ctx.gbuffer;
+            let bind = |accum_view: &wgpu::TextureView| {
+                let tex = |binding, view| wgpu::BindGroupEntry {
+                    binding,
+                    resource: wgpu::BindingResource::TextureView(view),
+                };
+                raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("splat"),
+                    layout: &raster.pipelines.splat_layout,
+                    entries: &[
+                        wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: self.params.as_entire_binding(),
+                        },
+                        tex(1, &g.position.view),
+                        tex(2, &g.normal.view),
+                        tex(3, &g.albedo.view),
+                        tex(4, accum_view),
+                    ],
+                })
+            };
+            self.targets = Some(SplatTargets {
+                renderer_id: ctx.renderer_id,
+                splat: bind(&stand_in.view),
+                upsample: bind(&accum.view),
+                accum,
+                low,
+            });
+        }
+        self.targets.as_ref().expect("just made")
+    }
+}
+
+impl IndirectPass for PhotonSplatPass {
+    fn encode(
+        &mut self,
+        raster: &Raster,
+        ctx: &IndirectContext<'_>,
+        enc: &mut wgpu::CommandEncoder,
+    ) -> Result<(), RasterError> {
+        let ds = self.settings.downsample.clamp(1, 8);
+        // Accumulate irradiance × scale, the scale putting a typical irradiance (the photons'
+        // power over the scene's extent squared) near 1: f16 accumulation then holds any
+        // light unit, and f32 loses nothing.
+        let extent2 = (ctx.scene_extent_m * ctx.scene_extent_m).max(1e-12);
+        let scale = if self.power_w > 0.0 && (extent2 / self.power_w).is_finite() {
+            extent2 / self.power_w
+        } else {
+            1.0
+        };
+        let (count, settings) = (self.count, self.settings);
+        let low = self.targets(raster, ctx).low;
+        let params = SplatParams {
+            clip_from_world: ctx.clip_from_world.to_cols_array(),
+            sizes: [
+                ctx.width as f32,
+                ctx.height as f32,
+                low.0 as f32,
+                low.1 as f32,
+            ],
+            settings: [
+                ds as f32,
+                settings.flatten,
+                (settings.depth_sigma * ctx.scene_extent_m).max(1e-6),
+                settings.normal_power,
+            ],
+            scale: [scale, 0.0, 0.0, 0.0],
+        };
+        raster
+            .queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        let t = self.targets.as_ref().expect("made above");
+        {
+            let mut pass = super::frame::clear_pass(enc, "splat", &t.accum.view);
+            if let (Some(buf), true) = (&self.photons, count > 0) {
+                pass.set_pipeline(&raster.pipelines.splat);
+                pass.set_bind_group(0, &t.splat, &[]);
                 pass.set_vertex_buffer(0, buf.slice(..));
-                pass.draw(0..6, 0..instances.len() as u32);
+                pass.draw(0..6, 0..count);
             }
         }
-        {
-            let bind_up = bind(&tv[3]);
-            let out_view = indirect.create_view(&Default::default());
-            let mut pass = super::clear_pass(&mut enc, "upsample", &out_view);
-            pass.set_pipeline(&pipes.upsample);
-            pass.set_bind_group(0, &bind_up, &[]);
-            pass.draw(0..3, 0..1);
-        }
-        let planes = self.read_back(
-            enc,
-            &[
-                (&view.targets[0], 16),
-                (&view.targets[1], 8),
-                (&view.targets[2], 8),
-                (&view.direct, 16),
-                (&indirect, 16),
-            ],
-            width,
-            height,
+        let mut pass = super::frame::clear_pass(enc, "upsample", ctx.indirect);
+        pass.set_pipeline(&raster.pipelines.upsample);
+        pass.set_bind_group(0, &t.upsample, &[]);
+        pass.draw(0..3, 0..1);
+        Ok(())
+    }
+}
+
+impl Raster {
+    /// A one-frame photon client: direct light of `lights` plus the indirect light of
+    /// `photons` (a [`FrameRenderer`] with a [`PhotonSplatPass`], everything read back).
+    #[allow(clippy::too_many_arguments)]
+    pub fn photon_frame(
+        &self,
+        scene: &Scene,
+        triangles: &[WorldTriangle],
+        lights: &[LightState],
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        shadows: ShadowSettings,
+        photons: &[Photon],
+        splat: SplatSettings,
+    ) -> Result<PhotonFrame, RasterError> {
+        let mut frame = FrameRenderer::new(self, width, height, shadows)?;
+        frame.set_geometry(self, scene, triangles)?;
+        let mut pass = PhotonSplatPass::new(self, splat);
+        pass.set_photons(self, photons)?;
+        let images = frame.render(
+            self,
+            &FrameInputs {
+                camera: *camera,
+                lights,
+            },
+            &mut pass,
+            Readback::Everything,
+            false,
         )?;
-        Ok(PhotonFrame {
-            gbuffer: GBuffer::from_planes(width, height, &planes),
-            direct: super::rgb(&planes[3]),
-            indirect: super::rgb(&planes[4]),
-        })
+        match (images.gbuffer, images.direct, images.indirect) {
+            (Some(gbuffer), Some(direct), Some(indirect)) => Ok(PhotonFrame {
+                gbuffer,
+                direct,
+                indirect,
+            }),
+            _ => Err(RasterError::Readback("the frame was not read back".into())),
+        }
     }
 }

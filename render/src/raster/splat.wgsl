@@ -1,5 +1,8 @@
 // Photon splatting (Mara et al. 2013, "2.5D bounds"; CloudLight §4.3) and the joint-bilateral
-// upsample. Layouts match raster/splat.rs (`SplatPhoton`, `SplatParams`).
+// upsample. Layouts match raster/splat.rs (`SplatPhoton`, `SplatParams`). The G-buffer holds
+// f32 bits (position) and f16 pairs (normal, albedo); the accumulation buffer is float
+// (Rgba32Float or Rgba16Float, irradiance × `scale.x` so that f16 stays in range); the
+// upsample writes indirect radiance as f32 bits.
 //
 // Splat: one screen-space quad per photon covering the projection of its sphere; each covered
 // pixel of the low-resolution accumulation buffer reads the full-resolution G-buffer at its
@@ -13,12 +16,14 @@ struct SplatParams {
     sizes: vec4<f32>,
     // x: downsample factor, y: flatten (max |Δ·n| / r), z: depth sigma (m), w: normal power.
     settings: vec4<f32>,
+    // x: accumulation scale (accumulated = irradiance × x).
+    scale: vec4<f32>,
 };
 
 @group(0) @binding(0) var<uniform> params: SplatParams;
-@group(0) @binding(1) var gpos: texture_2d<f32>;
-@group(0) @binding(2) var gnrm: texture_2d<f32>;
-@group(0) @binding(3) var galb: texture_2d<f32>;
+@group(0) @binding(1) var gpos: texture_2d<u32>;
+@group(0) @binding(2) var gnrm: texture_2d<u32>;
+@group(0) @binding(3) var galb: texture_2d<u32>;
 @group(0) @binding(4) var accum: texture_2d<f32>;
 
 struct PhotonIn {
@@ -80,6 +85,20 @@ fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
     return out;
 }
 
+fn position_at(px: vec2<i32>) -> vec4<f32> {
+    return bitcast<vec4<f32>>(textureLoad(gpos, px, 0));
+}
+
+fn normal_at(px: vec2<i32>) -> vec3<f32> {
+    let v = textureLoad(gnrm, px, 0).xy;
+    return normalize(vec3<f32>(unpack2x16float(v.x), unpack2x16float(v.y).x));
+}
+
+fn albedo_at(px: vec2<i32>) -> vec3<f32> {
+    let v = textureLoad(galb, px, 0).xy;
+    return vec3<f32>(unpack2x16float(v.x), unpack2x16float(v.y).x);
+}
+
 // The full-resolution texel that stands for low-resolution pixel `lp`.
 fn full_texel(lp: vec2<i32>) -> vec2<i32> {
     let ds = i32(params.settings.x);
@@ -90,11 +109,11 @@ fn full_texel(lp: vec2<i32>) -> vec2<i32> {
 @fragment
 fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
     let px = full_texel(vec2<i32>(in.clip.xy));
-    let g = textureLoad(gpos, px, 0);
+    let g = position_at(px);
     if (g.w < 0.5) {
         discard;
     }
-    let n = normalize(textureLoad(gnrm, px, 0).xyz);
+    let n = normal_at(px);
     let r = in.position_radius.w;
     let delta = g.xyz - in.position_radius.xyz;
     let dn = dot(delta, n);
@@ -107,7 +126,7 @@ fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
     }
     let kappa = 1.0 - sqrt(s2) / r;
     let norm = 3.14159265 * r * r / 3.0;
-    return vec4<f32>(in.power.rgb * (kappa / norm), 1.0);
+    return vec4<f32>(in.power.rgb * (kappa / norm * params.scale.x), 1.0);
 }
 
 @vertex
@@ -121,14 +140,14 @@ fn vs_full(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
 // exp(−|plane distance| / σ) × max(0, n·n')^p; the nearest tap in plane distance is the
 // fallback when every weight vanishes.
 @fragment
-fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<f32> {
+fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     let px = vec2<i32>(frag.xy);
-    let g = textureLoad(gpos, px, 0);
+    let g = position_at(px);
     if (g.w < 0.5) {
-        return vec4<f32>(0.0);
+        return vec4<u32>(0u);
     }
-    let n = normalize(textureLoad(gnrm, px, 0).xyz);
-    let albedo = textureLoad(galb, px, 0).rgb;
+    let n = normal_at(px);
+    let albedo = albedo_at(px);
     let ds = params.settings.x;
     let low = vec2<i32>(params.sizes.zw) - vec2<i32>(1);
     let lp = (frag.xy) / ds - vec2<f32>(0.5);
@@ -141,11 +160,11 @@ fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<f32> {
     for (var k = 0u; k < 4u; k = k + 1u) {
         let o = vec2<i32>(i32(k & 1u), i32(k >> 1u));
         let t = clamp(base + o, vec2<i32>(0), low);
-        let tg = textureLoad(gpos, full_texel(t), 0);
+        let tg = position_at(full_texel(t));
         if (tg.w < 0.5) {
             continue;
         }
-        let tn = normalize(textureLoad(gnrm, full_texel(t), 0).xyz);
+        let tn = normal_at(full_texel(t));
         let e = textureLoad(accum, t, 0).rgb;
         let plane = abs(dot(tg.xyz - g.xyz, n));
         let bw = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1);
@@ -162,5 +181,5 @@ fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<f32> {
     if (wsum > 1e-4) {
         irradiance = sum / wsum;
     }
-    return vec4<f32>(albedo / 3.14159265 * irradiance, 1.0);
+    return bitcast<vec4<u32>>(vec4<f32>(albedo / 3.14159265 * irradiance / params.scale.x, 1.0));
 }

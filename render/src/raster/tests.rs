@@ -5,75 +5,102 @@ use glam::{Vec2, Vec3};
 use super::*;
 use crate::bvh::{BvhKind, SceneBvh};
 
-#[test]
-fn the_gbuffer_of_the_cornell_box_matches_ray_casting() {
-    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
-    eprintln!("adapter: {:?}", raster.adapter());
-    let scene = cloudlight_scenes::builtin("cornell").unwrap();
-    let tris = scene.triangles_at(0.0);
-    let camera = scene.cameras[0].camera;
-    let (w, h) = (64u32, 64u32);
-    let g = raster.gbuffer(&scene, &tris, &camera, w, h).unwrap();
-    let bvh = SceneBvh::build(tris, BvhKind::default());
-    let aspect = w as f32 / h as f32;
-    let (mut both, mut disagree) = (0, 0);
-    for y in 0..h {
-        for x in 0..w {
-            let i = (y * w + x) as usize;
-            let ndc = Vec2::new(
-                (x as f32 + 0.5) / w as f32 * 2.0 - 1.0,
-                1.0 - (y as f32 + 0.5) / h as f32 * 2.0,
-            );
-            let hit = bvh.closest_hit(
-                camera.position,
-                camera.ray_direction(ndc, aspect),
-                f32::INFINITY,
-            );
-            let drawn = g.position[i].w > 0.5;
-            match hit {
-                Some(hit) if drawn => {
-                    both += 1;
-                    let p = camera.position + camera.ray_direction(ndc, aspect) * hit.t;
-                    let tri = &bvh.triangles()[hit.triangle as usize];
-                    let albedo = scene.materials[tri.material as usize].albedo;
-                    let mut n = bvh.geometric_normal(hit.triangle);
-                    if n.dot(camera.ray_direction(ndc, aspect)) > 0.0 {
-                        n = -n;
-                    }
-                    let same = (g.position[i].truncate() - p).length() < 2e-3
-                        && g.normal[i].dot(n) > 0.99
-                        && (g.albedo[i] - albedo).abs().max_element() < 1e-2;
-                    if !same {
-                        disagree += 1; // a silhouette or a crease between two surfaces
-                    }
-                }
-                None if !drawn => {}
-                _ => disagree += 1,
+/// Runs `test` on the Vulkan and on the GL adapter, each where it exists: a backend without
+/// an adapter (or excluded by `WGPU_BACKEND`) is skipped with a printed reason; no adapter at
+/// all fails the test.
+fn on_every_backend(test: impl Fn(&Raster)) {
+    let mut ran = 0;
+    for (name, backend) in [
+        ("Vulkan", wgpu::Backends::VULKAN),
+        ("GL", wgpu::Backends::GL),
+    ] {
+        if device::backends(wgpu::Backends::all()) & backend != backend {
+            eprintln!("skipped on {name}: WGPU_BACKEND excludes it");
+            continue;
+        }
+        match Raster::with_backends(backend) {
+            Ok(raster) => {
+                eprintln!("on {name}: {}", raster.describe());
+                test(&raster);
+                ran += 1;
             }
+            Err(e) => eprintln!("skipped on {name}: {e}"),
         }
     }
-    eprintln!("{both} pixels covered by both, {disagree} disagree");
-    assert!(
-        both > (w * h) as usize * 9 / 10,
-        "only {both} pixels covered"
-    );
-    assert!(
-        disagree <= (w * h) as usize / 50,
-        "{disagree} of {} pixels disagree",
-        w * h
-    );
+    assert!(ran > 0, "no backend has an adapter");
+}
+
+#[test]
+fn the_gbuffer_of_the_cornell_box_matches_ray_casting() {
+    on_every_backend(|raster| {
+        eprintln!("adapter: {:?}", raster.adapter());
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        let tris = scene.triangles_at(0.0);
+        let camera = scene.cameras[0].camera;
+        let (w, h) = (64u32, 64u32);
+        let g = raster.gbuffer(&scene, &tris, &camera, w, h).unwrap();
+        let bvh = SceneBvh::build(tris, BvhKind::default());
+        let aspect = w as f32 / h as f32;
+        let (mut both, mut disagree) = (0, 0);
+        for y in 0..h {
+            for x in 0..w {
+                let i = (y * w + x) as usize;
+                let ndc = Vec2::new(
+                    (x as f32 + 0.5) / w as f32 * 2.0 - 1.0,
+                    1.0 - (y as f32 + 0.5) / h as f32 * 2.0,
+                );
+                let hit = bvh.closest_hit(
+                    camera.position,
+                    camera.ray_direction(ndc, aspect),
+                    f32::INFINITY,
+                );
+                let drawn = g.position[i].w > 0.5;
+                match hit {
+                    Some(hit) if drawn => {
+                        both += 1;
+                        let p = camera.position + camera.ray_direction(ndc, aspect) * hit.t;
+                        let tri = &bvh.triangles()[hit.triangle as usize];
+                        let albedo = scene.materials[tri.material as usize].albedo;
+                        let mut n = bvh.geometric_normal(hit.triangle);
+                        if n.dot(camera.ray_direction(ndc, aspect)) > 0.0 {
+                            n = -n;
+                        }
+                        let same = (g.position[i].truncate() - p).length() < 2e-3
+                            && g.normal[i].dot(n) > 0.99
+                            && (g.albedo[i] - albedo).abs().max_element() < 1e-2;
+                        if !same {
+                            disagree += 1; // a silhouette or a crease between two surfaces
+                        }
+                    }
+                    None if !drawn => {}
+                    _ => disagree += 1,
+                }
+            }
+        }
+        eprintln!("{both} pixels covered by both, {disagree} disagree");
+        assert!(
+            both > (w * h) as usize * 9 / 10,
+            "only {both} pixels covered"
+        );
+        assert!(
+            disagree <= (w * h) as usize / 50,
+            "{disagree} of {} pixels disagree",
+            w * h
+        );
+    });
 }
 
 #[test]
 fn an_empty_scene_gives_an_empty_gbuffer() {
-    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
-    let scene = cloudlight_scenes::builtin("cornell").unwrap();
-    let g = raster
-        .gbuffer(&scene, &[], &scene.cameras[0].camera, 8, 8)
-        .unwrap();
-    assert!(g.position.iter().all(|p| p.w == 0.0));
-    assert_eq!(g.normal.len(), 64);
-    assert!(g.albedo.iter().all(|a| *a == Vec3::ZERO));
+    on_every_backend(|raster| {
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        let g = raster
+            .gbuffer(&scene, &[], &scene.cameras[0].camera, 8, 8)
+            .unwrap();
+        assert!(g.position.iter().all(|p| p.w == 0.0));
+        assert_eq!(g.normal.len(), 64);
+        assert!(g.albedo.iter().all(|a| *a == Vec3::ZERO));
+    });
 }
 
 /// Per-pixel error of `test` against `reference`, relative with a floor of 2% of the mean
@@ -179,98 +206,126 @@ fn raster_direct_light_matches_the_path_tracer_direct_image() {
     // remaining pixels are edges — silhouettes, the spot cone's border, shadow borders —
     // where the raster samples the pixel center and the path tracer averages 16 jittered
     // samples (measured at 64²: median 0.04%, p90 1.3%, p95 16%).
-    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
-    let scene = lit_scene();
-    let tris = scene.triangles_at(0.0);
-    let lights: Vec<_> = scene.lights.iter().map(|l| l.at(0.0)).collect();
-    let camera = scene.cameras[0].camera;
-    let (w, h) = (128u32, 128u32);
-    let (g, direct) = raster
-        .direct(
-            &scene,
-            &tris,
-            &lights,
-            &camera,
-            w,
-            h,
-            ShadowSettings::default(),
-        )
-        .unwrap();
-    let bvh = SceneBvh::build(tris, BvhKind::default());
-    let settings = crate::reference::RenderSettings {
-        width: w,
-        height: h,
-        camera,
-        time_s: 0.0,
-        seed: 3,
-        max_bounces: 1,
-    };
-    let reference = crate::reference::render(&scene, &bvh, settings, 16).direct();
-    let covered: Vec<usize> = (0..(w * h) as usize)
-        .filter(|&i| g.position[i].w > 0.5)
-        .collect();
-    let (mean, errors) = relative_errors(&direct, &reference, &covered);
-    assert!(mean > 0.0);
-    let p50 = errors[errors.len() / 2];
-    let p95 = errors[errors.len() * 95 / 100];
-    eprintln!(
-        "relative error p50 {p50:.4}, p90 {:.4}, p95 {p95:.4} over {} pixels",
-        errors[errors.len() * 90 / 100],
-        errors.len()
-    );
-    if let Ok(dir) = std::env::var("CLOUDLIGHT_DEBUG_IMAGES") {
-        let dir = std::path::Path::new(&dir);
-        crate::image_io::write_png(&dir.join("raster_direct.png"), w, h, &direct, 1.0).unwrap();
-        crate::image_io::write_png(&dir.join("traced_direct.png"), w, h, &reference, 1.0).unwrap();
-        let diff: Vec<Vec3> = direct
-            .iter()
-            .zip(&reference)
-            .map(|(a, b)| (*a - *b).abs() * 4.0)
+    on_every_backend(|raster| {
+        let scene = lit_scene();
+        let tris = scene.triangles_at(0.0);
+        let lights: Vec<_> = scene.lights.iter().map(|l| l.at(0.0)).collect();
+        let camera = scene.cameras[0].camera;
+        let (w, h) = (128u32, 128u32);
+        let (g, direct) = raster
+            .direct(
+                &scene,
+                &tris,
+                &lights,
+                &camera,
+                w,
+                h,
+                ShadowSettings::default(),
+            )
+            .unwrap();
+        let bvh = SceneBvh::build(tris, BvhKind::default());
+        let settings = crate::reference::RenderSettings {
+            width: w,
+            height: h,
+            camera,
+            time_s: 0.0,
+            seed: 3,
+            max_bounces: 1,
+        };
+        let reference = crate::reference::render(&scene, &bvh, settings, 16).direct();
+        let covered: Vec<usize> = (0..(w * h) as usize)
+            .filter(|&i| g.position[i].w > 0.5)
             .collect();
-        crate::image_io::write_png(&dir.join("difference_x4.png"), w, h, &diff, 1.0).unwrap();
-    }
-    assert!(p50 < 0.02, "median relative error {p50}");
-    let p90 = errors[errors.len() * 90 / 100];
-    assert!(
-        p90 < 0.05,
-        "90th percentile relative error {p90} (p95 {p95})"
-    );
-    // Shadows matter: lit by the sun alone, the block's shadow is black in the reference,
-    // and the raster must agree on (nearly) all of it.
-    let mut sun_only = scene.clone();
-    sun_only.lights.retain(|l| l.name == "sun");
-    let sun: Vec<_> = sun_only.lights.iter().map(|l| l.at(0.0)).collect();
-    let (_, raster_sun) = raster
-        .direct(
-            &sun_only,
-            bvh.triangles(),
-            &sun,
-            &camera,
-            w,
-            h,
-            ShadowSettings::default(),
-        )
-        .unwrap();
-    let traced_sun = crate::reference::render(&sun_only, &bvh, settings, 4).direct();
-    let shadowed: Vec<usize> = covered
-        .iter()
-        .copied()
-        .filter(|&i| traced_sun[i] == Vec3::ZERO)
-        .collect();
-    let dark = shadowed
-        .iter()
-        .filter(|&&i| raster_sun[i].max_element() < 1e-3)
-        .count();
-    assert!(
-        shadowed.len() > covered.len() / 50,
-        "the test scene should show a sun shadow ({} pixels)",
-        shadowed.len()
-    );
-    assert!(
-        dark * 20 >= shadowed.len() * 19,
-        "{dark} of {} sun-shadowed pixels are dark in the raster",
-        shadowed.len()
-    );
+        let (mean, errors) = relative_errors(&direct, &reference, &covered);
+        assert!(mean > 0.0);
+        let p50 = errors[errors.len() / 2];
+        let p95 = errors[errors.len() * 95 / 100];
+        eprintln!(
+            "relative error p50 {p50:.4}, p90 {:.4}, p95 {p95:.4} over {} pixels",
+            errors[errors.len() * 90 / 100],
+            errors.len()
+        );
+        if let Ok(dir) = std::env::var("CLOUDLIGHT_DEBUG_IMAGES") {
+            let dir = std::path::Path::new(&dir);
+            crate::image_io::write_png(&dir.join("raster_direct.png"), w, h, &direct, 1.0).unwrap();
+            crate::image_io::write_png(&dir.join("traced_direct.png"), w, h, &reference, 1.0)
+                .unwrap();
+            let diff: Vec<Vec3> = direct
+                .iter()
+                .zip(&reference)
+                .map(|(a, b)| (*a - *b).abs() * 4.0)
+                .collect();
+            crate::image_io::write_png(&dir.join("difference_x4.png"), w, h, &diff, 1.0).unwrap();
+        }
+        assert!(p50 < 0.02, "median relative error {p50}");
+        let p90 = errors[errors.len() * 90 / 100];
+        assert!(
+            p90 < 0.05,
+            "90th percentile relative error {p90} (p95 {p95})"
+        );
+        // Shadows matter: lit by the sun alone, the block's shadow is black in the reference,
+        // and the raster must agree on (nearly) all of it.
+        let mut sun_only = scene.clone();
+        sun_only.lights.retain(|l| l.name == "sun");
+        let sun: Vec<_> = sun_only.lights.iter().map(|l| l.at(0.0)).collect();
+        let (_, raster_sun) = raster
+            .direct(
+                &sun_only,
+                bvh.triangles(),
+                &sun,
+                &camera,
+                w,
+                h,
+                ShadowSettings::default(),
+            )
+            .unwrap();
+        let traced_sun = crate::reference::render(&sun_only, &bvh, settings, 4).direct();
+        let shadowed: Vec<usize> = covered
+            .iter()
+            .copied()
+            .filter(|&i| traced_sun[i] == Vec3::ZERO)
+            .collect();
+        let dark = shadowed
+            .iter()
+            .filter(|&&i| raster_sun[i].max_element() < 1e-3)
+            .count();
+        assert!(
+            shadowed.len() > covered.len() / 50,
+            "the test scene should show a sun shadow ({} pixels)",
+            shadowed.len()
+        );
+        assert!(
+            dark * 20 >= shadowed.len() * 19,
+            "{dark} of {} sun-shadowed pixels are dark in the raster",
+            shadowed.len()
+        );
+        // Every light alone: its direct light's mean over the covered pixels within 5% of
+        // the path tracer's (catches a light kind that a backend loses altogether).
+        for light in &scene.lights {
+            let mut alone = scene.clone();
+            alone.lights.retain(|l| l.name == light.name);
+            let states: Vec<_> = alone.lights.iter().map(|l| l.at(0.0)).collect();
+            let (_, ours) = raster
+                .direct(
+                    &alone,
+                    bvh.triangles(),
+                    &states,
+                    &camera,
+                    w,
+                    h,
+                    ShadowSettings::default(),
+                )
+                .unwrap();
+            let traced = crate::reference::render(&alone, &bvh, settings, 4).direct();
+            let mean = |img: &[Vec3]| covered.iter().map(|&i| img[i].element_sum()).sum::<f32>();
+            let ratio = mean(&ours) / mean(&traced);
+            assert!(
+                (ratio - 1.0).abs() < 0.05,
+                "{}: raster / traced = {ratio}",
+                light.name
+            );
+        }
+    });
 }
 
 #[test]
@@ -281,92 +336,101 @@ fn raster_direct_light_of_the_cornell_box_matches_the_path_tracer() {
     // shadows of 32 points against the true soft ones) and silhouettes. Measured at 96²:
     // p50 0.4%, p90 12%, p95 42%. Emitter pixels are left out (the raster's direct term is
     // reflected light only).
-    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
-    let scene = cloudlight_scenes::builtin("cornell").unwrap();
-    let tris = scene.triangles_at(0.0);
-    let lights = scene.surface_light_samples(0.0, 4);
-    assert_eq!(lights.len(), 32);
-    let camera = scene.cameras[0].camera;
-    let (w, h) = (96u32, 96u32);
-    let shadows = ShadowSettings {
-        size: 512,
-        ..ShadowSettings::default()
-    };
-    let (g, direct) = raster
-        .direct(&scene, &tris, &lights, &camera, w, h, shadows)
-        .unwrap();
-    let bvh = SceneBvh::build(tris, BvhKind::default());
-    let settings = crate::reference::RenderSettings {
-        width: w,
-        height: h,
-        camera,
-        time_s: 0.0,
-        seed: 5,
-        max_bounces: 1,
-    };
-    let reference = crate::reference::render(&scene, &bvh, settings, 1024).direct();
-    let aspect = w as f32 / h as f32;
-    let covered: Vec<usize> = (0..(w * h) as usize)
-        .filter(|&i| {
-            let (x, y) = ((i as u32 % w) as f32 + 0.5, (i as u32 / w) as f32 + 0.5);
-            let ndc = Vec2::new(x / w as f32 * 2.0 - 1.0, 1.0 - y / h as f32 * 2.0);
-            let hit = bvh.closest_hit(
-                camera.position,
-                camera.ray_direction(ndc, aspect),
-                f32::INFINITY,
-            );
-            g.position[i].w > 0.5
-                && hit.is_some_and(|h| {
-                    !scene.materials[bvh.triangles()[h.triangle as usize].material as usize]
-                        .is_emissive()
-                })
-        })
-        .collect();
-    let (mean, errors) = relative_errors(&direct, &reference, &covered);
-    let q = |p: usize| errors[errors.len() * p / 100];
-    if let Ok(dir) = std::env::var("CLOUDLIGHT_DEBUG_IMAGES") {
-        let dir = std::path::Path::new(&dir);
-        let err_img: Vec<Vec3> = (0..(w * h) as usize)
-            .map(|i| Vec3::splat(relative_error(direct[i], reference[i], mean)))
+    on_every_backend(|raster| {
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        let tris = scene.triangles_at(0.0);
+        let lights = scene.surface_light_samples(0.0, 4);
+        assert_eq!(lights.len(), 32);
+        let camera = scene.cameras[0].camera;
+        let (w, h) = (96u32, 96u32);
+        let shadows = ShadowSettings {
+            size: 512,
+            ..ShadowSettings::default()
+        };
+        let (g, direct) = raster
+            .direct(&scene, &tris, &lights, &camera, w, h, shadows)
+            .unwrap();
+        let bvh = SceneBvh::build(tris, BvhKind::default());
+        let settings = crate::reference::RenderSettings {
+            width: w,
+            height: h,
+            camera,
+            time_s: 0.0,
+            seed: 5,
+            max_bounces: 1,
+        };
+        let reference = crate::reference::render(&scene, &bvh, settings, 1024).direct();
+        let aspect = w as f32 / h as f32;
+        let covered: Vec<usize> = (0..(w * h) as usize)
+            .filter(|&i| {
+                let (x, y) = ((i as u32 % w) as f32 + 0.5, (i as u32 / w) as f32 + 0.5);
+                let ndc = Vec2::new(x / w as f32 * 2.0 - 1.0, 1.0 - y / h as f32 * 2.0);
+                let hit = bvh.closest_hit(
+                    camera.position,
+                    camera.ray_direction(ndc, aspect),
+                    f32::INFINITY,
+                );
+                g.position[i].w > 0.5
+                    && hit.is_some_and(|h| {
+                        !scene.materials[bvh.triangles()[h.triangle as usize].material as usize]
+                            .is_emissive()
+                    })
+            })
             .collect();
-        crate::image_io::write_png(&dir.join("cornell_raster.png"), w, h, &direct, 0.0).unwrap();
-        crate::image_io::write_png(&dir.join("cornell_traced.png"), w, h, &reference, 0.0).unwrap();
-        crate::image_io::write_png(&dir.join("cornell_relerr.png"), w, h, &err_img, 0.0).unwrap();
-    }
-    eprintln!(
-        "Cornell direct: relative error p50 {:.4}, p90 {:.4}, p95 {:.4} over {} pixels",
-        q(50),
-        q(90),
-        q(95),
-        errors.len()
-    );
-    assert!(q(50) < 0.02, "median relative error {}", q(50));
-    assert!(q(90) < 0.15, "90th percentile relative error {}", q(90));
+        let (mean, errors) = relative_errors(&direct, &reference, &covered);
+        let q = |p: usize| errors[errors.len() * p / 100];
+        if let Ok(dir) = std::env::var("CLOUDLIGHT_DEBUG_IMAGES") {
+            let dir = std::path::Path::new(&dir);
+            let err_img: Vec<Vec3> = (0..(w * h) as usize)
+                .map(|i| Vec3::splat(relative_error(direct[i], reference[i], mean)))
+                .collect();
+            crate::image_io::write_png(&dir.join("cornell_raster.png"), w, h, &direct, 0.0)
+                .unwrap();
+            crate::image_io::write_png(&dir.join("cornell_traced.png"), w, h, &reference, 0.0)
+                .unwrap();
+            crate::image_io::write_png(&dir.join("cornell_relerr.png"), w, h, &err_img, 0.0)
+                .unwrap();
+        }
+        eprintln!(
+            "Cornell direct: relative error p50 {:.4}, p90 {:.4}, p95 {:.4} over {} pixels",
+            q(50),
+            q(90),
+            q(95),
+            errors.len()
+        );
+        assert!(q(50) < 0.02, "median relative error {}", q(50));
+        assert!(q(90) < 0.15, "90th percentile relative error {}", q(90));
+    });
 }
 
 #[test]
 fn too_many_lights_is_an_error_not_a_panic() {
-    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
-    let scene = cloudlight_scenes::builtin("cornell").unwrap();
-    let lights = scene.surface_light_samples(0.0, 12); // 288 emitters, 1728 views
-    let err = raster
-        .direct(
-            &scene,
-            &scene.triangles_at(0.0),
-            &lights,
-            &scene.cameras[0].camera,
-            8,
-            8,
-            ShadowSettings {
-                size: 16,
-                ..Default::default()
-            },
-        )
-        .unwrap_err();
-    assert!(
-        matches!(err, RasterError::TooManyShadowViews { .. }),
-        "{err}"
-    );
+    on_every_backend(|raster| {
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        // 6 views per emitter, 2·n² emitters: one more than the device's layers.
+        let max = raster.device.limits().max_texture_array_layers;
+        let n = ((max as f32 / 12.0).sqrt().ceil() as u32) + 1;
+        let lights = scene.surface_light_samples(0.0, n);
+        assert!(lights.len() as u32 * 6 > max);
+        let err = raster
+            .direct(
+                &scene,
+                &scene.triangles_at(0.0),
+                &lights,
+                &scene.cameras[0].camera,
+                8,
+                8,
+                ShadowSettings {
+                    size: 16,
+                    ..Default::default()
+                },
+            )
+            .unwrap_err();
+        assert!(
+            matches!(err, RasterError::TooManyShadowViews { .. }),
+            "{err}"
+        );
+    });
 }
 
 #[test]
@@ -374,86 +438,87 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
     // Photons on a jittered grid over a floor carry a uniform irradiance E0; the splat must
     // return ρ/π·E0 (a kernel/normalisation mismatch — πr² with a cone — is a 3× error).
     // Photons leaving the surface (travelling up) add nothing.
-    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
-    let mut mesh = cloudlight_scenes::Mesh::default();
-    let (a, b) = (Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, 2.0));
-    mesh.push_quad(a, Vec3::new(a.x, 0.0, b.z), b, Vec3::new(b.x, 0.0, a.z));
-    let scene = cloudlight_scenes::Scene {
-        name: "floor".into(),
-        materials: vec![cloudlight_scenes::Material::diffuse(
-            "floor",
-            Vec3::splat(0.5),
-        )],
-        objects: vec![cloudlight_scenes::Object {
+    on_every_backend(|raster| {
+        let mut mesh = cloudlight_scenes::Mesh::default();
+        let (a, b) = (Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, 2.0));
+        mesh.push_quad(a, Vec3::new(a.x, 0.0, b.z), b, Vec3::new(b.x, 0.0, a.z));
+        let scene = cloudlight_scenes::Scene {
             name: "floor".into(),
-            mesh,
-            material: 0,
-            motion: cloudlight_scenes::Motion::identity(),
-        }],
-        lights: Vec::new(),
-        cameras: Vec::new(),
-    };
-    let tris = scene.triangles_at(0.0);
-    assert!(tris[0].n[0].y > 0.9, "floor faces up");
-    let camera = cloudlight_scenes::Camera {
-        position: Vec3::new(0.0, 1.5, 0.01),
-        target: Vec3::ZERO,
-        up: Vec3::Y,
-        fov_y_rad: 1.0,
-    };
-    let (e0, h) = (2.0f32, 0.02f32);
-    let mut rng = crate::sampling::Rng::new(1, 0);
-    let mut photons = Vec::new();
-    for i in 0..150 {
-        for j in 0..150 {
-            let x = -1.5 + (i as f32 + rng.next_f32()) * h;
-            let z = -1.5 + (j as f32 + rng.next_f32()) * h;
-            for up in [false, true] {
-                photons.push(crate::photon::Photon {
-                    position: Vec3::new(x, 0.0, z),
-                    direction: if up { Vec3::Y } else { Vec3::NEG_Y },
-                    power: Vec3::new(e0, e0 * 0.5, e0 * 0.25) * h * h,
-                    radius: 0.1,
-                });
+            materials: vec![cloudlight_scenes::Material::diffuse(
+                "floor",
+                Vec3::splat(0.5),
+            )],
+            objects: vec![cloudlight_scenes::Object {
+                name: "floor".into(),
+                mesh,
+                material: 0,
+                motion: cloudlight_scenes::Motion::identity(),
+            }],
+            lights: Vec::new(),
+            cameras: Vec::new(),
+        };
+        let tris = scene.triangles_at(0.0);
+        assert!(tris[0].n[0].y > 0.9, "floor faces up");
+        let camera = cloudlight_scenes::Camera {
+            position: Vec3::new(0.0, 1.5, 0.01),
+            target: Vec3::ZERO,
+            up: Vec3::Y,
+            fov_y_rad: 1.0,
+        };
+        let (e0, h) = (2.0f32, 0.02f32);
+        let mut rng = crate::sampling::Rng::new(1, 0);
+        let mut photons = Vec::new();
+        for i in 0..150 {
+            for j in 0..150 {
+                let x = -1.5 + (i as f32 + rng.next_f32()) * h;
+                let z = -1.5 + (j as f32 + rng.next_f32()) * h;
+                for up in [false, true] {
+                    photons.push(crate::photon::Photon {
+                        position: Vec3::new(x, 0.0, z),
+                        direction: if up { Vec3::Y } else { Vec3::NEG_Y },
+                        power: Vec3::new(e0, e0 * 0.5, e0 * 0.25) * h * h,
+                        radius: 0.1,
+                    });
+                }
             }
         }
-    }
-    let (w, hgt) = (64u32, 64u32);
-    for downsample in [1, 2] {
-        let frame = raster
-            .photon_frame(
-                &scene,
-                &tris,
-                &[],
-                &camera,
-                w,
-                hgt,
-                ShadowSettings::default(),
-                &photons,
-                SplatSettings {
-                    downsample,
-                    ..Default::default()
-                },
-            )
-            .unwrap();
-        let expect = Vec3::new(e0, e0 * 0.5, e0 * 0.25) * 0.5 / std::f32::consts::PI;
-        let inner: Vec<Vec3> = (8..56)
-            .flat_map(|y| (8..56).map(move |x| (y, x)))
-            .map(|(y, x)| frame.indirect[(y * w + x) as usize])
-            .collect();
-        let mean = inner.iter().copied().sum::<Vec3>() / inner.len() as f32;
-        assert!(
-            ((mean / expect) - Vec3::ONE).abs().max_element() < 0.03,
-            "downsample {downsample}: mean {mean} vs {expect}"
-        );
-        for v in &inner {
+        let (w, hgt) = (64u32, 64u32);
+        for downsample in [1, 2] {
+            let frame = raster
+                .photon_frame(
+                    &scene,
+                    &tris,
+                    &[],
+                    &camera,
+                    w,
+                    hgt,
+                    ShadowSettings::default(),
+                    &photons,
+                    SplatSettings {
+                        downsample,
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            let expect = Vec3::new(e0, e0 * 0.5, e0 * 0.25) * 0.5 / std::f32::consts::PI;
+            let inner: Vec<Vec3> = (8..56)
+                .flat_map(|y| (8..56).map(move |x| (y, x)))
+                .map(|(y, x)| frame.indirect[(y * w + x) as usize])
+                .collect();
+            let mean = inner.iter().copied().sum::<Vec3>() / inner.len() as f32;
             assert!(
-                ((*v / expect) - Vec3::ONE).abs().max_element() < 0.15,
-                "downsample {downsample}: pixel {v} vs {expect}"
+                ((mean / expect) - Vec3::ONE).abs().max_element() < 0.03,
+                "downsample {downsample}: mean {mean} vs {expect}"
             );
+            for v in &inner {
+                assert!(
+                    ((*v / expect) - Vec3::ONE).abs().max_element() < 0.15,
+                    "downsample {downsample}: pixel {v} vs {expect}"
+                );
+            }
+            assert!(frame.direct.iter().all(|d| *d == Vec3::ZERO));
         }
-        assert!(frame.direct.iter().all(|d| *d == Vec3::ZERO));
-    }
+    });
 }
 
 #[test]
@@ -461,54 +526,58 @@ fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
     // Cornell box, indirect only, 64²: relMSE against the path tracer's indirect image must
     // fall as photons per iteration grow (bias and noise both shrink with the radius).
     use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
-    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
-    let scene = cloudlight_scenes::builtin("cornell").unwrap();
-    let tris = scene.triangles_at(0.0);
-    let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
-    let camera = scene.cameras[0].camera;
-    let (w, h) = (64u32, 64u32);
-    let settings = crate::reference::RenderSettings {
-        width: w,
-        height: h,
-        camera,
-        time_s: 0.0,
-        seed: 21,
-        max_bounces: 64,
-    };
-    let reference = crate::reference::render(&scene, &bvh, settings, 2048).indirect();
-    let mut errors = Vec::new();
-    for photons in [2_500u64, 10_000, 40_000, 160_000] {
-        let s = PhotonSettings::for_budget(&scene, photons, 10_000.min(photons as u32));
-        let it = trace_iteration(&scene, &bvh, 0.0, s, 3, PackFormat::Compact12);
-        let frame = raster
-            .photon_frame(
-                &scene,
-                &tris,
-                &[],
-                &camera,
-                w,
-                h,
-                ShadowSettings::default(),
-                &it.unpacked(),
-                SplatSettings::default(),
-            )
-            .unwrap();
-        assert!(frame.indirect.iter().all(|v| v.is_finite()));
-        let e =
-            crate::metrics::relmse(&frame.indirect, &reference, crate::metrics::REL_MSE_EPSILON);
-        eprintln!(
-            "{photons} photons: {} stored, radius {:.4} m, relMSE {e:.5}",
-            it.stored, it.radius
-        );
-        errors.push(e);
-    }
-    for pair in errors.windows(2) {
-        assert!(
-            pair[1] < pair[0],
-            "relMSE must fall with the budget: {errors:?}"
-        );
-    }
-    assert!(errors[3] < 0.01, "{errors:?}");
+    on_every_backend(|raster| {
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        let tris = scene.triangles_at(0.0);
+        let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
+        let camera = scene.cameras[0].camera;
+        let (w, h) = (64u32, 64u32);
+        let settings = crate::reference::RenderSettings {
+            width: w,
+            height: h,
+            camera,
+            time_s: 0.0,
+            seed: 21,
+            max_bounces: 64,
+        };
+        let reference = crate::reference::render(&scene, &bvh, settings, 2048).indirect();
+        let mut errors = Vec::new();
+        for photons in [2_500u64, 10_000, 40_000, 160_000] {
+            let s = PhotonSettings::for_budget(&scene, photons, 10_000.min(photons as u32));
+            let it = trace_iteration(&scene, &bvh, 0.0, s, 3, PackFormat::Compact12);
+            let frame = raster
+                .photon_frame(
+                    &scene,
+                    &tris,
+                    &[],
+                    &camera,
+                    w,
+                    h,
+                    ShadowSettings::default(),
+                    &it.unpacked(),
+                    SplatSettings::default(),
+                )
+                .unwrap();
+            assert!(frame.indirect.iter().all(|v| v.is_finite()));
+            let e = crate::metrics::relmse(
+                &frame.indirect,
+                &reference,
+                crate::metrics::REL_MSE_EPSILON,
+            );
+            eprintln!(
+                "{photons} photons: {} stored, radius {:.4} m, relMSE {e:.5}",
+                it.stored, it.radius
+            );
+            errors.push(e);
+        }
+        for pair in errors.windows(2) {
+            assert!(
+                pair[1] < pair[0],
+                "relMSE must fall with the budget: {errors:?}"
+            );
+        }
+        assert!(errors[3] < 0.01, "{errors:?}");
+    });
 }
 
 #[test]
@@ -516,65 +585,139 @@ fn extreme_photon_sets_give_finite_frames() {
     // Lights of 1e-6 W and 1e6 W, a scene without lights (no photons), and one photon per
     // batch: the client's frame stays finite and scales with the light.
     use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
-    let raster = Raster::new().unwrap_or_else(|e| panic!("{e}"));
-    let base = cloudlight_scenes::builtin("cornell").unwrap();
-    let camera = base.cameras[0].camera;
-    let frame = |scene: &cloudlight_scenes::Scene, settings: PhotonSettings| {
-        let tris = scene.triangles_at(0.0);
-        let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
-        let it = trace_iteration(scene, &bvh, 0.0, settings, 1, PackFormat::Compact12);
-        let lights = scene.surface_light_samples(0.0, 1);
-        let f = raster
-            .photon_frame(
-                scene,
-                &tris,
-                &lights,
-                &camera,
-                32,
-                32,
-                ShadowSettings {
-                    size: 128,
-                    ..Default::default()
-                },
-                &it.unpacked(),
-                SplatSettings::default(),
-            )
-            .unwrap();
-        assert!(
-            f.combined()
-                .iter()
-                .all(|v| v.is_finite() && v.min_element() >= 0.0),
-            "non-finite or negative pixel"
-        );
-        f.indirect.iter().copied().sum::<Vec3>().x
-    };
-    let settings = PhotonSettings::for_budget(&base, 4000, 4000);
-    let unit = frame(&base, settings);
-    assert!(unit > 0.0);
-    for scale in [1e-6f32, 1e6] {
-        let mut scene = base.clone();
-        for m in &mut scene.materials {
-            m.emission *= scale;
+    on_every_backend(|raster| {
+        let base = cloudlight_scenes::builtin("cornell").unwrap();
+        let camera = base.cameras[0].camera;
+        let frame = |scene: &cloudlight_scenes::Scene, settings: PhotonSettings| {
+            let tris = scene.triangles_at(0.0);
+            let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
+            let it = trace_iteration(scene, &bvh, 0.0, settings, 1, PackFormat::Compact12);
+            let lights = scene.surface_light_samples(0.0, 1);
+            let f = raster
+                .photon_frame(
+                    scene,
+                    &tris,
+                    &lights,
+                    &camera,
+                    32,
+                    32,
+                    ShadowSettings {
+                        size: 128,
+                        ..Default::default()
+                    },
+                    &it.unpacked(),
+                    SplatSettings::default(),
+                )
+                .unwrap();
+            assert!(
+                f.combined()
+                    .iter()
+                    .all(|v| v.is_finite() && v.min_element() >= 0.0),
+                "non-finite or negative pixel"
+            );
+            f.indirect.iter().copied().sum::<Vec3>().x
+        };
+        let settings = PhotonSettings::for_budget(&base, 4000, 4000);
+        let unit = frame(&base, settings);
+        assert!(unit > 0.0);
+        for scale in [1e-6f32, 1e6] {
+            let mut scene = base.clone();
+            for m in &mut scene.materials {
+                m.emission *= scale;
+            }
+            let s = PhotonSettings {
+                photons_per_watt: settings.photons_per_watt / scale as f64,
+                ..settings
+            };
+            let sum = frame(&scene, s);
+            assert!(
+                (sum / (unit * scale) - 1.0).abs() < 0.02,
+                "{scale}: {sum} vs {unit}"
+            );
         }
-        let s = PhotonSettings {
-            photons_per_watt: settings.photons_per_watt / scale as f64,
+        let mut dark = base.clone();
+        for m in &mut dark.materials {
+            m.emission = Vec3::ZERO;
+        }
+        assert_eq!(frame(&dark, settings), 0.0);
+        let one = PhotonSettings {
+            batch_size: 1,
+            photons_per_watt: settings.photons_per_watt / 4000.0,
             ..settings
         };
-        let sum = frame(&scene, s);
+        assert!(frame(&base, one).is_finite());
+    });
+}
+
+#[test]
+fn wgpu_validation_errors_are_error_values_and_the_device_keeps_working() {
+    on_every_backend(|raster| {
+        let bad_texture = || {
+            raster.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("zero-sized on purpose"),
+                size: wgpu::Extent3d {
+                    width: 0,
+                    height: 4,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::Rgba8Unorm,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            })
+        };
+        let err = raster
+            .checked("a test", || {
+                bad_texture();
+                Ok(())
+            })
+            .unwrap_err();
         assert!(
-            (sum / (unit * scale) - 1.0).abs() < 0.02,
-            "{scale}: {sum} vs {unit}"
+            matches!(&err, RasterError::Wgpu { operation, .. } if operation == "a test"),
+            "{err}"
         );
-    }
-    let mut dark = base.clone();
-    for m in &mut dark.materials {
-        m.emission = Vec3::ZERO;
-    }
-    assert_eq!(frame(&dark, settings), 0.0);
-    let one = PhotonSettings {
-        batch_size: 1,
-        photons_per_watt: settings.photons_per_watt / 4000.0,
-        ..settings
-    };
-    assert!(frame(&base, one).is_finite());
+        let err = raster
+            .checked("a broken shader", || {
+                let _module = raster
+                    .device
+                    .create_shader_module(wgpu::ShaderModuleDescriptor {
+                        label: Some("broken on purpose"),
+                        source: wgpu::ShaderSource::Wgsl("fn broken( {".into()),
+                    });
+                Ok(())
+            })
+            .unwrap_err();
+        assert!(matches!(err, RasterError::Wgpu { .. }), "{err}");
+        // An error outside any scope reaches the uncaptured handler (not wgpu's panicking
+        // default) and is the next operation's error.
+        bad_texture();
+        let err = raster
+            .gbuffer(
+                &cloudlight_scenes::builtin("cornell").unwrap(),
+                &[],
+                &cloudlight_scenes::builtin("cornell").unwrap().cameras[0].camera,
+                4,
+                4,
+            )
+            .unwrap_err();
+        assert!(matches!(err, RasterError::Wgpu { .. }), "{err}");
+        // Then the device works again.
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        let g = raster
+            .gbuffer(
+                &scene,
+                &scene.triangles_at(0.0),
+                &scene.cameras[0].camera,
+                8,
+                8,
+            )
+            .unwrap();
+        assert!(g.covered_pixels().len() > 32);
+        assert!(matches!(
+            FrameRenderer::new(raster, 0, 8, ShadowSettings::default()),
+            Err(RasterError::BadSize { .. })
+        ));
+    });
 }

@@ -1,0 +1,604 @@
+//! One client's frame, as named passes in order:
+//!
+//! 1. **G-buffer**: world position, normal, albedo and depth of the camera's view;
+//! 2. **shadows**: the shadow maps of the frame's lights, only when a light or the geometry
+//!    changed since they were last rendered;
+//! 3. **direct**: the client's own light, ρ/π · E_direct;
+//! 4. **indirect**: the technique's [`IndirectPass`] (photon splatting, a light-map lookup,
+//!    …), writing ρ/π · E_indirect;
+//! 5. **compose**: direct + indirect;
+//! 6. **read-back**: only the targets asked for ([`Readback`]).
+//!
+//! A [`FrameRenderer`] makes its targets, geometry buffers, uniforms and bind groups once and
+//! keeps them between frames; [`FrameRenderer::render`] can time each pass (a submit and a
+//! wait after each one) for benchmarks.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
+use glam::{Mat4, Vec3};
+use wgpu::util::DeviceExt;
+
+use super::direct::DirectPass;
+use super::pipelines::{GBufferVertex, VIEW_STRIDE};
+use super::readback::{Layout, read_planes, rgb};
+use super::shadow::ShadowMaps;
+use super::{GBuffer, Raster, RasterError, ShadowSettings, clip_from_world};
+
+/// A texture and its default view.
+pub struct Target {
+    /// The texture.
+    pub texture: wgpu::Texture,
+    /// Its view.
+    pub view: wgpu::TextureView,
+}
+
+impl Target {
+    pub(crate) fn new(
+        raster: &Raster,
+        label: &str,
+        width: u32,
+        height: u32,
+        format: wgpu::TextureFormat,
+    ) -> Self {
+        let texture = raster.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(label),
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&Default::default());
+        Target { texture, view }
+    }
+}
+
+/// The G-buffer's targets.
+pub struct GBufferTargets {
+    /// World position (m) and coverage (w = 1 where drawn), `f32` bits.
+    pub position: Target,
+    /// Unit shading normal facing the camera, four `f16`.
+    pub normal: Target,
+    /// Albedo, four `f16`.
+    pub albedo: Target,
+    /// Depth.
+    pub depth: Target,
+}
+
+/// Every target of a frame.
+struct FrameTargets {
+    gbuffer: GBufferTargets,
+    /// ρ/π · E_direct, `f32` bits.
+    direct: Target,
+    /// ρ/π · E_indirect, `f32` bits (the technique's pass writes it).
+    indirect: Target,
+    /// direct + indirect, `f32` bits.
+    composed: Target,
+}
+
+/// What a frame shows: its camera and the client's own lights.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameInputs<'a> {
+    /// The view.
+    pub camera: Camera,
+    /// Lights for direct light (punctual lights and surface emitter samples).
+    pub lights: &'a [LightState],
+}
+
+/// Which targets a frame reads back.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Readback {
+    /// None (the frame is only shown or timed).
+    Nothing,
+    /// The G-buffer.
+    GBuffer,
+    /// The composed radiance (to write a picture).
+    Composed,
+    /// G-buffer, direct, indirect and composed (tests, quality measurements).
+    Everything,
+}
+
+/// What a frame read back.
+#[derive(Clone, Debug, Default)]
+pub struct FrameImages {
+    /// The G-buffer.
+    pub gbuffer: Option<GBuffer>,
+    /// Direct radiance.
+    pub direct: Option<Vec<Vec3>>,
+    /// Indirect radiance.
+    pub indirect: Option<Vec<Vec3>>,
+    /// Direct + indirect.
+    pub composed: Option<Vec<Vec3>>,
+    /// Pass times (zero unless the frame was timed, but `total`).
+    pub times: PassTimes,
+}
+
+/// Wall time of each pass of one frame (a submit and a wait after each when timed).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct PassTimes {
+    /// G-buffer.
+    pub gbuffer: Duration,
+    /// Shadow maps (zero when they were kept).
+    pub shadows: Duration,
+    /// Direct light.
+    pub direct: Duration,
+    /// The technique's indirect pass.
+    pub indirect: Duration,
+    /// Compose.
+    pub compose: Duration,
+    /// Read-back (or the final wait when nothing is read).
+    pub readback: Duration,
+    /// The whole frame, from the first command to the end of the read-back.
+    pub total: Duration,
+    /// Whether the shadow maps were rendered this frame.
+    pub shadows_rendered: bool,
+}
+
+/// What a technique's indirect pass sees of the frame.
+pub struct IndirectContext<'a> {
+    /// Identifies the frame renderer whose targets these are (passes cache bind groups by it).
+    pub renderer_id: u64,
+    /// Frame width, pixels.
+    pub width: u32,
+    /// Frame height, pixels.
+    pub height: u32,
+    /// The camera's clip_from_world.
+    pub clip_from_world: Mat4,
+    /// Bounding diagonal of the geometry, meters.
+    pub scene_extent_m: f32,
+    /// The G-buffer.
+    pub gbuffer: &'a GBufferTargets,
+    /// The target to write indirect radiance to (`f32` bits, cleared by the pass).
+    pub indirect: &'a wgpu::TextureView,
+}
+
+/// A technique's pass producing indirect radiance ρ/π · E_indirect for each pixel.
+pub trait IndirectPass: Send {
+    /// Records the pass into `enc`: it must write (or clear) every pixel of `ctx.indirect`.
+    fn encode(
+        &mut self,
+        raster: &Raster,
+        ctx: &IndirectContext<'_>,
+        enc: &mut wgpu::CommandEncoder,
+    ) -> Result<(), RasterError>;
+}
+
+/// No indirect light (direct-only frames).
+pub struct NoIndirect;
+
+impl IndirectPass for NoIndirect {
+    fn encode(
+        &mut self,
+        _raster: &Raster,
+        ctx: &IndirectContext<'_>,
+        enc: &mut wgpu::CommandEncoder,
+    ) -> Result<(), RasterError> {
+        clear_pass(enc, "no indirect", ctx.indirect);
+        Ok(())
+    }
+}
+
+/// A render pass into one colour target, cleared first, without depth.
+pub(crate) fn clear_pass<'e>(
+    enc: &'e mut wgpu::CommandEncoder,
+    label: &str,
+    view: &wgpu::TextureView,
+) -> wgpu::RenderPass<'e> {
+    enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some(label),
+        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+            view,
+            depth_slice: None,
+            resolve_target: None,
+            ops: wgpu::Operations {
+                load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                store: wgpu::StoreOp::Store,
+            },
+        })],
+        depth_stencil_attachment: None,
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    })
+}
+
+/// A bind group of the `view` layout over `buffer` (matrices at [`VIEW_STRIDE`]).
+pub(crate) fn view_bind_group(
+    raster: &Raster,
+    buffer: &wgpu::Buffer,
+    label: &str,
+) -> wgpu::BindGroup {
+    raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout: &raster.pipelines.view_layout,
+        entries: &[wgpu::BindGroupEntry {
+            binding: 0,
+            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer,
+                offset: 0,
+                size: wgpu::BufferSize::new(64),
+            }),
+        }],
+    })
+}
+
+/// The geometry as the G-buffer and shadow passes draw it.
+#[derive(Default)]
+struct Geometry {
+    gbuffer: Option<wgpu::Buffer>,
+    shadow: Option<wgpu::Buffer>,
+    vertices: u32,
+    bounds: (Vec3, Vec3),
+    version: u64,
+}
+
+/// Times passes when asked: after each pass, submits what was recorded, waits, and starts a
+/// new encoder.
+struct PassTimer {
+    timed: bool,
+    mark: Instant,
+}
+
+impl PassTimer {
+    fn lap(
+        &mut self,
+        raster: &Raster,
+        enc: &mut wgpu::CommandEncoder,
+        slot: &mut Duration,
+    ) -> Result<(), RasterError> {
+        if self.timed {
+            let done = std::mem::replace(
+                enc,
+                raster.device.create_command_encoder(&Default::default()),
+            );
+            raster.submit_and_wait(done)?;
+            *slot = self.mark.elapsed();
+            self.mark = Instant::now();
+        }
+        Ok(())
+    }
+}
+
+/// Distinguishes frame renderers (their targets) for passes that cache bind groups.
+static NEXT_RENDERER: AtomicU64 = AtomicU64::new(1);
+
+/// One client's frame state: targets, geometry, camera, shadow maps and the passes' bind
+/// groups, made once and kept.
+pub struct FrameRenderer {
+    id: u64,
+    width: u32,
+    height: u32,
+    targets: FrameTargets,
+    geometry: Geometry,
+    camera: wgpu::Buffer,
+    camera_bind: wgpu::BindGroup,
+    shadows: ShadowMaps,
+    direct: DirectPass,
+    compose_bind: wgpu::BindGroup,
+}
+
+impl FrameRenderer {
+    /// Targets for `width × height` frames on `raster`.
+    pub fn new(
+        raster: &Raster,
+        width: u32,
+        height: u32,
+        shadows: ShadowSettings,
+    ) -> Result<Self, RasterError> {
+        let max = raster.device.limits().max_texture_dimension_2d;
+        if width == 0 || height == 0 || width > max || height > max {
+            return Err(RasterError::BadSize { width, height, max });
+        }
+        raster.checked("creating a frame's targets", || {
+            let f = raster.formats();
+            let target = |label, format| Target::new(raster, label, width, height, format);
+            let targets = FrameTargets {
+                gbuffer: GBufferTargets {
+                    position: target("gbuffer position", f.exact4),
+                    normal: target("gbuffer normal", f.half4),
+                    albedo: target("gbuffer albedo", f.half4),
+                    depth: target("gbuffer depth", f.depth),
+                },
+                direct: target("direct radiance", f.exact4),
+                indirect: target("indirect radiance", f.exact4),
+                composed: target("composed radiance", f.exact4),
+            };
+            let camera = raster.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("camera"),
+                size: VIEW_STRIDE,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let camera_bind = view_bind_group(raster, &camera, "camera");
+            let compose_bind = raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("compose"),
+                layout: &raster.pipelines.compose_layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: wgpu::BindingResource::TextureView(&targets.direct.view),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: wgpu::BindingResource::TextureView(&targets.indirect.view),
+                    },
+                ],
+            });
+            Ok(FrameRenderer {
+                id: NEXT_RENDERER.fetch_add(1, Ordering::Relaxed),
+                width,
+                height,
+                targets,
+                geometry: Geometry::default(),
+                camera,
+                camera_bind,
+                shadows: ShadowMaps::new(raster, shadows),
+                direct: DirectPass::new(raster),
+                compose_bind,
+            })
+        })
+    }
+
+    /// Frame width, pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Frame height, pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// How many times the shadow maps were rendered.
+    pub fn shadow_renders(&self) -> u64 {
+        self.shadows.renders
+    }
+
+    /// Uploads the geometry the frames draw (once for a static scene; again whenever it
+    /// moves). Triangles take their albedo from `scene`'s materials.
+    pub fn set_geometry(
+        &mut self,
+        raster: &Raster,
+        scene: &Scene,
+        triangles: &[WorldTriangle],
+    ) -> Result<(), RasterError> {
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        let mut shaded = Vec::with_capacity(triangles.len() * 3);
+        let mut positions = Vec::with_capacity(triangles.len() * 3);
+        for t in triangles {
+            let albedo = scene
+                .materials
+                .get(t.material as usize)
+                .map_or([0.0; 3], |m| m.albedo.to_array());
+            for k in 0..3 {
+                lo = lo.min(t.v[k]);
+                hi = hi.max(t.v[k]);
+                shaded.push(GBufferVertex {
+                    position: t.v[k].to_array(),
+                    normal: t.n[k].to_array(),
+                    albedo,
+                });
+                positions.push(t.v[k].to_array());
+            }
+        }
+        if !(lo.is_finite() && hi.is_finite()) {
+            (lo, hi) = (Vec3::ZERO, Vec3::ONE);
+        }
+        raster.checked("uploading geometry", || {
+            let upload = |label, bytes: &[u8], old: Option<wgpu::Buffer>| {
+                if bytes.is_empty() {
+                    return None;
+                }
+                match old {
+                    Some(b) if b.size() == bytes.len() as u64 => {
+                        raster.queue.write_buffer(&b, 0, bytes);
+                        Some(b)
+                    }
+                    _ => Some(raster.device.create_buffer_init(
+                        &wgpu::util::BufferInitDescriptor {
+                            label: Some(label),
+                            contents: bytes,
+                            usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+                        },
+                    )),
+                }
+            };
+            let g = &mut self.geometry;
+            g.gbuffer = upload(
+                "gbuffer vertices",
+                bytemuck::cast_slice(&shaded),
+                g.gbuffer.take(),
+            );
+            g.shadow = upload(
+                "shadow vertices",
+                bytemuck::cast_slice(&positions),
+                g.shadow.take(),
+            );
+            g.vertices = positions.len() as u32;
+            g.bounds = (lo, hi);
+            g.version += 1;
+            Ok(())
+        })
+    }
+
+    /// The camera's clip_from_world for this geometry (near and far planes from its bounds).
+    fn clip_from_world(&self, camera: &Camera) -> Mat4 {
+        let (lo, hi) = self.geometry.bounds;
+        let far =
+            ((hi - lo).length() + (camera.position - (lo + hi) * 0.5).length()).max(1e-3) * 2.0;
+        clip_from_world(
+            camera,
+            self.width as f32 / self.height as f32,
+            far * 1e-5,
+            far,
+        )
+    }
+
+    /// Renders one frame: G-buffer → shadows → direct → `indirect` → compose → read-back of
+    /// `readback`. With `timed`, each pass is submitted and waited for on its own and timed.
+    pub fn render(
+        &mut self,
+        raster: &Raster,
+        inputs: &FrameInputs<'_>,
+        indirect: &mut dyn IndirectPass,
+        readback: Readback,
+        timed: bool,
+    ) -> Result<FrameImages, RasterError> {
+        raster.checked("rendering a frame", || {
+            let start = Instant::now();
+            let mut times = PassTimes::default();
+            let mut timer = PassTimer { timed, mark: start };
+            let mut enc = raster.device.create_command_encoder(&Default::default());
+            let clip = self.clip_from_world(&inputs.camera);
+            self.gbuffer_pass(raster, &mut enc, clip);
+            timer.lap(raster, &mut enc, &mut times.gbuffer)?;
+            let g = &self.geometry;
+            times.shadows_rendered = self.shadows.update(
+                raster,
+                &mut enc,
+                inputs.lights,
+                g.shadow.as_ref().map(|b| (b, g.vertices)),
+                g.version,
+                g.bounds,
+            )?;
+            timer.lap(raster, &mut enc, &mut times.shadows)?;
+            self.direct.encode(
+                raster,
+                &mut enc,
+                &self.targets.gbuffer,
+                &self.shadows,
+                &self.targets.direct.view,
+            );
+            timer.lap(raster, &mut enc, &mut times.direct)?;
+            let (lo, hi) = self.geometry.bounds;
+            let ctx = IndirectContext {
+                renderer_id: self.id,
+                width: self.width,
+                height: self.height,
+                clip_from_world: clip,
+                scene_extent_m: (hi - lo).length(),
+                gbuffer: &self.targets.gbuffer,
+                indirect: &self.targets.indirect.view,
+            };
+            indirect.encode(raster, &ctx, &mut enc)?;
+            timer.lap(raster, &mut enc, &mut times.indirect)?;
+            self.compose_pass(raster, &mut enc);
+            timer.lap(raster, &mut enc, &mut times.compose)?;
+            let mut images = self.read_back(raster, enc, readback)?;
+            times.readback = timer.mark.elapsed();
+            times.total = start.elapsed();
+            images.times = times;
+            Ok(images)
+        })
+    }
+
+    fn gbuffer_pass(&self, raster: &Raster, enc: &mut wgpu::CommandEncoder, clip: Mat4) {
+        raster
+            .queue
+            .write_buffer(&self.camera, 0, bytemuck::cast_slice(&clip.to_cols_array()));
+        let g = &self.targets.gbuffer;
+        let colour = |view| {
+            Some(wgpu::RenderPassColorAttachment {
+                view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                    store: wgpu::StoreOp::Store,
+                },
+            })
+        };
+        let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("gbuffer"),
+            color_attachments: &[
+                colour(&g.position.view),
+                colour(&g.normal.view),
+                colour(&g.albedo.view),
+            ],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &g.depth.view,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(1.0),
+                    store: wgpu::StoreOp::Store,
+                }),
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        if let Some(vbuf) = &self.geometry.gbuffer {
+            pass.set_pipeline(&raster.pipelines.gbuffer);
+            pass.set_bind_group(0, &self.camera_bind, &[0]);
+            pass.set_vertex_buffer(0, vbuf.slice(..));
+            pass.draw(0..self.geometry.vertices, 0..1);
+        }
+    }
+
+    fn compose_pass(&self, raster: &Raster, enc: &mut wgpu::CommandEncoder) {
+        let mut pass = clear_pass(enc, "compose", &self.targets.composed.view);
+        pass.set_pipeline(&raster.pipelines.compose);
+        pass.set_bind_group(0, &self.compose_bind, &[]);
+        pass.draw(0..3, 0..1);
+    }
+
+    fn read_back(
+        &self,
+        raster: &Raster,
+        enc: wgpu::CommandEncoder,
+        which: Readback,
+    ) -> Result<FrameImages, RasterError> {
+        let t = &self.targets;
+        let g = &t.gbuffer;
+        let gbuffer = [
+            (&g.position.texture, Layout::Exact4),
+            (&g.normal.texture, Layout::Half4),
+            (&g.albedo.texture, Layout::Half4),
+        ];
+        let radiance = [
+            (&t.direct.texture, Layout::Exact4),
+            (&t.indirect.texture, Layout::Exact4),
+            (&t.composed.texture, Layout::Exact4),
+        ];
+        let list: Vec<(&wgpu::Texture, Layout)> = match which {
+            Readback::Nothing => Vec::new(),
+            Readback::GBuffer => gbuffer.to_vec(),
+            Readback::Composed => vec![radiance[2]],
+            Readback::Everything => gbuffer.iter().chain(&radiance).copied().collect(),
+        };
+        if list.is_empty() {
+            raster.submit_and_wait(enc)?;
+            return Ok(FrameImages::default());
+        }
+        let (w, h) = (self.width, self.height);
+        let mut planes = read_planes(raster, enc, &list, w, h)?.into_iter();
+        let mut images = FrameImages::default();
+        if matches!(which, Readback::GBuffer | Readback::Everything) {
+            let mut next = || planes.next().unwrap_or_default();
+            images.gbuffer = Some(GBuffer {
+                width: w,
+                height: h,
+                position: next(),
+                normal: rgb(&next()),
+                albedo: rgb(&next()),
+            });
+        }
+        if which == Readback::Everything {
+            images.direct = planes.next().map(|p| rgb(&p));
+            images.indirect = planes.next().map(|p| rgb(&p));
+        }
+        images.composed = planes.next().map(|p| rgb(&p));
+        Ok(images)
+    }
+}

@@ -1,0 +1,405 @@
+//! Every pipeline and bind-group layout of the raster, built once per device in the formats
+//! the adapter supports ([`Formats`]). Shader layouts are marked in the `.wgsl` files and in
+//! the Rust structs that fill them.
+
+use super::Formats;
+
+/// Vertex layout of the G-buffer pass (must match `VertexIn` in gbuffer.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct GBufferVertex {
+    pub(crate) position: [f32; 3],
+    pub(crate) normal: [f32; 3],
+    pub(crate) albedo: [f32; 3],
+}
+
+/// Stride of one view matrix in the views uniform buffer (dynamic offsets are 256-aligned).
+pub(crate) const VIEW_STRIDE: u64 = 256;
+
+/// The raster's pipelines.
+pub(crate) struct Pipelines {
+    /// One `clip_from_world` at a dynamic offset (camera or shadow view).
+    pub(crate) view_layout: wgpu::BindGroupLayout,
+    pub(crate) gbuffer: wgpu::RenderPipeline,
+    pub(crate) shadow: wgpu::RenderPipeline,
+    pub(crate) direct_layout: wgpu::BindGroupLayout,
+    pub(crate) direct: wgpu::RenderPipeline,
+    pub(crate) compose_layout: wgpu::BindGroupLayout,
+    pub(crate) compose: wgpu::RenderPipeline,
+    pub(crate) splat_layout: wgpu::BindGroupLayout,
+    pub(crate) splat: wgpu::RenderPipeline,
+    pub(crate) upsample: wgpu::RenderPipeline,
+}
+
+fn texture_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    sample_type: wgpu::TextureSampleType,
+    view_dimension: wgpu::TextureViewDimension,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility,
+        ty: wgpu::BindingType::Texture {
+            sample_type,
+            view_dimension,
+            multisampled: false,
+        },
+        count: None,
+    }
+}
+
+fn buffer_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    ty: wgpu::BufferBindingType,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility,
+        ty: wgpu::BindingType::Buffer {
+            ty,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+const UINT: wgpu::TextureSampleType = wgpu::TextureSampleType::Uint;
+const D2: wgpu::TextureViewDimension = wgpu::TextureViewDimension::D2;
+const FRAGMENT: wgpu::ShaderStages = wgpu::ShaderStages::FRAGMENT;
+
+fn layout(
+    device: &wgpu::Device,
+    label: &str,
+    entries: &[wgpu::BindGroupLayoutEntry],
+) -> wgpu::BindGroupLayout {
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some(label),
+        entries,
+    })
+}
+
+fn pipeline_layout(
+    device: &wgpu::Device,
+    label: &str,
+    group: &wgpu::BindGroupLayout,
+) -> wgpu::PipelineLayout {
+    device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(label),
+        bind_group_layouts: &[Some(group)],
+        immediate_size: 0,
+    })
+}
+
+/// A full-screen pass: vertex entry `vs` draws one triangle over the target, fragment entry
+/// `fs` writes one target of `format` without blending.
+fn fullscreen_pipeline(
+    device: &wgpu::Device,
+    label: &str,
+    layout: &wgpu::PipelineLayout,
+    shader: &wgpu::ShaderModule,
+    (vs, fs): (&str, &str),
+    format: wgpu::TextureFormat,
+) -> wgpu::RenderPipeline {
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module: shader,
+            entry_point: Some(vs),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: Default::default(),
+        depth_stencil: None,
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: shader,
+            entry_point: Some(fs),
+            compilation_options: Default::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format,
+                blend: None,
+                write_mask: wgpu::ColorWrites::ALL,
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
+fn depth_state(format: wgpu::TextureFormat, bias: wgpu::DepthBiasState) -> wgpu::DepthStencilState {
+    wgpu::DepthStencilState {
+        format,
+        depth_write_enabled: Some(true),
+        depth_compare: Some(wgpu::CompareFunction::Less),
+        stencil: Default::default(),
+        bias,
+    }
+}
+
+impl Pipelines {
+    pub(crate) fn new(device: &wgpu::Device, formats: &Formats) -> Self {
+        let view_layout = layout(
+            device,
+            "view",
+            &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::VERTEX,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: wgpu::BufferSize::new(64),
+                },
+                count: None,
+            }],
+        );
+        let view_pipeline_layout = pipeline_layout(device, "view", &view_layout);
+        let (gbuffer, shadow) = geometry_pipelines(device, formats, &view_pipeline_layout);
+        let direct_layout = layout(
+            device,
+            "direct",
+            &[
+                texture_entry(0, FRAGMENT, UINT, D2),
+                texture_entry(1, FRAGMENT, UINT, D2),
+                texture_entry(2, FRAGMENT, UINT, D2),
+                texture_entry(
+                    3,
+                    FRAGMENT,
+                    wgpu::TextureSampleType::Depth,
+                    wgpu::TextureViewDimension::D2Array,
+                ),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 4,
+                    visibility: FRAGMENT,
+                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
+                    count: None,
+                },
+                buffer_entry(
+                    5,
+                    FRAGMENT,
+                    wgpu::BufferBindingType::Storage { read_only: true },
+                ),
+                buffer_entry(
+                    6,
+                    FRAGMENT,
+                    wgpu::BufferBindingType::Storage { read_only: true },
+                ),
+                buffer_entry(7, FRAGMENT, wgpu::BufferBindingType::Uniform),
+            ],
+        );
+        let shader = device.create_shader_module(wgpu::include_wgsl!("direct.wgsl"));
+        let direct = fullscreen_pipeline(
+            device,
+            "direct",
+            &pipeline_layout(device, "direct", &direct_layout),
+            &shader,
+            ("vs_main", "fs_main"),
+            formats.exact4,
+        );
+        let compose_layout = layout(
+            device,
+            "compose",
+            &[
+                texture_entry(0, FRAGMENT, UINT, D2),
+                texture_entry(1, FRAGMENT, UINT, D2),
+            ],
+        );
+        let shader = device.create_shader_module(wgpu::include_wgsl!("compose.wgsl"));
+        let compose = fullscreen_pipeline(
+            device,
+            "compose",
+            &pipeline_layout(device, "compose", &compose_layout),
+            &shader,
+            ("vs_main", "fs_main"),
+            formats.exact4,
+        );
+        let (splat_layout, splat, upsample) = splat_pipelines(device, formats);
+        Pipelines {
+            view_layout,
+            gbuffer,
+            shadow,
+            direct_layout,
+            direct,
+            compose_layout,
+            compose,
+            splat_layout,
+            splat,
+            upsample,
+        }
+    }
+}
+
+/// The G-buffer pipeline and the depth-only shadow pipeline (both take one view matrix).
+fn geometry_pipelines(
+    device: &wgpu::Device,
+    formats: &Formats,
+    layout: &wgpu::PipelineLayout,
+) -> (wgpu::RenderPipeline, wgpu::RenderPipeline) {
+    let target = |format| {
+        Some(wgpu::ColorTargetState {
+            format,
+            blend: None,
+            write_mask: wgpu::ColorWrites::ALL,
+        })
+    };
+    let shader = device.create_shader_module(wgpu::include_wgsl!("gbuffer.wgsl"));
+    let gbuffer = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("gbuffer"),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module: &shader,
+            entry_point: Some("vs_main"),
+            compilation_options: Default::default(),
+            buffers: &[Some(wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<GBufferVertex>() as u64,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3],
+            })],
+        },
+        primitive: wgpu::PrimitiveState {
+            cull_mode: None,
+            ..Default::default()
+        },
+        depth_stencil: Some(depth_state(formats.depth, Default::default())),
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: &shader,
+            entry_point: Some("fs_main"),
+            compilation_options: Default::default(),
+            targets: &[
+                target(formats.exact4),
+                target(formats.half4),
+                target(formats.half4),
+            ],
+        }),
+        multiview_mask: None,
+        cache: None,
+    });
+    let shader = device.create_shader_module(wgpu::include_wgsl!("shadow.wgsl"));
+    let shadow = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("shadow"),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module: &shader,
+            entry_point: Some("vs_main"),
+            compilation_options: Default::default(),
+            buffers: &[Some(wgpu::VertexBufferLayout {
+                array_stride: 12,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &wgpu::vertex_attr_array![0 => Float32x3],
+            })],
+        },
+        primitive: wgpu::PrimitiveState {
+            cull_mode: None,
+            ..Default::default()
+        },
+        depth_stencil: Some(depth_state(
+            formats.depth,
+            wgpu::DepthBiasState {
+                constant: 2,
+                slope_scale: 1.5,
+                clamp: 0.0,
+            },
+        )),
+        multisample: Default::default(),
+        fragment: None,
+        multiview_mask: None,
+        cache: None,
+    });
+    (gbuffer, shadow)
+}
+
+/// Must match `PhotonIn` in splat.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct SplatPhoton {
+    pub(crate) position_radius: [f32; 4],
+    pub(crate) power: [f32; 4],
+    pub(crate) direction: [f32; 4],
+}
+
+/// The splat pipeline (instanced quads, additive into the accumulation buffer) and the
+/// upsample pipeline, sharing one layout.
+fn splat_pipelines(
+    device: &wgpu::Device,
+    formats: &Formats,
+) -> (
+    wgpu::BindGroupLayout,
+    wgpu::RenderPipeline,
+    wgpu::RenderPipeline,
+) {
+    let shader = device.create_shader_module(wgpu::include_wgsl!("splat.wgsl"));
+    let layout = layout(
+        device,
+        "splat",
+        &[
+            buffer_entry(
+                0,
+                wgpu::ShaderStages::VERTEX_FRAGMENT,
+                wgpu::BufferBindingType::Uniform,
+            ),
+            texture_entry(1, FRAGMENT, UINT, D2),
+            texture_entry(2, FRAGMENT, UINT, D2),
+            texture_entry(3, FRAGMENT, UINT, D2),
+            texture_entry(
+                4,
+                FRAGMENT,
+                wgpu::TextureSampleType::Float { filterable: false },
+                D2,
+            ),
+        ],
+    );
+    let pipeline_layout = pipeline_layout(device, "splat", &layout);
+    let additive = wgpu::BlendComponent {
+        src_factor: wgpu::BlendFactor::One,
+        dst_factor: wgpu::BlendFactor::One,
+        operation: wgpu::BlendOperation::Add,
+    };
+    let splat = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("splat"),
+        layout: Some(&pipeline_layout),
+        vertex: wgpu::VertexState {
+            module: &shader,
+            entry_point: Some("vs_splat"),
+            compilation_options: Default::default(),
+            buffers: &[Some(wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<SplatPhoton>() as u64,
+                step_mode: wgpu::VertexStepMode::Instance,
+                attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x4, 2 => Float32x4],
+            })],
+        },
+        primitive: wgpu::PrimitiveState {
+            cull_mode: None,
+            ..Default::default()
+        },
+        depth_stencil: None,
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: &shader,
+            entry_point: Some("fs_splat"),
+            compilation_options: Default::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format: formats.accum,
+                blend: Some(wgpu::BlendState {
+                    color: additive,
+                    alpha: additive,
+                }),
+                write_mask: wgpu::ColorWrites::ALL,
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    });
+    let upsample = fullscreen_pipeline(
+        device,
+        "upsample",
+        &pipeline_layout,
+        &shader,
+        ("vs_full", "fs_upsample"),
+        formats.exact4,
+    );
+    (layout, splat, upsample)
+}

@@ -1,0 +1,391 @@
+//! Shadow maps: six cube faces for a point light (and for a Lambertian surface emitter), one
+//! perspective view for a spot light, one orthographic view for the sun, rendered into one
+//! depth array. [`ShadowMaps`] keeps the array between frames and renders it again only when
+//! a light or the geometry changed.
+
+use cloudlight_scenes::LightState;
+use glam::{Mat4, Vec3};
+
+use super::pipelines::VIEW_STRIDE;
+use super::{Raster, RasterError};
+
+/// Shadow-map settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ShadowSettings {
+    /// Side of each shadow map, texels.
+    pub size: u32,
+    /// Depth compared against the shadow map is reduced by this (NDC units).
+    pub depth_bias: f32,
+    /// Shaded points are pushed this far along their normal, as a fraction of the scene's
+    /// bounding diagonal.
+    pub normal_offset: f32,
+}
+
+impl Default for ShadowSettings {
+    fn default() -> Self {
+        ShadowSettings {
+            size: 1024,
+            depth_bias: 2e-5,
+            normal_offset: 2e-3,
+        }
+    }
+}
+
+/// Must match `LightGpu` in direct.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct LightGpu {
+    position: [f32; 4],
+    direction: [f32; 4],
+    intensity: [f32; 4],
+}
+
+/// Must match `Params` in direct.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct DirectParams {
+    light_count: u32,
+    depth_bias: f32,
+    normal_offset_m: f32,
+    pad: f32,
+}
+
+/// Cube-map faces (view direction, up); the order matches cube_face() in direct.wgsl:
+/// +x, −x, +y, −y, +z, −z. Views are a little wider than 90° so that face borders overlap.
+const CUBE_FACES: [(Vec3, Vec3); 6] = [
+    (Vec3::X, Vec3::NEG_Y),
+    (Vec3::NEG_X, Vec3::NEG_Y),
+    (Vec3::Y, Vec3::Z),
+    (Vec3::NEG_Y, Vec3::NEG_Z),
+    (Vec3::Z, Vec3::NEG_Y),
+    (Vec3::NEG_Z, Vec3::NEG_Y),
+];
+
+fn perspective_view(eye: Vec3, dir: Vec3, up: Vec3, fov: f32, near: f32, far: f32) -> Mat4 {
+    glam::camera::rh::proj::directx::perspective(fov, 1.0, near, far)
+        * glam::camera::rh::view::look_to_mat4(eye, dir, up)
+}
+
+fn light_gpu(
+    position: Vec3,
+    kind: f32,
+    direction: Vec3,
+    w: f32,
+    rgb: Vec3,
+    first: usize,
+) -> LightGpu {
+    LightGpu {
+        position: position.extend(kind).to_array(),
+        direction: direction.extend(w).to_array(),
+        intensity: rgb.extend(first as f32).to_array(),
+    }
+}
+
+/// The shadow views of every light (clip_from_world) in a scene of bounds `lo..hi`, and
+/// each light's GPU record.
+fn shadow_views(lights: &[LightState], lo: Vec3, hi: Vec3) -> (Vec<Mat4>, Vec<LightGpu>) {
+    let center = (lo + hi) * 0.5;
+    let radius = ((hi - lo).length() * 0.5).max(1e-3);
+    let (near, far) = (radius * 1e-3, radius * 4.0);
+    let mut views = Vec::new();
+    let mut gpu = Vec::new();
+    let cube = |views: &mut Vec<Mat4>, eye: Vec3| {
+        for (dir, up) in CUBE_FACES {
+            views.push(perspective_view(
+                eye,
+                dir,
+                up,
+                92f32.to_radians(),
+                near,
+                far,
+            ));
+        }
+    };
+    for l in lights {
+        let first = views.len();
+        match *l {
+            LightState::Point {
+                position,
+                intensity,
+            } => {
+                cube(&mut views, position);
+                gpu.push(light_gpu(position, 0.0, Vec3::ZERO, 0.0, intensity, first));
+            }
+            LightState::Surface {
+                position,
+                normal,
+                intensity,
+            } => {
+                // Shadow views from just in front of the emitter, over the whole sphere.
+                let eye = position + normal * radius * 1e-3;
+                cube(&mut views, eye);
+                gpu.push(light_gpu(eye, 3.0, normal, 0.0, intensity, first));
+            }
+            LightState::Spot {
+                position,
+                direction,
+                cos_cone,
+                intensity,
+            } => {
+                let fov = (2.0 * cos_cone.clamp(-1.0, 1.0).acos() + 0.05).min(170f32.to_radians());
+                let up = if direction.y.abs() > 0.9 {
+                    Vec3::Z
+                } else {
+                    Vec3::Y
+                };
+                views.push(perspective_view(position, direction, up, fov, near, far));
+                gpu.push(light_gpu(
+                    position, 1.0, direction, cos_cone, intensity, first,
+                ));
+            }
+            LightState::Directional {
+                direction,
+                irradiance,
+            } => {
+                let d = direction.normalize_or(Vec3::NEG_Y);
+                let up = if d.y.abs() > 0.9 { Vec3::Z } else { Vec3::Y };
+                let eye = center - d * radius * 2.0;
+                let proj = glam::camera::rh::proj::directx::orthographic(
+                    -radius,
+                    radius,
+                    -radius,
+                    radius,
+                    0.0,
+                    radius * 4.0,
+                );
+                views.push(proj * glam::camera::rh::view::look_to_mat4(eye, d, up));
+                gpu.push(light_gpu(Vec3::ZERO, 2.0, d, 0.0, irradiance, first));
+            }
+        }
+    }
+    (views, gpu)
+}
+
+/// GPU resources sized for one light configuration.
+struct ShadowResources {
+    layers: u32,
+    size: u32,
+    _texture: wgpu::Texture,
+    layer_views: Vec<wgpu::TextureView>,
+    array_view: wgpu::TextureView,
+    /// One matrix per layer at [`VIEW_STRIDE`] (the shadow pass's dynamic offsets).
+    view_uniforms: wgpu::Buffer,
+    view_bind: wgpu::BindGroup,
+    /// `array<LightGpu>` and `array<ShadowView>` of direct.wgsl.
+    lights: wgpu::Buffer,
+    views: wgpu::Buffer,
+    light_slots: usize,
+}
+
+/// The shadow maps of one client, kept between frames.
+pub struct ShadowMaps {
+    settings: ShadowSettings,
+    resources: Option<ShadowResources>,
+    /// Lights and geometry version the maps were last rendered for.
+    rendered_for: Option<(Vec<LightState>, u64)>,
+    params: wgpu::Buffer,
+    /// Bumped whenever the resources are re-created (the direct pass re-binds them).
+    pub(crate) generation: u64,
+    /// How many times the maps were rendered.
+    pub renders: u64,
+}
+
+impl ShadowMaps {
+    pub(crate) fn new(raster: &Raster, settings: ShadowSettings) -> Self {
+        ShadowMaps {
+            settings,
+            resources: None,
+            rendered_for: None,
+            params: raster.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("direct params"),
+                size: std::mem::size_of::<DirectParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            generation: 0,
+            renders: 0,
+        }
+    }
+
+    fn resources(&mut self, raster: &Raster, layers: u32, light_slots: usize) -> &ShadowResources {
+        let size = self
+            .settings
+            .size
+            .clamp(1, raster.device.limits().max_texture_dimension_2d);
+        let fits = self
+            .resources
+            .as_ref()
+            .is_some_and(|r| r.layers == layers && r.size == size && r.light_slots == light_slots);
+        if !fits {
+            self.generation += 1;
+            self.resources = Some(ShadowResources::new(raster, layers, size, light_slots));
+        }
+        self.resources.as_ref().expect("just created")
+    }
+
+    /// Renders the maps of `lights` (geometry `vertices`, version `geometry_version`, bounds
+    /// `lo..hi`) into `enc` unless they were rendered for the same lights and geometry;
+    /// returns whether it rendered.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn update(
+        &mut self,
+        raster: &Raster,
+        enc: &mut wgpu::CommandEncoder,
+        lights: &[LightState],
+        vertices: Option<(&wgpu::Buffer, u32)>,
+        geometry_version: u64,
+        (lo, hi): (Vec3, Vec3),
+    ) -> Result<bool, RasterError> {
+        if self
+            .rendered_for
+            .as_ref()
+            .is_some_and(|(l, v)| l == lights && *v == geometry_version)
+        {
+            return Ok(false);
+        }
+        let (views, gpu_lights) = shadow_views(lights, lo, hi);
+        // wgpu's GL backend guesses a texture's target from its size: one layer becomes a
+        // 2D texture and a multiple of six square layers a cube map, neither of which a
+        // 2D-array view can sample. Keep at least two layers, and a spare one after a
+        // multiple of six.
+        let mut layers = views.len().max(2) as u32;
+        if layers.is_multiple_of(6) {
+            layers += 1;
+        }
+        let max = raster.device.limits().max_texture_array_layers;
+        if layers > max {
+            return Err(RasterError::TooManyShadowViews { views: layers, max });
+        }
+        let params = DirectParams {
+            light_count: gpu_lights.len() as u32,
+            depth_bias: self.settings.depth_bias,
+            normal_offset_m: self.settings.normal_offset * (hi - lo).length(),
+            pad: 0.0,
+        };
+        raster
+            .queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        let r = self.resources(raster, layers, gpu_lights.len().max(1));
+        let mut uniforms = vec![0u8; (VIEW_STRIDE * layers as u64) as usize];
+        for (i, m) in views.iter().enumerate() {
+            let at = i * VIEW_STRIDE as usize;
+            uniforms[at..at + 64].copy_from_slice(bytemuck::cast_slice(&m.to_cols_array()));
+        }
+        raster.queue.write_buffer(&r.view_uniforms, 0, &uniforms);
+        if !gpu_lights.is_empty() {
+            raster
+                .queue
+                .write_buffer(&r.lights, 0, bytemuck::cast_slice(&gpu_lights));
+            let mats: Vec<[f32; 16]> = views.iter().map(|m| m.to_cols_array()).collect();
+            raster
+                .queue
+                .write_buffer(&r.views, 0, bytemuck::cast_slice(&mats));
+        }
+        for (layer, view) in r.layer_views.iter().enumerate() {
+            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("shadow"),
+                color_attachments: &[],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view,
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(1.0),
+                        store: wgpu::StoreOp::Store,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            if let (Some((vbuf, count)), true) = (vertices, layer < views.len()) {
+                pass.set_pipeline(&raster.pipelines.shadow);
+                pass.set_bind_group(0, &r.view_bind, &[(layer as u64 * VIEW_STRIDE) as u32]);
+                pass.set_vertex_buffer(0, vbuf.slice(..));
+                pass.draw(0..count, 0..1);
+            }
+        }
+        self.rendered_for = Some((lights.to_vec(), geometry_version));
+        self.renders += 1;
+        Ok(true)
+    }
+
+    /// The bindings the direct pass reads: the depth array, lights, views and parameters.
+    pub(crate) fn bindings(
+        &self,
+    ) -> Option<(
+        &wgpu::TextureView,
+        &wgpu::Buffer,
+        &wgpu::Buffer,
+        &wgpu::Buffer,
+    )> {
+        self.resources
+            .as_ref()
+            .map(|r| (&r.array_view, &r.lights, &r.views, &self.params))
+    }
+}
+
+impl ShadowResources {
+    fn new(raster: &Raster, layers: u32, size: u32, light_slots: usize) -> Self {
+        let d = &raster.device;
+        let texture = d.create_texture(&wgpu::TextureDescriptor {
+            label: Some("shadow maps"),
+            size: wgpu::Extent3d {
+                width: size,
+                height: size,
+                depth_or_array_layers: layers,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: raster.formats().depth,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+            view_formats: &[],
+        });
+        let layer_views = (0..layers)
+            .map(|layer| {
+                texture.create_view(&wgpu::TextureViewDescriptor {
+                    dimension: Some(wgpu::TextureViewDimension::D2),
+                    base_array_layer: layer,
+                    array_layer_count: Some(1),
+                    ..Default::default()
+                })
+            })
+            .collect();
+        let array_view = texture.create_view(&wgpu::TextureViewDescriptor {
+            dimension: Some(wgpu::TextureViewDimension::D2Array),
+            ..Default::default()
+        });
+        let buffer = |label, size: u64, usage| {
+            d.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: usage | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let view_uniforms = buffer(
+            "shadow view matrices",
+            VIEW_STRIDE * layers as u64,
+            wgpu::BufferUsages::UNIFORM,
+        );
+        let view_bind = super::frame::view_bind_group(raster, &view_uniforms, "shadow views");
+        let lights = buffer(
+            "lights",
+            (std::mem::size_of::<LightGpu>() * light_slots) as u64,
+            wgpu::BufferUsages::STORAGE,
+        );
+        let views = buffer("views", 64 * layers as u64, wgpu::BufferUsages::STORAGE);
+        ShadowResources {
+            layers,
+            size,
+            _texture: texture,
+            layer_views,
+            array_view,
+            view_uniforms,
+            view_bind,
+            lights,
+            views,
+            light_slots,
+        }
+    }
+}

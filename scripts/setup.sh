@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# The system packages CloudLight-rs and its tests need, in one list (the README's commands and
+# .ci/run both start here):
+#   mesa-vulkan-drivers libvulkan1   Vulkan lavapipe: the software GPU wgpu prefers on a GPU-less box
+#   libegl-mesa0 libgl1-mesa-dri     EGL/GL llvmpipe: the second software adapter (WGPU_BACKEND=gl)
+#   fonts-dejavu-core                text of the benchmark plots
+#   iproute2                         `ip netns` + veth for the network-namespace cluster test
+# Installed from Debian's archive with apt-get when run as root; otherwise prints the exact
+# apt-get line and exits 1. Does nothing when everything is there already.
+# CLOUDLIGHT_SKIP_SETUP=1 skips the check (a machine that provides the same libraries otherwise).
+set -euo pipefail
+packages=(mesa-vulkan-drivers libvulkan1 libegl-mesa0 libgl1-mesa-dri fonts-dejavu-core iproute2)
+
+if [ "${CLOUDLIGHT_SKIP_SETUP:-0}" = 1 ]; then
+  echo "setup: skipped (CLOUDLIGHT_SKIP_SETUP=1)" >&2
+  exit 0
+fi
+if ! command -v dpkg-query >/dev/null 2>&1; then
+  echo "setup: this is not a Debian-like system (no dpkg-query); install the equivalents of:" >&2
+  echo "  ${packages[*]}" >&2
+  echo "then run again with CLOUDLIGHT_SKIP_SETUP=1" >&2
+  exit 1
+fi
+missing=()
+for p in "${packages[@]}"; do
+  status=$(dpkg-query -W -f='${Status}' "$p" 2>/dev/null || true)
+  [ "$status" = "install ok installed" ] || missing+=("$p")
+done
+if [ ${#missing[@]} -eq 0 ]; then
+  exit 0
+fi
+line="apt-get install -y --no-install-recommends ${missing[*]}"
+if [ "$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1; then
+  echo "setup: missing system packages: ${missing[*]}" >&2
+  echo "install them as root, then run this command again:" >&2
+  echo "  sudo apt-get update && sudo $line" >&2
+  exit 1
+fi
+echo "setup: installing ${missing[*]}" >&2
+export DEBIAN_FRONTEND=noninteractive
+apt-get update -q >&2
+# shellcheck disable=SC2086
+apt-get install -y -q --no-install-recommends "${missing[@]}" >&2
+echo "setup: done" >&2
