@@ -1,10 +1,13 @@
-//! PNG line plots of benchmark series (plotters, bitmap backend, text with the system's
-//! DejaVu Sans through ab_glyph): one panel per series, sharing the x axis.
+//! PNG plots of benchmark results (plotters, bitmap backend, text in the system's DejaVu
+//! Sans through ab_glyph): [`lines`] stacks one panel per series over a shared log x axis;
+//! [`pareto`] draws error against cost per configuration, with the Pareto front and a
+//! reference mark. Axes are logarithmic with ticks at round numbers.
 
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use anyhow::Context;
+use plotters::coord::ranged1d::ValueFormatter;
 use plotters::prelude::*;
 
 const FONT_PATHS: [&str; 3] = [
@@ -28,62 +31,101 @@ fn font() -> anyhow::Result<()> {
             .iter()
             .find_map(|p| std::fs::read(p).ok())
             .ok_or_else(|| {
-                "no DejaVu Sans font for plot text (install it: `apt-get install fonts-dejavu-core`)"
+                "no DejaVu Sans font for plot text (install it: `scripts/setup.sh`, or `apt-get install fonts-dejavu-core`)"
                     .to_string()
             })?;
-        plotters::style::register_font("sans-serif", FontStyle::Normal, Box::leak(bytes.into_boxed_slice()))
-            .map_err(|_| "DejaVu Sans could not be read".to_string())
+        plotters::style::register_font(
+            "sans-serif",
+            FontStyle::Normal,
+            Box::leak(bytes.into_boxed_slice()),
+        )
+        .map_err(|_| "DejaVu Sans could not be read".to_string())
     })
     .clone()
     .map_err(|e| anyhow::anyhow!(e))
 }
 
-/// Draws each `(label, points)` series in its own panel, stacked, and writes `path` (PNG);
-/// `log_x` puts the x axis on a log scale.
+/// A positive range covering `values` on a log scale, widened to whole decades' round
+/// neighbours so that ticks fall on round numbers.
+fn log_range(values: impl Iterator<Item = f64>) -> Range<f64> {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(v), b.max(v)));
+    if !lo.is_finite() || hi <= 0.0 {
+        return 1.0..10.0;
+    }
+    let round_down = |v: f64| {
+        let d = 10f64.powf(v.log10().floor());
+        [5.0, 2.0, 1.0]
+            .iter()
+            .map(|m| m * d)
+            .find(|r| *r <= v)
+            .unwrap_or(d)
+    };
+    let round_up = |v: f64| {
+        let d = 10f64.powf(v.log10().floor());
+        [1.0, 2.0, 5.0, 10.0]
+            .iter()
+            .map(|m| m * d)
+            .find(|r| *r >= v)
+            .unwrap_or(10.0 * d)
+    };
+    let (a, b) = (round_down(lo * 0.95), round_up(hi * 1.05));
+    if b > a { a..b } else { a..a * 10.0 }
+}
+
+/// A tick label: round numbers without noise digits.
+fn tick(v: &f64) -> String {
+    if v.abs() >= 100.0 || *v == 0.0 {
+        return format!("{v:.0}");
+    }
+    let digits = (2 - v.abs().log10().floor() as i32).clamp(1, 8) as usize;
+    let s = format!("{v:.digits$}");
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
+}
+
+fn draw_error(path: &Path) -> impl Fn(Box<dyn std::error::Error + '_>) -> anyhow::Error + '_ {
+    move |e| anyhow::anyhow!("drawing {}: {e}", path.display())
+}
+
+/// Draws each `(label, points)` series in its own panel, stacked over a shared logarithmic x
+/// axis, and writes `path` (PNG).
 pub fn lines(
     path: &Path,
     title: &str,
     x_label: &str,
-    log_x: bool,
     series: &[(&str, Vec<(f64, f64)>)],
 ) -> anyhow::Result<PathBuf> {
     font()?;
     let panels = series.len().max(1);
-    let root = BitMapBackend::new(path, (900, 300 * panels as u32)).into_drawing_area();
+    let root = BitMapBackend::new(path, (900, 40 + 300 * panels as u32)).into_drawing_area();
     let draw = || -> Result<(), Box<dyn std::error::Error + '_>> {
         root.fill(&WHITE)?;
         let root = root.titled(title, ("sans-serif", 22))?;
-        let areas = root.split_evenly((panels, 1));
-        for (i, ((label, points), area)) in series.iter().zip(areas.iter()).enumerate() {
-            // A log x axis is drawn as log10(x) on a linear axis, labelled with x.
+        let x_range = log_range(series.iter().flat_map(|(_, p)| p.iter().map(|q| q.0)));
+        for (i, ((label, points), area)) in series
+            .iter()
+            .zip(root.split_evenly((panels, 1)).iter())
+            .enumerate()
+        {
             let finite: Vec<(f64, f64)> = points
                 .iter()
                 .copied()
-                .filter(|(x, y)| x.is_finite() && y.is_finite() && (!log_x || *x > 0.0))
-                .map(|(x, y)| (if log_x { x.log10() } else { x }, y))
+                .filter(|(x, y)| *x > 0.0 && x.is_finite() && y.is_finite())
                 .collect();
-            let (x0, x1) = range(finite.iter().map(|p| p.0));
-            let (y0, y1) = range(finite.iter().map(|p| p.1));
-            let (y0, y1) = (y0.min(0.0), y1 * 1.1);
-            let pad = (x1 - x0) * 0.05;
+            let top = finite.iter().map(|p| p.1).fold(0.0f64, f64::max);
+            let y_range = 0.0..if top > 0.0 { top * 1.15 } else { 1.0 };
             let mut chart = ChartBuilder::on(area)
-                .margin(12)
-                .x_label_area_size(40)
-                .y_label_area_size(70)
-                .build_cartesian_2d(x0 - pad..x1 + pad, y0..y1)?;
-            let x_text = |v: &f64| {
-                let x = if log_x { 10f64.powf(*v) } else { *v };
-                if x.abs() >= 1000.0 || log_x {
-                    format!("{:.0}", x)
-                } else {
-                    format!("{x:.1}")
-                }
-            };
+                .margin(14)
+                .x_label_area_size(44)
+                .y_label_area_size(80)
+                .build_cartesian_2d(x_range.clone().log_scale(), y_range)?;
             chart
                 .configure_mesh()
                 .x_desc(x_label)
                 .y_desc(*label)
-                .x_label_formatter(&x_text)
+                .x_label_formatter(&tick)
+                .y_label_formatter(&tick)
                 .label_style(("sans-serif", 14))
                 .draw()?;
             let colour = COLOURS[i % COLOURS.len()];
@@ -96,21 +138,187 @@ pub fn lines(
         root.present()?;
         Ok(())
     };
-    draw()
-        .map_err(|e| anyhow::anyhow!("{e}"))
-        .with_context(|| format!("drawing {}", path.display()))?;
+    draw().map_err(draw_error(path))?;
     Ok(path.to_path_buf())
 }
 
-fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
-    let (lo, hi) = values.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-        (a.min(v), b.max(v))
-    });
-    if !lo.is_finite() || !hi.is_finite() {
-        return (0.0, 1.0);
+/// A set of configurations in one colour: (cost, error, label of the point).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Series {
+    /// Legend text.
+    pub label: String,
+    /// Points: x (cost), y (error), a short tag drawn beside the point.
+    pub points: Vec<(f64, f64, String)>,
+}
+
+/// A vertical reference line (e.g. the paper's operating point).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Marker {
+    /// Where, in x units.
+    pub x: f64,
+    /// Its text.
+    pub label: String,
+}
+
+/// One panel of a Pareto plot.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParetoPanel {
+    /// The cost axis.
+    pub x_label: String,
+    /// The error axis.
+    pub y_label: String,
+    /// The configurations.
+    pub series: Vec<Series>,
+    /// A reference mark.
+    pub marker: Option<Marker>,
+}
+
+/// The points no other point beats in both cost and error, by increasing cost.
+pub fn pareto_front(points: &[(f64, f64)]) -> Vec<(f64, f64)> {
+    let mut sorted: Vec<(f64, f64)> = points
+        .iter()
+        .copied()
+        .filter(|(x, y)| x.is_finite() && y.is_finite())
+        .collect();
+    sorted.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let mut front: Vec<(f64, f64)> = Vec::new();
+    for p in sorted {
+        if front.last().is_none_or(|last| p.1 < last.1) {
+            front.push(p);
+        }
     }
-    if hi - lo < 1e-12 {
-        return (lo - 0.5, hi + 0.5);
+    front
+}
+
+fn pareto_panel<'a, 'b: 'a, X, Y>(
+    chart: &mut ChartContext<'a, BitMapBackend<'b>, Cartesian2d<X, Y>>,
+    panel: &ParetoPanel,
+    y_range: &Range<f64>,
+) -> Result<(), Box<dyn std::error::Error + 'b>>
+where
+    X: Ranged<ValueType = f64> + ValueFormatter<f64>,
+    Y: Ranged<ValueType = f64> + ValueFormatter<f64>,
+{
+    let all: Vec<(f64, f64)> = panel
+        .series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| (p.0, p.1)))
+        .filter(|(x, y)| *x > 0.0 && *y > 0.0)
+        .collect();
+    let front = pareto_front(&all);
+    let grey = RGBColor(90, 90, 90);
+    chart
+        .draw_series(LineSeries::new(front.iter().copied(), grey.stroke_width(2)))?
+        .label("Pareto front")
+        .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], grey.stroke_width(2)));
+    for (i, s) in panel.series.iter().enumerate() {
+        let colour = COLOURS[i % COLOURS.len()];
+        let pts: Vec<_> = s
+            .points
+            .iter()
+            .filter(|p| p.0 > 0.0 && p.1 > 0.0)
+            .cloned()
+            .collect();
+        chart
+            .draw_series(
+                pts.iter()
+                    .map(|p| Circle::new((p.0, p.1), 5, colour.filled())),
+            )?
+            .label(s.label.clone())
+            .legend(move |(x, y)| Circle::new((x + 9, y), 5, colour.filled()));
+        chart.draw_series(pts.iter().map(|p| {
+            Text::new(
+                p.2.clone(),
+                (p.0, p.1),
+                ("sans-serif", 13).into_font().color(&colour),
+            )
+        }))?;
     }
-    (lo, hi)
+    if let Some(m) = &panel.marker {
+        let black = RGBColor(0, 0, 0);
+        chart
+            .draw_series(DashedLineSeries::new(
+                [(m.x, y_range.start), (m.x, y_range.end)],
+                6,
+                4,
+                black.stroke_width(1),
+            ))?
+            .label(m.label.clone())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], black.stroke_width(1)));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 13))
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()?;
+    Ok(())
+}
+
+/// Draws the panels side by side, error against cost on log-log axes, and writes `path`.
+pub fn pareto(path: &Path, title: &str, panels: &[ParetoPanel]) -> anyhow::Result<PathBuf> {
+    font()?;
+    let n = panels.len().max(1) as u32;
+    let root = BitMapBackend::new(path, (620 * n, 560)).into_drawing_area();
+    let draw = || -> Result<(), Box<dyn std::error::Error + '_>> {
+        root.fill(&WHITE)?;
+        let root = root.titled(title, ("sans-serif", 22))?;
+        for (panel, area) in panels.iter().zip(root.split_evenly((1, n as usize)).iter()) {
+            let xs = panel
+                .series
+                .iter()
+                .flat_map(|s| s.points.iter().map(|p| p.0));
+            let x_range = log_range(xs.chain(panel.marker.iter().map(|m| m.x)));
+            let y_range = log_range(
+                panel
+                    .series
+                    .iter()
+                    .flat_map(|s| s.points.iter().map(|p| p.1)),
+            );
+            let mut chart = ChartBuilder::on(area)
+                .margin(16)
+                .x_label_area_size(48)
+                .y_label_area_size(80)
+                .build_cartesian_2d(x_range.log_scale(), y_range.clone().log_scale())?;
+            chart
+                .configure_mesh()
+                .x_desc(panel.x_label.as_str())
+                .y_desc(panel.y_label.as_str())
+                .x_label_formatter(&tick)
+                .y_label_formatter(&tick)
+                .label_style(("sans-serif", 14))
+                .draw()?;
+            pareto_panel(&mut chart, panel, &y_range)?;
+        }
+        root.present()?;
+        Ok(())
+    };
+    draw().map_err(draw_error(path))?;
+    Ok(path.to_path_buf())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_pareto_front_keeps_only_undominated_points() {
+        let pts = [(1.0, 0.5), (2.0, 0.6), (3.0, 0.2), (4.0, 0.25), (5.0, 0.1)];
+        assert_eq!(pareto_front(&pts), vec![(1.0, 0.5), (3.0, 0.2), (5.0, 0.1)]);
+    }
+
+    #[test]
+    fn log_ranges_and_ticks_are_round() {
+        let r = log_range([0.078, 0.149].into_iter());
+        assert_eq!((r.start, r.end), (0.05, 0.2));
+        let r = log_range([7.4, 275.9].into_iter());
+        assert_eq!((r.start, r.end), (5.0, 500.0));
+        assert_eq!(tick(&0.05), "0.05");
+        assert_eq!(tick(&2.0), "2");
+        assert_eq!(tick(&500.0), "500");
+        assert_eq!(tick(&0.002), "0.002");
+        assert_eq!(tick(&0.15), "0.15");
+        assert_eq!(tick(&20.0), "20");
+    }
 }

@@ -420,25 +420,76 @@ fn photon_benchmarks_write_tables_json_and_plots() {
     ok(&out);
     let report = read_json(quality.join("quality.json"));
     for row in report["rows"].as_array().unwrap() {
-        for key in [
-            "relmse_12",
-            "relmse_20",
-            "relmse_20_equal_bytes",
-            "flip",
-            "update_ms",
-            "mbps_12",
-        ] {
-            assert!(row[key].as_f64().unwrap().is_finite(), "{key}: {row}");
+        for packing in ["twelve", "twenty", "twenty_same_bytes"] {
+            let p = &row[packing];
+            for value in [
+                &p["errors"]["relmse"],
+                &p["errors"]["flip"],
+                &p["errors"]["energy_ratio"],
+                &p["update_ms"],
+                &p["mbps"],
+            ] {
+                assert!(value.as_f64().unwrap().is_finite(), "{packing}: {row}");
+            }
         }
     }
     assert!(quality.join("quality.png").metadata().unwrap().len() > 1000);
 
+    for bench in ["table2", "scaling", "quality", "client"] {
+        let out = cloudlight()
+            .args(["bench", bench, "--technique", "voxels"])
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{bench}");
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains("not implemented yet"),
+            "{bench}"
+        );
+    }
+}
+
+#[test]
+fn bench_client_splits_the_frame_by_pass() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("client.json");
     let out = cloudlight()
-        .args(["bench", "table2", "--technique", "voxels"])
+        .args([
+            "bench",
+            "client",
+            "--technique",
+            "photons",
+            "--scene",
+            "cornell-animated",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--frames",
+            "3",
+            "--photons",
+            "2000",
+            "--json",
+        ])
+        .arg(&json)
         .output()
         .unwrap();
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("not implemented yet"));
+    ok(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    for pass in [
+        "gbuffer", "shadows", "direct", "indirect", "compose", "readback",
+    ] {
+        assert!(text.contains(&format!("| {pass} |")), "{pass}: {text}");
+    }
+    let report = read_json(&json);
+    assert_eq!(report["passes"].as_array().unwrap().len(), 7);
+    assert!(report["frame_p50_ms"].as_f64().unwrap() > 0.0);
+    // The light of cornell-animated moves every frame: every split frame re-renders shadows.
+    assert_eq!(report["frames_with_shadows"], 3);
+    let bad = cloudlight()
+        .args(["bench", "client", "--downsample", "3"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
 }
 
 #[test]

@@ -267,3 +267,49 @@ fn example_topologies_are_valid_and_expand_as_declared() {
     );
     assert!(plan.summary().contains("CUT edge -> home"));
 }
+
+#[test]
+fn the_default_topology_uses_the_one_campus_link_of_the_benchmarks() {
+    let reg = cloudlight::actors::registry();
+    let plan = Plan::from_str(
+        cloudlight::DEFAULT_TOPOLOGY_NAME,
+        cloudlight::DEFAULT_TOPOLOGY,
+        &reg,
+    )
+    .unwrap();
+    assert!(!plan.topology.links.is_empty());
+    for l in &plan.topology.links {
+        assert_eq!(
+            l.profile,
+            cloudlight::transport::LinkProfile::CAMPUS,
+            "{} -> {}",
+            l.from,
+            l.to
+        );
+    }
+}
+
+#[test]
+fn a_benchmark_topology_is_planned_like_a_file() {
+    use cloudlight::bench::photons::{PhotonOptions, Photons};
+    use cloudlight::bench::{ClusterOptions, cluster_topology};
+    let reg = cloudlight::actors::registry();
+    let cluster = ClusterOptions {
+        scene: "cornell".into(),
+        seconds: 1.0,
+        link: Some(cloudlight::transport::LinkProfile::CAMPUS),
+        seed: 3,
+    };
+    let spec = cluster_topology::<Photons>(&PhotonOptions::default(), &cluster, 3).unwrap();
+    let plan = spec.plan("<bench>", &reg).unwrap_or_else(|e| panic!("{e}"));
+    let names: Vec<_> = plan.instances.iter().map(|i| i.name.as_str()).collect();
+    assert_eq!(names, ["server", "client[0]", "client[1]", "client[2]"]);
+    assert!(plan.edges.iter().all(|e| e.cut));
+    assert_eq!(
+        plan.topology.link("cloud", "home"),
+        Some(&cloudlight::transport::LinkProfile::CAMPUS)
+    );
+    // The text it writes is a topology file of its own.
+    let again = Plan::from_str("<again>", &spec.to_toml(), &reg).unwrap();
+    assert_eq!(again.instances.len(), 4);
+}

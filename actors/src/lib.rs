@@ -3,8 +3,10 @@
 //! A stage is a thin shell over a kernel of `cloudlight-render`: receive → compute → send.
 //! Stages never open sockets or look at placement; the runtime moves their messages.
 //! Techniques: `photons` (photon_batcher → photon_reconstructor) and `probe`, the diagnostic
-//! used to qualify topologies and links.
+//! used to qualify topologies and links. Every technique's client runs on the shared client
+//! shell ([`client`]).
 
+pub mod client;
 pub mod photon_batcher;
 pub mod photon_reconstructor;
 pub mod probe;

@@ -8,44 +8,36 @@
 //! catches up (a light re-traced meanwhile is not re-sent).
 //! One batcher feeds every client: its cost does not depend on their number.
 
-use std::collections::{BTreeMap, HashSet};
-use std::sync::Arc;
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use cloudlight_render::photon::{
-    BatchPlan, Manifest, ManifestLight, PackFormat, PackedBatch, PhotonLight, PhotonSettings,
-    PhotonTracer, pack::BatchHeader, photon_lights_in,
+    PackFormat, PackedBatch, PhotonSettings, PhotonStream, TracedBatch,
 };
 use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_runtime::{EdgeSettings, NextTick, Policy, Stage, StageCtx, StageKind, StageSetup};
 use cloudlight_scenes::Scene;
 use hdrhistogram::Histogram;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
+
+pub use cloudlight_render::photon::Retrace;
 
 use crate::wire::PhotonMsg;
 
 /// Technique name of the photon stages.
 pub const TECHNIQUE: &str = "photons";
 
-/// When a light's batches are traced again.
-#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
-#[serde(rename_all = "lowercase")]
-pub enum Retrace {
-    /// Only when the light changed (moved, changed power, appeared).
-    #[default]
-    Changed,
-    /// Every iteration, with fresh random numbers (the paper's continuous stream).
-    Always,
-}
-
 /// Parameters of `photon_batcher`.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BatcherParams {
     /// Photons per iteration over all lights (sets photons per watt from the scene's power
     /// at time 0). Default 10,000 when `photons_per_watt` is absent.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub photons: Option<u64>,
     /// Photons per emitted watt (summed over channels); overrides `photons`.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub photons_per_watt: Option<f64>,
     /// Photons per batch.
     #[serde(default = "default_batch_size")]
@@ -57,6 +49,7 @@ pub struct BatcherParams {
     #[serde(default = "default_per_disk")]
     pub photons_per_disk: f32,
     /// A fixed splat radius, meters.
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub radius_m: Option<f32>,
     /// Period of iterations, milliseconds (an iteration that takes longer is followed at
     /// once by the next).
@@ -93,21 +86,85 @@ fn default_format() -> String {
     "compact12".into()
 }
 
-/// A light's current batch set.
-struct LightSet {
-    light: PhotonLight,
-    generation: u64,
-    batches: BTreeMap<u32, PackedBatch>,
-    /// When these batches were last sent (traced or re-sent).
-    sent_at: Instant,
+impl Default for BatcherParams {
+    fn default() -> Self {
+        BatcherParams {
+            photons: None,
+            photons_per_watt: None,
+            batch_size: default_batch_size(),
+            bounces: default_bounces(),
+            photons_per_disk: default_per_disk(),
+            radius_m: None,
+            interval_ms: default_interval(),
+            retrace: Retrace::default(),
+            resend_s: default_resend(),
+            format: default_format(),
+        }
+    }
 }
 
-/// Figures the batcher reports.
+/// What `photon_batcher` reports (its stage report, as JSON).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct BatcherReport {
+    /// One line for people.
+    pub summary: String,
+    /// Iterations done.
+    pub iterations: u64,
+    /// Lights emitting.
+    pub lights: usize,
+    /// Generation of each light's current set, by light name.
+    pub generations: BTreeMap<String, u64>,
+    /// Batches held (one iteration's worth).
+    pub batches: usize,
+    /// Photons per batch.
+    pub batch_size: u32,
+    /// Photons per emitted watt.
+    pub photons_per_watt: f64,
+    /// Batches traced so far.
+    pub batches_traced: u64,
+    /// Photons emitted so far.
+    pub photons_emitted: u64,
+    /// Photons stored by the last iteration that traced.
+    pub photons_stored: u64,
+    /// Splat radius of the last iteration, meters.
+    pub radius_m: f32,
+    /// Bytes of packed photons held.
+    pub footprint_bytes: usize,
+    /// Bytes per photon of the packing.
+    pub bytes_per_photon: usize,
+    /// Photon bytes handed downstream.
+    pub bytes_sent: u64,
+    /// `bytes_sent` over the run so far, megabits per second.
+    pub mbps_sent: f64,
+    /// Times a set was re-sent.
+    pub resends: u64,
+    /// Trace time per batch, p50 and mean, ms.
+    pub trace_ms_p50: f64,
+    /// Mean trace time per batch, ms.
+    pub trace_ms_mean: f64,
+    /// Packing time per batch, p50, ms.
+    pub pack_ms_p50: f64,
+    /// Mean packing time per batch, ms.
+    pub pack_ms_mean: f64,
+    /// Hand-off time per message downstream, p50, ms.
+    pub send_ms_p50: f64,
+    /// Mean hand-off time per message, ms.
+    pub send_ms_mean: f64,
+    /// Iteration time, p50, ms.
+    pub iteration_ms_p50: f64,
+    /// Iteration time, p99, ms.
+    pub iteration_ms_p99: f64,
+    /// Mean iteration time, ms.
+    pub iteration_ms_mean: f64,
+}
+
+/// Figures the batcher keeps.
 struct Figures {
     iterations: u64,
     batches_traced: u64,
     photons_emitted: u64,
     photons_stored_last: u64,
+    radius_m: f32,
     bytes_sent: u64,
     resends: u64,
     trace_us: Histogram<u64>,
@@ -121,17 +178,20 @@ struct Figures {
 pub struct PhotonBatcher {
     params: BatcherParams,
     scene: Arc<Scene>,
-    settings: PhotonSettings,
+    /// The kernel; shared with the blocking threads that plan and trace.
+    stream: Arc<Mutex<PhotonStream>>,
     format: PackFormat,
     bvh: Option<Arc<SceneBvh>>,
-    sets: BTreeMap<u32, LightSet>,
-    iteration: u64,
     next_due: Option<Instant>,
     figures: Figures,
 }
 
 fn histogram() -> Histogram<u64> {
     Histogram::new(3).expect("3 significant digits is valid")
+}
+
+fn record(h: &mut Histogram<u64>, d: Duration) {
+    let _ = h.record(d.as_micros().max(1) as u64);
 }
 
 fn ms(h: &Histogram<u64>, q: f64) -> f64 {
@@ -144,6 +204,11 @@ fn ms(h: &Histogram<u64>, q: f64) -> f64 {
 
 fn mean_ms(h: &Histogram<u64>) -> f64 {
     if h.is_empty() { 0.0 } else { h.mean() / 1000.0 }
+}
+
+fn lock(stream: &Mutex<PhotonStream>) -> std::sync::MutexGuard<'_, PhotonStream> {
+    // A panic while planning fails the stage anyway; the state is still usable.
+    stream.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 impl PhotonBatcher {
@@ -178,20 +243,20 @@ impl PhotonBatcher {
         settings.bounces = params.bounces;
         settings.photons_per_disk = params.photons_per_disk;
         settings.radius_m = params.radius_m;
+        let stream = PhotonStream::new(settings, format, params.retrace, setup.seed);
         Ok(PhotonBatcher {
             params,
             scene,
-            settings,
+            stream: Arc::new(Mutex::new(stream)),
             format,
             bvh: None,
-            sets: BTreeMap::new(),
-            iteration: 0,
             next_due: None,
             figures: Figures {
                 iterations: 0,
                 batches_traced: 0,
                 photons_emitted: 0,
                 photons_stored_last: 0,
+                radius_m: 0.0,
                 bytes_sent: 0,
                 resends: 0,
                 trace_us: histogram(),
@@ -203,58 +268,59 @@ impl PhotonBatcher {
         })
     }
 
-    fn report(&self) -> serde_json::Value {
+    fn report(&self) -> BatcherReport {
         let f = &self.figures;
+        let stream = lock(&self.stream);
         let elapsed = f.started.elapsed().as_secs_f64().max(1e-9);
-        let footprint: usize = self
-            .sets
-            .values()
-            .flat_map(|s| s.batches.values())
-            .map(|b| b.data.len())
-            .sum();
-        let batches: usize = self.sets.values().map(|s| s.batches.len()).sum();
-        let generations: serde_json::Map<String, serde_json::Value> = self
-            .sets
-            .values()
-            .map(|s| (s.light.name.clone(), s.generation.into()))
-            .collect();
-        let summary = format!(
-            "{} iterations (p50 {:.1} ms: trace {:.1}, pack {:.2}), {} batches of {} photons, {:.0} kB per set, {:.1} Mbps sent",
-            f.iterations,
-            ms(&f.iteration_us, 0.5),
-            ms(&f.trace_us, 0.5),
-            ms(&f.pack_us, 0.5),
+        let footprint = stream.footprint_bytes();
+        let batches = stream.batch_count();
+        let settings = *stream.settings();
+        let mbps_sent = f.bytes_sent as f64 * 8.0 / elapsed / 1e6;
+        BatcherReport {
+            summary: format!(
+                "{} iterations (p50 {:.1} ms: trace {:.1}, pack {:.2}), {} batches of {} photons, {:.0} kB per set, {:.1} Mbps sent",
+                f.iterations,
+                ms(&f.iteration_us, 0.5),
+                ms(&f.trace_us, 0.5),
+                ms(&f.pack_us, 0.5),
+                batches,
+                settings.batch_size,
+                footprint as f64 / 1e3,
+                mbps_sent
+            ),
+            iterations: f.iterations,
+            lights: stream.sets().len(),
+            generations: stream
+                .sets()
+                .values()
+                .map(|s| (s.light.name.clone(), s.generation))
+                .collect(),
             batches,
-            self.settings.batch_size,
-            footprint as f64 / 1e3,
-            f.bytes_sent as f64 * 8.0 / elapsed / 1e6
-        );
-        serde_json::json!({
-            "summary": summary,
-            "iterations": f.iterations,
-            "lights": self.sets.len(),
-            "generations": generations,
-            "batches": batches,
-            "batch_size": self.settings.batch_size,
-            "photons_per_watt": self.settings.photons_per_watt,
-            "batches_traced": f.batches_traced,
-            "photons_emitted": f.photons_emitted,
-            "photons_stored": f.photons_stored_last,
-            "footprint_bytes": footprint,
-            "bytes_per_photon": self.format.bytes_per_photon(),
-            "bytes_sent": f.bytes_sent,
-            "mbps_sent": f.bytes_sent as f64 * 8.0 / elapsed / 1e6,
-            "resends": f.resends,
-            "trace_ms_p50": ms(&f.trace_us, 0.5),
-            "trace_ms_mean": mean_ms(&f.trace_us),
-            "pack_ms_p50": ms(&f.pack_us, 0.5),
-            "pack_ms_mean": mean_ms(&f.pack_us),
-            "send_ms_p50": ms(&f.send_us, 0.5),
-            "send_ms_mean": mean_ms(&f.send_us),
-            "iteration_ms_p50": ms(&f.iteration_us, 0.5),
-            "iteration_ms_p99": ms(&f.iteration_us, 0.99),
-            "iteration_ms_mean": mean_ms(&f.iteration_us),
-        })
+            batch_size: settings.batch_size,
+            photons_per_watt: settings.photons_per_watt,
+            batches_traced: f.batches_traced,
+            photons_emitted: f.photons_emitted,
+            photons_stored: f.photons_stored_last,
+            radius_m: f.radius_m,
+            footprint_bytes: footprint,
+            bytes_per_photon: self.format.bytes_per_photon(),
+            bytes_sent: f.bytes_sent,
+            mbps_sent,
+            resends: f.resends,
+            trace_ms_p50: ms(&f.trace_us, 0.5),
+            trace_ms_mean: mean_ms(&f.trace_us),
+            pack_ms_p50: ms(&f.pack_us, 0.5),
+            pack_ms_mean: mean_ms(&f.pack_us),
+            send_ms_p50: ms(&f.send_us, 0.5),
+            send_ms_mean: mean_ms(&f.send_us),
+            iteration_ms_p50: ms(&f.iteration_us, 0.5),
+            iteration_ms_p99: ms(&f.iteration_us, 0.99),
+            iteration_ms_mean: mean_ms(&f.iteration_us),
+        }
+    }
+
+    fn publish(&self, ctx: &StageCtx) {
+        ctx.report(serde_json::to_value(self.report()).unwrap_or_default());
     }
 
     /// The BVH at scene time `t`: built once for static geometry, again each iteration when
@@ -281,154 +347,79 @@ impl PhotonBatcher {
         };
         let start = Instant::now();
         ctx.send("out", t, msg).await?;
-        let _ = self
-            .figures
-            .send_us
-            .record(start.elapsed().as_micros().max(1) as u64);
+        record(&mut self.figures.send_us, start.elapsed());
         self.figures.bytes_sent += bytes;
         Ok(())
     }
 
-    fn manifest(&self, t: f64) -> Manifest {
-        Manifest {
-            iteration: self.iteration,
-            scene_time_s: t,
-            lights: self
-                .sets
-                .values()
-                .map(|s| ManifestLight {
-                    light: s.light.id,
-                    generation: s.generation,
-                    slots: s.batches.len() as u32,
-                })
-                .collect(),
-        }
+    fn count(&mut self, traced: &TracedBatch, batch_size: u32) {
+        let f = &mut self.figures;
+        record(&mut f.trace_us, traced.trace_time);
+        record(&mut f.pack_us, traced.pack_time);
+        f.batches_traced += 1;
+        f.photons_emitted += batch_size as u64;
     }
 
-    /// One iteration: re-trace what changed, send it, send the manifest.
+    /// One iteration of the kernel: plan, trace each batch on a blocking thread and send it
+    /// as soon as it is packed, commit each light's set, send the manifest; then re-send the
+    /// sets that have not gone out for `resend_s`.
     async fn iterate(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
         let started = Instant::now();
         let t = ctx.scene_time_s();
         let bvh = self.bvh_at(t).await?;
-        let scene = self.scene.clone();
-        let lights = {
-            let bvh = bvh.clone();
-            tokio::task::spawn_blocking(move || photon_lights_in(&scene, t, bvh.bounds())).await?
-        };
-        let plan = BatchPlan::new(&lights, &self.settings);
-        let radius = {
-            let (scene, bvh, settings, plan) =
-                (self.scene.clone(), bvh.clone(), self.settings, plan.clone());
-            tokio::task::spawn_blocking(move || {
-                PhotonTracer::new(&scene, &bvh, settings, &plan, 0).radius()
-            })
-            .await?
-        };
-        let settings = PhotonSettings {
-            radius_m: Some(radius),
-            ..self.settings
-        };
-        self.iteration += 1;
+        let (stream, scene) = (self.stream.clone(), self.scene.clone());
+        let bvh_c = bvh.clone();
+        let plan = Arc::new(
+            tokio::task::spawn_blocking(move || lock(&stream).plan(&scene, &bvh_c, t)).await?,
+        );
+        self.figures.radius_m = plan.radius_m();
+        let (seed, format) = (ctx.seed(), self.format);
         let mut stored = 0u64;
-        let live: HashSet<u32> = lights.iter().map(|l| l.id).collect();
-        self.sets.retain(|id, _| live.contains(id));
-        for light in lights {
-            let slots = plan.batches_of(light.id);
-            let changed = match self.sets.get(&light.id) {
-                None => true,
-                Some(s) => {
-                    self.params.retrace == Retrace::Always
-                        || s.light != light
-                        || s.batches.len() as u32 != slots
-                }
-            };
-            if !changed {
-                continue;
+        let mut done: BTreeMap<usize, BTreeMap<u32, PackedBatch>> = BTreeMap::new();
+        for (k, job) in plan.jobs.iter().enumerate() {
+            if ctx.is_stopping() {
+                return Ok(());
             }
-            let generation = self.sets.get(&light.id).map_or(1, |s| s.generation + 1);
-            let mut batches = BTreeMap::new();
-            for slot in 0..slots {
-                if ctx.is_stopping() {
-                    return Ok(());
-                }
-                let (scene, bvh, light_c, format) =
-                    (self.scene.clone(), bvh.clone(), light.clone(), self.format);
-                let seed = ctx.seed();
-                let plan_c = plan.clone();
-                let (batch, trace, pack, count) = tokio::task::spawn_blocking(move || {
-                    let tracer = PhotonTracer::new(&scene, &bvh, settings, &plan_c, seed);
-                    let start = Instant::now();
-                    let photons = tracer.trace_batch(&light_c, slot, slots, generation);
-                    let trace = start.elapsed();
-                    let start = Instant::now();
-                    let batch = PackedBatch::pack(
-                        BatchHeader {
-                            light: light_c.id,
-                            slot,
-                            slots,
-                            generation,
-                            scene_time_s: t,
-                            emitted: settings.batch_size,
-                        },
-                        &photons,
-                        format,
-                    );
-                    (batch, trace, start.elapsed(), photons.len())
-                })
+            let (scene, bvh, plan_c) = (self.scene.clone(), bvh.clone(), plan.clone());
+            let traced = tokio::task::spawn_blocking(move || {
+                PhotonStream::trace(&scene, &bvh, &plan_c, &plan_c.jobs[k], seed, format)
+            })
+            .await?;
+            self.count(&traced, plan.settings.batch_size);
+            stored += traced.stored as u64;
+            self.send(ctx, t, PhotonMsg::Batch(traced.batch.clone()))
                 .await?;
-                let _ = self
-                    .figures
-                    .trace_us
-                    .record(trace.as_micros().max(1) as u64);
-                let _ = self.figures.pack_us.record(pack.as_micros().max(1) as u64);
-                self.figures.batches_traced += 1;
-                self.figures.photons_emitted += settings.batch_size as u64;
-                stored += count as u64;
-                self.send(ctx, t, PhotonMsg::Batch(batch.clone())).await?;
-                batches.insert(slot, batch);
-            }
-            self.sets.insert(
-                light.id,
-                LightSet {
-                    light,
-                    generation,
+            let set = done.entry(job.light).or_default();
+            set.insert(job.slot, traced.batch);
+            if set.len() as u32 == job.slots {
+                let batches = done.remove(&job.light).unwrap_or_default();
+                lock(&self.stream).commit(
+                    plan.lights[job.light].clone(),
+                    job.generation,
                     batches,
-                    sent_at: Instant::now(),
-                },
-            );
+                    Instant::now(),
+                );
+            }
         }
         if stored > 0 {
             self.figures.photons_stored_last = stored;
         }
-        let manifest = self.manifest(t);
+        let manifest = lock(&self.stream).manifest(t);
         self.send(ctx, t, PhotonMsg::Manifest(manifest)).await?;
-        // Re-send the sets that have not gone out for `resend_s` (lights re-traced since
-        // went out anyway).
         if self.params.resend_s > 0.0 {
             let period = Duration::from_secs_f64(self.params.resend_s);
-            let due: Vec<PackedBatch> = self
-                .sets
-                .values_mut()
-                .filter(|s| s.sent_at.elapsed() >= period)
-                .flat_map(|s| {
-                    s.sent_at = Instant::now();
-                    s.batches.values().cloned().collect::<Vec<_>>()
-                })
-                .collect();
+            let due = lock(&self.stream).due_for_resend(period, Instant::now());
             if !due.is_empty() {
                 self.figures.resends += 1;
                 for b in due {
                     self.send(ctx, t, PhotonMsg::Batch(b)).await?;
                 }
-                let manifest = self.manifest(t);
+                let manifest = lock(&self.stream).manifest(t);
                 self.send(ctx, t, PhotonMsg::Manifest(manifest)).await?;
             }
         }
         self.figures.iterations += 1;
-        let _ = self
-            .figures
-            .iteration_us
-            .record(started.elapsed().as_micros().max(1) as u64);
+        record(&mut self.figures.iteration_us, started.elapsed());
         Ok(())
     }
 }
@@ -437,7 +428,7 @@ impl PhotonBatcher {
 impl Stage for PhotonBatcher {
     async fn on_start(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
         self.figures.started = Instant::now();
-        ctx.report(self.report());
+        self.publish(ctx);
         Ok(())
     }
 
@@ -447,7 +438,7 @@ impl Stage for PhotonBatcher {
         }
         let due = *self.next_due.get_or_insert_with(Instant::now);
         self.iterate(ctx).await?;
-        ctx.report(self.report());
+        self.publish(ctx);
         let interval = Duration::from_secs_f64(self.params.interval_ms / 1000.0);
         // Keep the cadence; after an overrun, go on from now instead of bursting.
         let now = Instant::now();
@@ -457,7 +448,7 @@ impl Stage for PhotonBatcher {
     }
 
     async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
-        ctx.report(self.report());
+        self.publish(ctx);
         Ok(())
     }
 }

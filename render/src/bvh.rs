@@ -61,6 +61,7 @@ pub struct SceneBvh {
     tree: Tree,
     build_time: Duration,
     bounds: (Vec3, Vec3),
+    area_m2: f32,
 }
 
 fn rt_triangle(t: &WorldTriangle, scale: f32) -> Triangle {
@@ -109,6 +110,11 @@ impl SceneBvh {
                 )),
             }
         };
+        let area_m2 = triangles
+            .iter()
+            .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length())
+            .filter(|a| a.is_finite())
+            .sum();
         SceneBvh {
             triangles,
             rt,
@@ -116,12 +122,18 @@ impl SceneBvh {
             tree,
             build_time,
             bounds: (lo, hi),
+            area_m2,
         }
     }
 
     /// Bounds of the (finite) triangle vertices, meters (min, max); infinite when empty.
     pub fn bounds(&self) -> (Vec3, Vec3) {
         self.bounds
+    }
+
+    /// Total area of the (finite) triangles, m² (one side).
+    pub fn surface_area_m2(&self) -> f32 {
+        self.area_m2
     }
 
     /// The scene's BVH at scene time `t_s`.

@@ -1,8 +1,12 @@
 //! Image error metrics: RMSE, relMSE, PSNR and FLIP (LDR through NVIDIA's reference code
 //! via the `nv-flip` crate, HDR by the exposure bracketing of HDR-FLIP on top of it).
 //!
-//! Images are linear RGB radiance, row-major, `width × height`. relMSE uses an absolute
-//! ε = 0.01 in the image's units: state units and ε with every number (ALGORITHMS.md §4).
+//! Images are linear RGB radiance, row-major, `width × height`. [`relmse`] takes an
+//! absolute ε in the image's units, which hides error wherever radiance is small; every
+//! figure this project reports comes from [`compare`] instead: relMSE on images divided by
+//! the reference's mean luminance over the pixels that see geometry (so ε = 0.01 means 1%
+//! of that mean), HDR-FLIP, and the energy ratio — none of which changes when every light is
+//! scaled (ALGORITHMS.md §4).
 
 use glam::Vec3;
 
@@ -123,6 +127,93 @@ pub fn tonemap(image: &[Vec3], stops: f32) -> Vec<u8> {
         .collect()
 }
 
+/// A test image's errors against a reference, none of which depends on the unit (or scale)
+/// of radiance.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ImageErrors {
+    /// relMSE of both images divided by the reference's mean luminance, ε = 0.01, over the
+    /// pixels that see geometry.
+    pub relmse: f64,
+    /// Mean HDR-FLIP over the whole image.
+    pub flip: f32,
+    /// Mean luminance of the test over the reference's, over the pixels that see geometry.
+    pub energy_ratio: f64,
+    /// Pixels that see geometry.
+    pub pixels: usize,
+}
+
+/// Mean luminance of `image` over the pixels `mask` keeps.
+fn masked_mean_luminance(image: &[Vec3], mask: &[bool]) -> (f64, usize) {
+    let (sum, n) = image
+        .iter()
+        .zip(mask)
+        .filter(|(_, m)| **m)
+        .fold((0.0f64, 0usize), |(s, n), (v, _)| {
+            (s + luminance(*v) as f64, n + 1)
+        });
+    (if n > 0 { sum / n as f64 } else { 0.0 }, n)
+}
+
+/// relMSE of `test` against `reference`, both divided by the reference's mean luminance over
+/// the pixels `mask` keeps, ε = [`REL_MSE_EPSILON`] (relative), over those pixels. Zero when
+/// the reference is black there (nothing to be relative to) and the test is too; infinite
+/// when only the test has light.
+pub fn relmse_normalized(test: &[Vec3], reference: &[Vec3], mask: &[bool]) -> f64 {
+    assert!(
+        test.len() == reference.len() && mask.len() == reference.len(),
+        "images and mask differ in size"
+    );
+    let (mean, n) = masked_mean_luminance(reference, mask);
+    if n == 0 {
+        return 0.0;
+    }
+    if mean <= 0.0 || !mean.is_finite() {
+        let (t, _) = masked_mean_luminance(test, mask);
+        return if t > 0.0 { f64::INFINITY } else { 0.0 };
+    }
+    let k = 1.0 / mean;
+    let sum: f64 = test
+        .iter()
+        .zip(reference)
+        .zip(mask)
+        .filter(|(_, m)| **m)
+        .flat_map(|((a, b), _)| (0..3).map(move |c| (a[c] as f64 * k, b[c] as f64 * k)))
+        .map(|(x, y)| (x - y).powi(2) / (y * y + REL_MSE_EPSILON))
+        .sum();
+    sum / (n * 3) as f64
+}
+
+/// Mean luminance of `test` over that of `reference`, over the pixels `mask` keeps (1 when
+/// both are black).
+pub fn energy_ratio(test: &[Vec3], reference: &[Vec3], mask: &[bool]) -> f64 {
+    let (t, _) = masked_mean_luminance(test, mask);
+    let (r, _) = masked_mean_luminance(reference, mask);
+    if r > 0.0 {
+        t / r
+    } else if t > 0.0 {
+        f64::INFINITY
+    } else {
+        1.0
+    }
+}
+
+/// Every error figure of `test` against `reference` (`width × height`), `mask` marking the
+/// pixels that see geometry.
+pub fn compare(
+    test: &[Vec3],
+    reference: &[Vec3],
+    mask: &[bool],
+    width: u32,
+    height: u32,
+) -> ImageErrors {
+    ImageErrors {
+        relmse: relmse_normalized(test, reference, mask),
+        flip: flip_hdr(test, reference, width, height, PIXELS_PER_DEGREE).mean,
+        energy_ratio: energy_ratio(test, reference, mask),
+        pixels: mask.iter().filter(|m| **m).count(),
+    }
+}
+
 fn luminance(v: Vec3) -> f32 {
     0.2126 * v.x + 0.7152 * v.y + 0.0722 * v.z
 }
@@ -199,6 +290,51 @@ mod tests {
         assert!(psnr(&b, &b).is_infinite());
         // relMSE is asymmetric: relative to the reference.
         assert!(relmse(&b, &a, 0.01) < relmse(&a, &b, 0.01));
+    }
+
+    #[test]
+    fn normalized_errors_do_not_change_when_every_light_is_scaled() {
+        let (w, h) = (16u32, 16u32);
+        let reference: Vec<Vec3> = (0..w * h)
+            .map(|i| Vec3::new(0.2 + (i % 7) as f32 * 0.1, 0.3, 0.1 + (i % 3) as f32 * 0.2))
+            .collect();
+        let test: Vec<Vec3> = reference
+            .iter()
+            .enumerate()
+            .map(|(i, v)| *v * if i % 4 == 0 { 1.4 } else { 0.9 })
+            .collect();
+        let mask: Vec<bool> = (0..w * h).map(|i| i % 5 != 0).collect();
+        let base = compare(&test, &reference, &mask, w, h);
+        assert!(base.relmse > 0.01 && base.flip > 0.0, "{base:?}");
+        assert!((base.energy_ratio - 1.0).abs() > 0.01);
+        assert_eq!(base.pixels, mask.iter().filter(|m| **m).count());
+        for k in [1e-6f32, 1e6] {
+            let s = |img: &[Vec3]| img.iter().map(|v| *v * k).collect::<Vec<_>>();
+            let e = compare(&s(&test), &s(&reference), &mask, w, h);
+            assert!(
+                (e.relmse / base.relmse - 1.0).abs() < 1e-4,
+                "{k}: {e:?} vs {base:?}"
+            );
+            assert!((e.energy_ratio / base.energy_ratio - 1.0).abs() < 1e-5);
+            assert!((e.flip - base.flip).abs() < 1e-3, "{k}: {e:?} vs {base:?}");
+            // The absolute-ε relMSE is what it is not: it reads ~0 at small radiance.
+            let absolute = relmse(&s(&test), &s(&reference), REL_MSE_EPSILON);
+            if k < 1.0 {
+                assert!(absolute < base.relmse * 1e-6);
+            }
+        }
+        // Masked-out pixels do not count; a black reference with a black test is no error.
+        let mut outside = test.clone();
+        for (i, v) in outside.iter_mut().enumerate() {
+            if !mask[i] {
+                *v = Vec3::splat(1e9);
+            }
+        }
+        assert_eq!(relmse_normalized(&outside, &reference, &mask), base.relmse);
+        let black = vec![Vec3::ZERO; (w * h) as usize];
+        assert_eq!(relmse_normalized(&black, &black, &mask), 0.0);
+        assert_eq!(energy_ratio(&black, &black, &mask), 1.0);
+        assert!(relmse_normalized(&test, &black, &mask).is_infinite());
     }
 
     #[test]

@@ -27,4 +27,4 @@ pub use metrics::{MetricsSnapshot, RunStatus};
 pub use stage::{
     Input, InstanceInfo, NextTick, SendError, Stage, StageCtx, StageKind, StageRegistry, StageSetup,
 };
-pub use topology::{Diagnostic, Plan, Topology, TopologyErrors};
+pub use topology::{Diagnostic, Plan, Topology, TopologyErrors, TopologySpec};

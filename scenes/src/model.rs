@@ -474,6 +474,23 @@ pub struct WorldTriangle {
 }
 
 impl Scene {
+    /// The same scene with every light's power, the sun's irradiance and every surface's
+    /// emission multiplied by `k` (what a change of light unit does; error metrics must not
+    /// notice).
+    pub fn with_lights_scaled(&self, k: f32) -> Scene {
+        let mut s = self.clone();
+        for l in &mut s.lights {
+            l.power_w *= k;
+            if let LightKind::Directional { irradiance_w_m2 } = &mut l.kind {
+                *irradiance_w_m2 *= k;
+            }
+        }
+        for m in &mut s.materials {
+            m.emission *= k;
+        }
+        s
+    }
+
     /// The scene scaled by `s` about the origin: geometry, motions, lights and cameras
     /// (radiance and power are unchanged).
     pub fn scaled(mut self, s: f32) -> Self {

@@ -39,6 +39,17 @@ pub struct LinkProfile {
 }
 
 impl LinkProfile {
+    /// A campus network, the link of the photon examples and of every scaling benchmark:
+    /// 5 ms ± 1 ms one way, 1 Gbit/s, 0.1% loss.
+    pub const CAMPUS: LinkProfile = LinkProfile {
+        latency_ms: 5.0,
+        jitter_ms: 1.0,
+        bandwidth_mbps: Some(1000.0),
+        loss: 0.001,
+        duplicate: 0.0,
+        reorder: 0.0,
+    };
+
     /// True when the profile changes nothing (the emulator can be bypassed).
     pub fn is_transparent(&self) -> bool {
         *self == LinkProfile::default()

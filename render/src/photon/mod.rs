@@ -14,6 +14,10 @@
 //!    unbiased) and store a photon at every hit *after the first* — first hits are direct
 //!    light, which the client shades itself (storing them would count it twice).
 //!
+//! [`PhotonStream`] runs these phases iteration by iteration, keeping each light's current
+//! set (only changed lights are traced again): the batcher stage, the benchmarks and the
+//! tests all call it.
+//!
 //! Each photon stores where it landed, the direction it travelled, its power and the radius
 //! of its splat. The radius is one value per iteration chosen so that about
 //! `photons_per_disk` photons fall in a disk on the scene's surfaces:
@@ -30,9 +34,14 @@ use crate::sampling::{Rng, basis, cosine_hemisphere, uniform_sphere, uniform_tri
 
 pub mod pack;
 pub mod store;
+pub mod stream;
 
 pub use pack::{PackError, PackFormat, PackedBatch};
 pub use store::{Inserted, Manifest, ManifestLight, PhotonSet};
+pub use stream::{
+    BatchJob, Iteration, IterationPlan, LightSet, PhotonStream, Retrace, TracedBatch,
+    trace_iteration,
+};
 
 /// Largest batch size accepted (a batch is one message; 10⁷ compact photons are 120 MB).
 pub const MAX_BATCH_SIZE: u32 = 10_000_000;
@@ -352,14 +361,10 @@ impl<'a> PhotonTracer<'a> {
         let radius = settings
             .radius_m
             .unwrap_or_else(|| {
-                let area: f32 = bvh
-                    .triangles()
-                    .par_iter()
-                    .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length())
-                    .filter(|a| a.is_finite())
-                    .sum();
                 let n = plan.total_photons().max(1) as f32;
-                (settings.photons_per_disk.max(1.0) * area / (std::f32::consts::PI * n)).sqrt()
+                (settings.photons_per_disk.max(1.0) * bvh.surface_area_m2()
+                    / (std::f32::consts::PI * n))
+                    .sqrt()
             })
             .clamp(extent * 1e-4, extent * 0.25);
         PhotonTracer {
@@ -498,87 +503,6 @@ fn emit(emitter: &Emitter, rng: &mut Rng, eps: f32) -> Option<(Vec3, Vec3)> {
             let d = (t * l.x + b * l.y + n * l.z).normalize();
             Some((p + n * eps, d))
         }
-    }
-}
-
-/// One whole iteration, traced and packed (what benchmarks and tests measure; the batcher
-/// stage does the same batch by batch).
-#[derive(Clone, Debug)]
-pub struct Iteration {
-    /// Batches per light.
-    pub plan: BatchPlan,
-    /// Splat radius, meters.
-    pub radius: f32,
-    /// The packed batches, in light and slot order.
-    pub batches: Vec<PackedBatch>,
-    /// Photons stored.
-    pub stored: usize,
-    /// Time spent tracing.
-    pub trace_time: std::time::Duration,
-    /// Time spent packing.
-    pub pack_time: std::time::Duration,
-}
-
-impl Iteration {
-    /// Bytes of photon data (the batches' payloads).
-    pub fn data_bytes(&self) -> usize {
-        self.batches.iter().map(|b| b.data.len()).sum()
-    }
-
-    /// Every photon, decoded from the packed batches (as a client sees them).
-    pub fn unpacked(&self) -> Vec<Photon> {
-        self.batches
-            .iter()
-            .flat_map(|b| b.unpack().unwrap_or_default())
-            .collect()
-    }
-}
-
-/// Traces and packs every batch of every light of `scene` at `t_s` (BVH `bvh`).
-pub fn trace_iteration(
-    scene: &Scene,
-    bvh: &SceneBvh,
-    t_s: f64,
-    settings: PhotonSettings,
-    seed: u64,
-    format: PackFormat,
-) -> Iteration {
-    let lights = photon_lights(scene, t_s);
-    let plan = BatchPlan::new(&lights, &settings);
-    let tracer = PhotonTracer::new(scene, bvh, settings, &plan, seed);
-    let mut batches = Vec::new();
-    let (mut trace_time, mut pack_time) = Default::default();
-    let mut stored = 0;
-    for light in &lights {
-        let slots = plan.batches_of(light.id);
-        for slot in 0..slots {
-            let start = std::time::Instant::now();
-            let photons = tracer.trace_batch(light, slot, slots, 0);
-            trace_time += start.elapsed();
-            let start = std::time::Instant::now();
-            stored += photons.len();
-            batches.push(PackedBatch::pack(
-                pack::BatchHeader {
-                    light: light.id,
-                    slot,
-                    slots,
-                    generation: 0,
-                    scene_time_s: t_s,
-                    emitted: plan.batch_size,
-                },
-                &photons,
-                format,
-            ));
-            pack_time += start.elapsed();
-        }
-    }
-    Iteration {
-        radius: tracer.radius(),
-        plan,
-        batches,
-        stored,
-        trace_time,
-        pack_time,
     }
 }
 

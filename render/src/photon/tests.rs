@@ -367,3 +367,64 @@ fn the_set_keeps_the_newest_batch_per_slot() {
     let stats = set.stats();
     assert_eq!((stats.rejected, stats.stale), (1, 1));
 }
+
+#[test]
+fn a_stream_traces_again_only_the_lights_that_changed() {
+    use super::stream::{PhotonStream, Retrace};
+    let mut scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let lamp = |x: f32| Light {
+        name: "lamp".into(),
+        kind: LightKind::Point,
+        power_w: Vec3::splat(0.5),
+        motion: Motion::Static(glam::Affine3A::from_translation(Vec3::new(x, 0.3, 0.3))),
+        sun_path: None,
+    };
+    scene.lights.push(lamp(0.2));
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let settings = PhotonSettings::for_budget(&scene, 4000, 1000);
+    let mut stream = PhotonStream::new(settings, PackFormat::Compact12, Retrace::Changed, 3);
+    let first = stream.iterate(&scene, &bvh, 0.0);
+    assert_eq!(first.batches.len() as u64, first.plan.total_batches());
+    assert_eq!(stream.sets().len(), 2);
+    assert!(stream.sets().values().all(|s| s.generation == 1));
+    // Nothing changed: nothing traced, the sets stay.
+    let idle = stream.iterate(&scene, &bvh, 0.5);
+    assert!(idle.batches.is_empty());
+    assert_eq!(stream.batch_count() as u64, first.plan.total_batches());
+    // The lamp moves: only its batches, at generation 2.
+    scene.lights[0] = lamp(0.35);
+    let moved = stream.iterate(&scene, &bvh, 1.0);
+    let lamp_id = 0;
+    assert!(!moved.batches.is_empty());
+    assert!(
+        moved
+            .batches
+            .iter()
+            .all(|b| b.header.light == lamp_id && b.header.generation == 2)
+    );
+    let generations: Vec<u64> = stream.sets().values().map(|s| s.generation).collect();
+    assert_eq!(generations, vec![2, 1]);
+    let manifest = stream.manifest(1.0);
+    assert_eq!(manifest.lights.len(), 2);
+    // Re-sending: nothing is due before the period, everything after it, then not again.
+    let now = std::time::Instant::now();
+    assert!(
+        stream
+            .due_for_resend(std::time::Duration::from_secs(60), now)
+            .is_empty()
+    );
+    let later = now + std::time::Duration::from_secs(61);
+    let due = stream.due_for_resend(std::time::Duration::from_secs(60), later);
+    assert_eq!(due.len(), stream.batch_count());
+    assert!(
+        stream
+            .due_for_resend(std::time::Duration::from_secs(60), later)
+            .is_empty()
+    );
+    // Retrace::Always traces every light every time, with fresh generations.
+    let mut always = PhotonStream::new(settings, PackFormat::Compact12, Retrace::Always, 3);
+    always.iterate(&scene, &bvh, 0.0);
+    let again = always.iterate(&scene, &bvh, 0.0);
+    assert_eq!(again.batches.len() as u64, again.plan.total_batches());
+    assert!(again.batches.iter().all(|b| b.header.generation == 2));
+}

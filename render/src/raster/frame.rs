@@ -24,7 +24,7 @@ use super::direct::DirectPass;
 use super::pipelines::{GBufferVertex, VIEW_STRIDE};
 use super::readback::{Layout, read_planes, rgb};
 use super::shadow::ShadowMaps;
-use super::{GBuffer, Raster, RasterError, ShadowSettings, clip_from_world};
+use super::{GBuffer, Raster, RasterError, ShadowSettings, camera_matrices};
 
 /// A texture and its default view.
 pub struct Target {
@@ -154,6 +154,10 @@ pub struct IndirectContext<'a> {
     pub height: u32,
     /// The camera's clip_from_world.
     pub clip_from_world: Mat4,
+    /// The camera's clip_from_view (a perspective projection).
+    pub clip_from_view: Mat4,
+    /// The camera's view_from_world.
+    pub view_from_world: Mat4,
     /// Bounding diagonal of the geometry, meters.
     pub scene_extent_m: f32,
     /// The G-buffer.
@@ -240,6 +244,83 @@ struct Geometry {
     vertices: u32,
     bounds: (Vec3, Vec3),
     version: u64,
+    culled: Chunks,
+}
+
+/// Triangles in consecutive chunks with their bounds, so that a view draws only the chunks
+/// its frustum reaches (scenes list an object's triangles together, so chunks are compact).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Chunks {
+    /// Per chunk: bounds (min, max).
+    bounds: Vec<(Vec3, Vec3)>,
+    vertices: u32,
+}
+
+/// Triangles per culling chunk.
+const CHUNK_TRIANGLES: usize = 256;
+
+impl Chunks {
+    fn new(triangles: &[WorldTriangle]) -> Self {
+        let bounds = triangles
+            .chunks(CHUNK_TRIANGLES)
+            .map(|c| {
+                c.iter().flat_map(|t| t.v).fold(
+                    (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+                    |(lo, hi), v| (lo.min(v), hi.max(v)),
+                )
+            })
+            .collect();
+        Chunks {
+            bounds,
+            vertices: triangles.len() as u32 * 3,
+        }
+    }
+
+    /// Whether a box can be seen by `clip_from_world` (false only when all eight corners are
+    /// outside one clip plane).
+    fn in_frustum(clip_from_world: Mat4, (lo, hi): (Vec3, Vec3)) -> bool {
+        if !(lo.is_finite() && hi.is_finite()) {
+            return true;
+        }
+        let mut outside = [true; 6];
+        for k in 0..8 {
+            let corner = Vec3::new(
+                if k & 1 == 0 { lo.x } else { hi.x },
+                if k & 2 == 0 { lo.y } else { hi.y },
+                if k & 4 == 0 { lo.z } else { hi.z },
+            );
+            let c = clip_from_world * corner.extend(1.0);
+            let inside = [
+                c.x >= -c.w,
+                c.x <= c.w,
+                c.y >= -c.w,
+                c.y <= c.w,
+                c.z >= 0.0,
+                c.z <= c.w,
+            ];
+            for (o, i) in outside.iter_mut().zip(inside) {
+                *o &= !i;
+            }
+        }
+        !outside.iter().any(|o| *o)
+    }
+
+    /// The vertex ranges `clip_from_world` may see, neighbouring chunks merged.
+    pub(crate) fn visible(&self, clip_from_world: Mat4) -> Vec<std::ops::Range<u32>> {
+        let mut runs: Vec<std::ops::Range<u32>> = Vec::new();
+        let per = CHUNK_TRIANGLES as u32 * 3;
+        for (i, b) in self.bounds.iter().enumerate() {
+            if !Self::in_frustum(clip_from_world, *b) {
+                continue;
+            }
+            let (start, end) = (i as u32 * per, ((i as u32 + 1) * per).min(self.vertices));
+            match runs.last_mut() {
+                Some(r) if r.end == start => r.end = end,
+                _ => runs.push(start..end),
+            }
+        }
+        runs
+    }
 }
 
 /// Times passes when asked: after each pass, submits what was recorded, waits, and starts a
@@ -359,9 +440,14 @@ impl FrameRenderer {
         self.height
     }
 
-    /// How many times the shadow maps were rendered.
+    /// Frames that rendered shadow maps.
     pub fn shadow_renders(&self) -> u64 {
         self.shadows.renders
+    }
+
+    /// Shadow views rendered in all (each point light has six, a spot light or the sun one).
+    pub fn shadow_views_rendered(&self) -> u64 {
+        self.shadows.views_rendered
     }
 
     /// Uploads the geometry the frames draw (once for a static scene; again whenever it
@@ -427,22 +513,20 @@ impl FrameRenderer {
             );
             g.vertices = positions.len() as u32;
             g.bounds = (lo, hi);
+            g.culled = Chunks::new(triangles);
             g.version += 1;
             Ok(())
         })
     }
 
-    /// The camera's clip_from_world for this geometry (near and far planes from its bounds).
-    fn clip_from_world(&self, camera: &Camera) -> Mat4 {
+    /// The camera's clip_from_view and view_from_world for this geometry (near and far
+    /// planes from its bounds).
+    fn camera_matrices(&self, camera: &Camera) -> (Mat4, Mat4) {
         let (lo, hi) = self.geometry.bounds;
         let far =
             ((hi - lo).length() + (camera.position - (lo + hi) * 0.5).length()).max(1e-3) * 2.0;
-        clip_from_world(
-            camera,
-            self.width as f32 / self.height as f32,
-            far * 1e-5,
-            far,
-        )
+        let aspect = self.width as f32 / self.height as f32;
+        camera_matrices(camera, aspect, far * 1e-5, far)
     }
 
     /// Renders one frame: G-buffer → shadows → direct → `indirect` → compose → read-back of
@@ -460,7 +544,8 @@ impl FrameRenderer {
             let mut times = PassTimes::default();
             let mut timer = PassTimer { timed, mark: start };
             let mut enc = raster.device.create_command_encoder(&Default::default());
-            let clip = self.clip_from_world(&inputs.camera);
+            let (clip_from_view, view_from_world) = self.camera_matrices(&inputs.camera);
+            let clip = clip_from_view * view_from_world;
             self.gbuffer_pass(raster, &mut enc, clip);
             timer.lap(raster, &mut enc, &mut times.gbuffer)?;
             let g = &self.geometry;
@@ -468,7 +553,7 @@ impl FrameRenderer {
                 raster,
                 &mut enc,
                 inputs.lights,
-                g.shadow.as_ref().map(|b| (b, g.vertices)),
+                g.shadow.as_ref().map(|b| (b, &g.culled)),
                 g.version,
                 g.bounds,
             )?;
@@ -487,6 +572,8 @@ impl FrameRenderer {
                 width: self.width,
                 height: self.height,
                 clip_from_world: clip,
+                clip_from_view,
+                view_from_world,
                 scene_extent_m: (hi - lo).length(),
                 gbuffer: &self.targets.gbuffer,
                 indirect: &self.targets.indirect.view,
@@ -542,7 +629,9 @@ impl FrameRenderer {
             pass.set_pipeline(&raster.pipelines.gbuffer);
             pass.set_bind_group(0, &self.camera_bind, &[0]);
             pass.set_vertex_buffer(0, vbuf.slice(..));
-            pass.draw(0..self.geometry.vertices, 0..1);
+            for run in self.geometry.culled.visible(clip) {
+                pass.draw(run, 0..1);
+            }
         }
     }
 

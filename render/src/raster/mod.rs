@@ -132,11 +132,17 @@ impl GBuffer {
 
 /// clip_from_world of a camera (wgpu clip space: y up, z in [0, 1]).
 pub fn clip_from_world(camera: &Camera, aspect: f32, near: f32, far: f32) -> Mat4 {
-    let clip_from_view =
-        glam::camera::rh::proj::directx::perspective(camera.fov_y_rad, aspect, near, far);
-    let view_from_world =
-        glam::camera::rh::view::look_at_mat4(camera.position, camera.target, camera.up);
+    let (clip_from_view, view_from_world) = camera_matrices(camera, aspect, near, far);
     clip_from_view * view_from_world
+}
+
+/// clip_from_view and view_from_world of a camera (view space: right-handed, looking down
+/// −z).
+pub fn camera_matrices(camera: &Camera, aspect: f32, near: f32, far: f32) -> (Mat4, Mat4) {
+    (
+        glam::camera::rh::proj::directx::perspective(camera.fov_y_rad, aspect, near, far),
+        glam::camera::rh::view::look_at_mat4(camera.position, camera.target, camera.up),
+    )
 }
 
 impl Raster {

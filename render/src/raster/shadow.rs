@@ -6,6 +6,7 @@
 use cloudlight_scenes::LightState;
 use glam::{Mat4, Vec3};
 
+use super::frame::Chunks;
 use super::pipelines::VIEW_STRIDE;
 use super::{Raster, RasterError};
 
@@ -177,17 +178,75 @@ struct ShadowResources {
     light_slots: usize,
 }
 
-/// The shadow maps of one client, kept between frames.
+/// Whether moving a light from `a` to `b` changes its shadow maps by at least half a
+/// texel (`tol_m` of position, `tol_rad` of direction); intensity never matters.
+fn moved(a: &LightState, b: &LightState, tol_m: f32, tol_rad: f32) -> bool {
+    let turned =
+        |x: Vec3, y: Vec3| x.normalize_or_zero().dot(y.normalize_or_zero()) < tol_rad.cos();
+    match (*a, *b) {
+        (LightState::Point { position: p, .. }, LightState::Point { position: q, .. }) => {
+            p.distance(q) > tol_m
+        }
+        (
+            LightState::Surface {
+                position: p,
+                normal: n,
+                ..
+            },
+            LightState::Surface {
+                position: q,
+                normal: m,
+                ..
+            },
+        ) => p.distance(q) > tol_m || turned(n, m),
+        (
+            LightState::Spot {
+                position: p,
+                direction: d,
+                cos_cone: c,
+                ..
+            },
+            LightState::Spot {
+                position: q,
+                direction: e,
+                cos_cone: k,
+                ..
+            },
+        ) => p.distance(q) > tol_m || turned(d, e) || c != k,
+        (
+            LightState::Directional { direction: d, .. },
+            LightState::Directional { direction: e, .. },
+        ) => turned(d, e),
+        _ => true,
+    }
+}
+
+/// Shadow views of one light.
+fn view_count(light: &LightState) -> usize {
+    match light {
+        LightState::Point { .. } | LightState::Surface { .. } => 6,
+        LightState::Spot { .. } | LightState::Directional { .. } => 1,
+    }
+}
+
+/// The shadow maps of one client, kept between frames: each light's views are rendered again
+/// only when that light moved (by half a texel or more) or the geometry changed.
 pub struct ShadowMaps {
     settings: ShadowSettings,
     resources: Option<ShadowResources>,
-    /// Lights and geometry version the maps were last rendered for.
-    rendered_for: Option<(Vec<LightState>, u64)>,
+    /// Per light: the state its maps were rendered for.
+    rendered: Vec<Option<LightState>>,
+    /// The view matrices the maps hold, per layer.
+    views: Vec<Mat4>,
+    /// Geometry version and bounds the maps were rendered with.
+    geometry: Option<(u64, Vec3, Vec3)>,
     params: wgpu::Buffer,
     /// Bumped whenever the resources are re-created (the direct pass re-binds them).
     pub(crate) generation: u64,
-    /// How many times the maps were rendered.
+    /// Frames that rendered any shadow view.
     pub renders: u64,
+    /// Shadow views rendered in all.
+    pub views_rendered: u64,
 }
 
 impl ShadowMaps {
@@ -195,7 +254,9 @@ impl ShadowMaps {
         ShadowMaps {
             settings,
             resources: None,
-            rendered_for: None,
+            rendered: Vec::new(),
+            views: Vec::new(),
+            geometry: None,
             params: raster.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("direct params"),
                 size: std::mem::size_of::<DirectParams>() as u64,
@@ -204,10 +265,11 @@ impl ShadowMaps {
             }),
             generation: 0,
             renders: 0,
+            views_rendered: 0,
         }
     }
 
-    fn resources(&mut self, raster: &Raster, layers: u32, light_slots: usize) -> &ShadowResources {
+    fn resources(&mut self, raster: &Raster, layers: u32, light_slots: usize) -> bool {
         let size = self
             .settings
             .size
@@ -220,29 +282,21 @@ impl ShadowMaps {
             self.generation += 1;
             self.resources = Some(ShadowResources::new(raster, layers, size, light_slots));
         }
-        self.resources.as_ref().expect("just created")
+        !fits
     }
 
-    /// Renders the maps of `lights` (geometry `vertices`, version `geometry_version`, bounds
-    /// `lo..hi`) into `enc` unless they were rendered for the same lights and geometry;
-    /// returns whether it rendered.
-    #[allow(clippy::too_many_arguments)]
+    /// Brings the maps up to date for `lights` (geometry `vertices`, version
+    /// `geometry_version`, bounds `lo..hi`), recording the views to render into `enc`;
+    /// returns whether any view was rendered.
     pub(crate) fn update(
         &mut self,
         raster: &Raster,
         enc: &mut wgpu::CommandEncoder,
         lights: &[LightState],
-        vertices: Option<(&wgpu::Buffer, u32)>,
+        vertices: Option<(&wgpu::Buffer, &Chunks)>,
         geometry_version: u64,
         (lo, hi): (Vec3, Vec3),
     ) -> Result<bool, RasterError> {
-        if self
-            .rendered_for
-            .as_ref()
-            .is_some_and(|(l, v)| l == lights && *v == geometry_version)
-        {
-            return Ok(false);
-        }
         let (views, gpu_lights) = shadow_views(lights, lo, hi);
         // wgpu's GL backend guesses a texture's target from its size: one layer becomes a
         // 2D texture and a multiple of six square layers a cube map, neither of which a
@@ -256,37 +310,42 @@ impl ShadowMaps {
         if layers > max {
             return Err(RasterError::TooManyShadowViews { views: layers, max });
         }
-        let params = DirectParams {
-            light_count: gpu_lights.len() as u32,
-            depth_bias: self.settings.depth_bias,
-            normal_offset_m: self.settings.normal_offset * (hi - lo).length(),
-            pad: 0.0,
-        };
-        raster
-            .queue
-            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
-        let r = self.resources(raster, layers, gpu_lights.len().max(1));
-        let mut uniforms = vec![0u8; (VIEW_STRIDE * layers as u64) as usize];
-        for (i, m) in views.iter().enumerate() {
-            let at = i * VIEW_STRIDE as usize;
-            uniforms[at..at + 64].copy_from_slice(bytemuck::cast_slice(&m.to_cols_array()));
+        let layout_changed = self.rendered.len() != lights.len()
+            || self
+                .rendered
+                .iter()
+                .zip(lights)
+                .any(|(r, l)| r.as_ref().is_none_or(|r| view_count(r) != view_count(l)));
+        let recreated = self.resources(raster, layers, gpu_lights.len().max(1));
+        if recreated || layout_changed || self.geometry != Some((geometry_version, lo, hi)) {
+            self.rendered = vec![None; lights.len()];
+            self.views = views.clone();
+            self.geometry = Some((geometry_version, lo, hi));
         }
-        raster.queue.write_buffer(&r.view_uniforms, 0, &uniforms);
-        if !gpu_lights.is_empty() {
-            raster
-                .queue
-                .write_buffer(&r.lights, 0, bytemuck::cast_slice(&gpu_lights));
-            let mats: Vec<[f32; 16]> = views.iter().map(|m| m.to_cols_array()).collect();
-            raster
-                .queue
-                .write_buffer(&r.views, 0, bytemuck::cast_slice(&mats));
+        let texel = 0.5 / self.settings.size.max(1) as f32;
+        let (tol_m, tol_rad) = ((hi - lo).length() * texel, texel);
+        let mut dirty = Vec::new();
+        let mut first = 0;
+        for (i, light) in lights.iter().enumerate() {
+            let n = view_count(light);
+            if self.rendered[i]
+                .as_ref()
+                .is_none_or(|r| moved(r, light, tol_m, tol_rad))
+            {
+                self.views[first..first + n].copy_from_slice(&views[first..first + n]);
+                self.rendered[i] = Some(*light);
+                dirty.extend(first..first + n);
+            }
+            first += n;
         }
-        for (layer, view) in r.layer_views.iter().enumerate() {
+        self.write_buffers(raster, &gpu_lights, (hi - lo).length());
+        let r = self.resources.as_ref().expect("made above");
+        for &layer in &dirty {
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("shadow"),
                 color_attachments: &[],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view,
+                    view: &r.layer_views[layer],
                     depth_ops: Some(wgpu::Operations {
                         load: wgpu::LoadOp::Clear(1.0),
                         store: wgpu::StoreOp::Store,
@@ -297,16 +356,47 @@ impl ShadowMaps {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            if let (Some((vbuf, count)), true) = (vertices, layer < views.len()) {
+            if let Some((vbuf, chunks)) = vertices {
                 pass.set_pipeline(&raster.pipelines.shadow);
                 pass.set_bind_group(0, &r.view_bind, &[(layer as u64 * VIEW_STRIDE) as u32]);
                 pass.set_vertex_buffer(0, vbuf.slice(..));
-                pass.draw(0..count, 0..1);
+                for run in chunks.visible(self.views[layer]) {
+                    pass.draw(run, 0..1);
+                }
             }
         }
-        self.rendered_for = Some((lights.to_vec(), geometry_version));
-        self.renders += 1;
-        Ok(true)
+        self.views_rendered += dirty.len() as u64;
+        self.renders += u64::from(!dirty.is_empty());
+        Ok(!dirty.is_empty())
+    }
+
+    /// Writes the view matrices the maps hold, the lights and the direct pass's parameters.
+    fn write_buffers(&self, raster: &Raster, gpu_lights: &[LightGpu], extent_m: f32) {
+        let params = DirectParams {
+            light_count: gpu_lights.len() as u32,
+            depth_bias: self.settings.depth_bias,
+            normal_offset_m: self.settings.normal_offset * extent_m,
+            pad: 0.0,
+        };
+        raster
+            .queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        let Some(r) = &self.resources else { return };
+        let mut uniforms = vec![0u8; (VIEW_STRIDE * r.layers as u64) as usize];
+        for (i, m) in self.views.iter().enumerate() {
+            let at = i * VIEW_STRIDE as usize;
+            uniforms[at..at + 64].copy_from_slice(bytemuck::cast_slice(&m.to_cols_array()));
+        }
+        raster.queue.write_buffer(&r.view_uniforms, 0, &uniforms);
+        if !gpu_lights.is_empty() {
+            raster
+                .queue
+                .write_buffer(&r.lights, 0, bytemuck::cast_slice(gpu_lights));
+            let mats: Vec<[f32; 16]> = self.views.iter().map(|m| m.to_cols_array()).collect();
+            raster
+                .queue
+                .write_buffer(&r.views, 0, bytemuck::cast_slice(&mats));
+        }
     }
 
     /// The bindings the direct pass reads: the depth array, lights, views and parameters.

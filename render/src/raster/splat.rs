@@ -64,6 +64,9 @@ impl PhotonFrame {
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct SplatParams {
     clip_from_world: [f32; 16],
+    view_from_world: [f32; 16],
+    /// x, y: clip_from_view's scale of view x and y (P00, P11); z: near plane distance, m.
+    projection: [f32; 4],
     sizes: [f32; 4],
     settings: [f32; 4],
     scale: [f32; 4],
@@ -212,6 +215,13 @@ impl PhotonSplatPass {
     }
 }
 
+/// The near-plane distance of a right-handed [0, 1]-depth perspective projection.
+fn near_plane(clip_from_view: &glam::Mat4) -> f32 {
+    // z_clip = a·z + b, w = −z: the near plane (z_clip = 0) is at z = −b/a.
+    let (a, b) = (clip_from_view.z_axis.z, clip_from_view.w_axis.z);
+    if a != 0.0 { (b / a).abs() } else { 0.0 }
+}
+
 impl IndirectPass for PhotonSplatPass {
     fn encode(
         &mut self,
@@ -233,6 +243,13 @@ impl IndirectPass for PhotonSplatPass {
         let low = self.targets(raster, ctx).low;
         let params = SplatParams {
             clip_from_world: ctx.clip_from_world.to_cols_array(),
+            view_from_world: ctx.view_from_world.to_cols_array(),
+            projection: [
+                ctx.clip_from_view.x_axis.x,
+                ctx.clip_from_view.y_axis.y,
+                near_plane(&ctx.clip_from_view),
+                0.0,
+            ],
             sizes: [
                 ctx.width as f32,
                 ctx.height as f32,

@@ -12,6 +12,9 @@
 
 struct SplatParams {
     clip_from_world: mat4x4<f32>,
+    view_from_world: mat4x4<f32>,
+    // x, y: the projection's scale of view x and y; z: near plane distance (m).
+    projection: vec4<f32>,
     // Full-resolution size (x, y), low-resolution size (z, w).
     sizes: vec4<f32>,
     // x: downsample factor, y: flatten (max |Δ·n| / r), z: depth sigma (m), w: normal power.
@@ -39,6 +42,14 @@ struct SplatOut {
     @location(2) @interpolate(flat) direction: vec4<f32>,
 };
 
+// The slopes x/depth of the two planes through the eye tangent to a sphere at (x, depth)
+// of radius r (depth > r), smaller first.
+fn tangent_bounds(x: f32, depth: f32, r: f32) -> vec2<f32> {
+    let d2 = depth * depth - r * r;
+    let root = r * sqrt(max(x * x + d2, 0.0));
+    return vec2<f32>(x * depth - root, x * depth + root) / d2;
+}
+
 @vertex
 fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
     var out: SplatOut;
@@ -47,27 +58,17 @@ fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
     out.direction = p.direction;
     let c = p.position_radius.xyz;
     let r = p.position_radius.w;
-    // Screen bounds of the sphere: project the corners of its bounding box; a sphere that
-    // reaches behind the eye covers the whole screen.
-    var lo = vec2<f32>(1e9);
-    var hi = vec2<f32>(-1e9);
-    var behind = false;
-    for (var k = 0u; k < 8u; k = k + 1u) {
-        let corner = c + r * vec3<f32>(
-            select(-1.0, 1.0, (k & 1u) != 0u),
-            select(-1.0, 1.0, (k & 2u) != 0u),
-            select(-1.0, 1.0, (k & 4u) != 0u));
-        let q = params.clip_from_world * vec4<f32>(corner, 1.0);
-        if (q.w <= 1e-6) {
-            behind = true;
-        } else {
-            lo = min(lo, q.xy / q.w);
-            hi = max(hi, q.xy / q.w);
-        }
-    }
-    if (behind) {
-        lo = vec2<f32>(-1.0);
-        hi = vec2<f32>(1.0);
+    // Tight screen bounds of the sphere (tangent planes through the eye, per axis); a
+    // sphere that reaches the near plane covers the whole screen.
+    let v = (params.view_from_world * vec4<f32>(c, 1.0)).xyz;
+    let depth = -v.z;
+    var lo = vec2<f32>(-1.0);
+    var hi = vec2<f32>(1.0);
+    if (depth - r > params.projection.z) {
+        let bx = tangent_bounds(v.x, depth, r) * params.projection.x;
+        let by = tangent_bounds(v.y, depth, r) * params.projection.y;
+        lo = vec2<f32>(bx.x, by.x);
+        hi = vec2<f32>(bx.y, by.y);
     }
     // Grow by one low-resolution pixel so that partly covered pixels are kept.
     let pad = 2.0 / params.sizes.zw;

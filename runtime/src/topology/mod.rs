@@ -4,11 +4,13 @@
 //! [`Topology::parse`] reads the TOML text (every problem is a [`Diagnostic`] naming file,
 //! line and key); [`Plan::build`] checks it against a [`crate::StageRegistry`] (kinds, ports,
 //! message types, replica wiring) and expands replicas into instances and edges. The format is
-//! documented in the repository README.
+//! documented in the repository README. Programs write topologies as [`TopologySpec`]
+//! values, which go through the same parser and planner.
 
 mod parse;
 mod plan;
 mod reader;
+mod spec;
 
 use std::fmt;
 use std::net::SocketAddr;
@@ -16,6 +18,7 @@ use std::ops::Range;
 use std::path::Path;
 
 pub use plan::{EdgePlan, InstancePlan, Plan};
+pub use spec::{EdgeSpec, LinkSpec, NodeSpec, StageSpec, TopologySpec};
 
 use crate::edge::Policy;
 

@@ -1,0 +1,705 @@
+//! The client shell every technique's reconstructor runs on.
+//!
+//! The shell ([`ClientShell`]) owns what all clients share: frame cadence (`fps`), the
+//! camera path, the client's own direct light, the frame (a [`FrameRenderer`] that keeps
+//! its GPU state), read-back and PNG frames, `frames.csv`, the age of the indirect light
+//! shown and the stage report ([`ClientReport`]). A technique ([`ClientTechnique`]) supplies
+//! only what is its own: what it does with a received message, the scene time its indirect
+//! light is valid as of, and the [`IndirectPass`] that draws it.
+//!
+//! Per frame: the scene time now; the age of the indirect light (scene time minus the time
+//! the technique's light is valid as of); then, when rendering, the technique's update to
+//! its pass (e.g. a new photon set), the frame's passes on a blocking thread, and the PNG
+//! when this frame is written. With `render = false` a client only keeps its state and
+//! measures ages (client-count experiments without a GPU per client).
+//!
+//! This module never opens sockets or looks at placement.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use cloudlight_render::raster::{
+    FrameInputs, FrameRenderer, IndirectPass, Raster, RasterError, Readback, ShadowSettings,
+};
+use cloudlight_runtime::clock::now_unix_ns;
+use cloudlight_runtime::{
+    EdgeSettings, Input, Message, NextTick, Stage, StageCtx, StageKind, StageSetup, Stamped,
+};
+use cloudlight_scenes::glam::Vec3;
+use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
+use hdrhistogram::Histogram;
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+
+/// Parameters every client takes; a technique adds its own keys beside them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClientParams {
+    /// Frame width, pixels.
+    #[serde(default = "default_width")]
+    pub width: u32,
+    /// Frame height, pixels.
+    #[serde(default = "default_height")]
+    pub height: u32,
+    /// Frames per second.
+    #[serde(default = "default_fps")]
+    pub fps: f64,
+    /// Camera path of the scene to follow; default: the replica index, wrapping.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<usize>,
+    /// Render frames (false: keep the technique's state and measure ages only).
+    #[serde(default = "yes")]
+    pub render: bool,
+    /// Write frames as PNGs to `<out>/<instance>/`.
+    #[serde(default)]
+    pub write_frames: bool,
+    /// Write every n-th frame.
+    #[serde(default = "one")]
+    pub write_every: u64,
+    /// Emissive surfaces become n² × 2 point emitters per triangle for direct light.
+    #[serde(default = "default_light_samples")]
+    pub light_samples: u32,
+    /// Shadow-map size, texels.
+    #[serde(default = "default_shadow_size")]
+    pub shadow_size: u32,
+}
+
+/// The keys of [`ClientParams`] (a test keeps the two in step).
+pub const CLIENT_KEYS: [&str; 9] = [
+    "width",
+    "height",
+    "fps",
+    "camera",
+    "render",
+    "write_frames",
+    "write_every",
+    "light_samples",
+    "shadow_size",
+];
+
+fn default_width() -> u32 {
+    320
+}
+fn default_height() -> u32 {
+    240
+}
+fn default_fps() -> f64 {
+    10.0
+}
+fn yes() -> bool {
+    true
+}
+fn one() -> u64 {
+    1
+}
+fn default_light_samples() -> u32 {
+    2
+}
+fn default_shadow_size() -> u32 {
+    512
+}
+
+impl Default for ClientParams {
+    fn default() -> Self {
+        ClientParams {
+            width: default_width(),
+            height: default_height(),
+            fps: default_fps(),
+            camera: None,
+            render: true,
+            write_frames: false,
+            write_every: 1,
+            light_samples: default_light_samples(),
+            shadow_size: default_shadow_size(),
+        }
+    }
+}
+
+impl ClientParams {
+    fn check(&self) -> Result<(), String> {
+        if self.width == 0 || self.height == 0 || self.width > 8192 || self.height > 8192 {
+            return Err("width and height must be in 1..=8192".into());
+        }
+        if !(self.fps > 0.0 && self.fps.is_finite() && self.fps <= 1000.0) {
+            return Err("fps must be a number in (0, 1000]".into());
+        }
+        if self.write_every == 0 {
+            return Err("write_every must be at least 1".into());
+        }
+        if !(1..=64).contains(&self.light_samples) {
+            return Err("light_samples must be in 1..=64".into());
+        }
+        if !(1..=8192).contains(&self.shadow_size) {
+            return Err("shadow_size must be in 1..=8192".into());
+        }
+        Ok(())
+    }
+}
+
+/// A client's `params`: the shell's keys and the technique's, from one table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Params<P> {
+    /// The shell's.
+    pub client: ClientParams,
+    /// The technique's.
+    pub technique: P,
+}
+
+impl<'de, P: DeserializeOwned> Deserialize<'de> for Params<P> {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let mut table = toml::Table::deserialize(d)?;
+        let shell: toml::Table = CLIENT_KEYS
+            .iter()
+            .filter_map(|k| table.remove(*k).map(|v| (k.to_string(), v)))
+            .collect();
+        let client: ClientParams = toml::Value::Table(shell)
+            .try_into()
+            .map_err(D::Error::custom)?;
+        client.check().map_err(D::Error::custom)?;
+        let technique: P = toml::Value::Table(table)
+            .try_into()
+            .map_err(|e: toml::de::Error| {
+                D::Error::custom(format!(
+                    "{} (every client also takes: {})",
+                    e.message(),
+                    CLIENT_KEYS.join(", ")
+                ))
+            })?;
+        Ok(Params { client, technique })
+    }
+}
+
+impl<P: Serialize> Params<P> {
+    /// The `params` table of a topology (shell and technique keys side by side).
+    pub fn to_table(&self) -> Result<toml::Table, toml::ser::Error> {
+        let mut t = toml::Table::try_from(&self.client)?;
+        t.extend(toml::Table::try_from(&self.technique)?);
+        Ok(t)
+    }
+}
+
+/// What a technique brings to the client shell.
+pub trait ClientTechnique: Send + Sized + 'static {
+    /// Messages on the client's `in` port.
+    type Msg: Message;
+    /// The technique's own parameters (`deny_unknown_fields`).
+    type Params: DeserializeOwned + Serialize + Clone + Default + Send + 'static;
+    /// The indirect pass.
+    type Pass: IndirectPass + 'static;
+    /// What changes the pass between frames (made on the async side, applied on the
+    /// rendering thread).
+    type Update: Send + 'static;
+    /// The technique's part of the report (flattened into [`ClientReport`]).
+    type Report: Serialize + DeserializeOwned + Default;
+
+    /// The technique's state for a client of `scene`.
+    fn new(setup: &StageSetup, params: &Self::Params, scene: &Arc<Scene>) -> anyhow::Result<Self>;
+
+    /// Handles a message from the cloud.
+    fn on_message(&mut self, stage: &str, msg: &Stamped<Self::Msg>);
+
+    /// Scene time the indirect light held is valid as of (`None`: none yet).
+    fn valid_as_of(&self) -> Option<f64>;
+
+    /// A pass for frames on `raster`.
+    fn new_pass(raster: &Raster, params: &Self::Params) -> Self::Pass;
+
+    /// What the pass needs before the next frame, if anything changed.
+    fn update(&mut self) -> Option<Self::Update>;
+
+    /// Applies an update to the pass (on the rendering thread).
+    fn apply(
+        pass: &mut Self::Pass,
+        raster: &Raster,
+        update: Self::Update,
+    ) -> Result<(), RasterError>;
+
+    /// The technique's report.
+    fn report(&self) -> Self::Report;
+
+    /// The technique's part of the one-line summary.
+    fn summary(&self) -> String;
+
+    /// Extra `frames.csv` columns (comma-separated header) and their values now.
+    fn csv_columns() -> &'static str;
+
+    /// The values of [`ClientTechnique::csv_columns`] now.
+    fn csv_values(&self) -> String;
+}
+
+/// What every client reports; the technique's fields sit beside the shell's.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ClientReport<R> {
+    /// One line for people.
+    pub summary: String,
+    /// Frames rendered.
+    pub frames: u64,
+    /// Frames written as PNGs.
+    pub frames_written: u64,
+    /// Where frames and `frames.csv` go.
+    pub frames_dir: Option<String>,
+    /// Frame time, p50, ms.
+    pub frame_ms_p50: f64,
+    /// Frame time, p99, ms.
+    pub frame_ms_p99: f64,
+    /// Age of the indirect light shown, p50, ms.
+    pub age_ms_p50: f64,
+    /// Age, p99, ms.
+    pub age_ms_p99: f64,
+    /// Largest age, ms.
+    pub age_ms_max: f64,
+    /// Whether any indirect light has been shown.
+    pub indirect_shown: bool,
+    /// Seconds from start to the first indirect light.
+    pub first_indirect_s: Option<f64>,
+    /// Times the shadow maps were rendered.
+    pub shadow_renders: u64,
+    /// The technique's figures.
+    #[serde(flatten)]
+    pub technique: R,
+}
+
+/// One raster device per process, shared by every client in it.
+fn shared_raster() -> anyhow::Result<Arc<Raster>> {
+    static RASTER: OnceLock<Result<Arc<Raster>, String>> = OnceLock::new();
+    RASTER
+        .get_or_init(|| {
+            let r = Raster::new().map(Arc::new).map_err(|e| e.to_string());
+            if let Ok(r) = &r {
+                tracing::info!("raster on {}", r.describe());
+            }
+            r
+        })
+        .clone()
+        .map_err(|e| anyhow::anyhow!(e))
+}
+
+/// The GPU side of a rendering client, used from blocking threads.
+struct Gpu<P> {
+    raster: Arc<Raster>,
+    frame: FrameRenderer,
+    pass: P,
+}
+
+fn histogram() -> Histogram<u64> {
+    Histogram::new(3).expect("3 significant digits is valid")
+}
+
+fn ms(h: &Histogram<u64>, q: f64) -> f64 {
+    if h.is_empty() {
+        0.0
+    } else {
+        h.value_at_quantile(q) as f64 / 1000.0
+    }
+}
+
+/// Where a client writes: `OUT/<instance>/` with `frames.csv`.
+struct Output {
+    frames_dir: Option<PathBuf>,
+    log: Option<std::io::BufWriter<std::fs::File>>,
+}
+
+impl Output {
+    fn open<T: ClientTechnique>(setup: &StageSetup, params: &ClientParams) -> anyhow::Result<Self> {
+        let Some(out) = &setup.out_dir else {
+            return Ok(Output {
+                frames_dir: None,
+                log: None,
+            });
+        };
+        let name = setup.info.name.replace(['[', ']'], "-");
+        let dir = out.join(name.trim_end_matches('-'));
+        std::fs::create_dir_all(&dir).map_err(|e| {
+            anyhow::anyhow!("cannot create the client's folder {}: {e}", dir.display())
+        })?;
+        let path = dir.join("frames.csv");
+        let file = std::fs::File::create(&path)
+            .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+        let mut log = std::io::BufWriter::new(file);
+        writeln!(
+            log,
+            "frame,scene_time_s,frame_ms,age_ms,{}",
+            T::csv_columns()
+        )?;
+        Ok(Output {
+            frames_dir: (params.write_frames && params.render).then_some(dir),
+            log: Some(log),
+        })
+    }
+}
+
+/// Figures the shell keeps.
+struct Figures {
+    frames: u64,
+    frames_written: u64,
+    frame_us: Histogram<u64>,
+    age_us: Histogram<u64>,
+    age_max_s: f64,
+    started: Instant,
+    first_indirect_s: Option<f64>,
+    shadow_renders: u64,
+}
+
+/// A client stage: the shell around technique `T`.
+pub struct ClientShell<T: ClientTechnique> {
+    params: ClientParams,
+    technique: T,
+    scene: Arc<Scene>,
+    camera: usize,
+    gpu: Option<Arc<Mutex<Gpu<T::Pass>>>>,
+    /// Static geometry is uploaded once; moving geometry every frame.
+    geometry_uploaded: bool,
+    /// Surface emitters as point lights, kept while the geometry does not move.
+    surface_lights: Option<Arc<Vec<LightState>>>,
+    output: Output,
+    exposure: Option<f32>,
+    figures: Figures,
+    next_due: Option<Instant>,
+}
+
+fn lock<P>(gpu: &Mutex<Gpu<P>>) -> std::sync::MutexGuard<'_, Gpu<P>> {
+    gpu.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl<T: ClientTechnique> ClientShell<T> {
+    fn new(setup: &StageSetup) -> anyhow::Result<Self> {
+        let params: Params<T::Params> = setup.params()?;
+        let scene = Arc::new(cloudlight_scenes::load(&setup.scene)?);
+        let cameras = scene.cameras.len().max(1);
+        let camera = params.client.camera.unwrap_or(setup.info.replica) % cameras;
+        let technique = T::new(setup, &params.technique, &scene)?;
+        let gpu = if params.client.render {
+            let raster = shared_raster()?;
+            let frame = FrameRenderer::new(
+                &raster,
+                params.client.width,
+                params.client.height,
+                ShadowSettings {
+                    size: params.client.shadow_size,
+                    ..Default::default()
+                },
+            )?;
+            let pass = T::new_pass(&raster, &params.technique);
+            Some(Arc::new(Mutex::new(Gpu {
+                raster,
+                frame,
+                pass,
+            })))
+        } else {
+            None
+        };
+        let output = Output::open::<T>(setup, &params.client)?;
+        Ok(ClientShell {
+            params: params.client,
+            technique,
+            scene,
+            camera,
+            gpu,
+            geometry_uploaded: false,
+            surface_lights: None,
+            output,
+            exposure: None,
+            figures: Figures {
+                frames: 0,
+                frames_written: 0,
+                frame_us: histogram(),
+                age_us: histogram(),
+                age_max_s: 0.0,
+                started: Instant::now(),
+                first_indirect_s: None,
+                shadow_renders: 0,
+            },
+            next_due: None,
+        })
+    }
+
+    fn report(&self) -> ClientReport<T::Report> {
+        let f = &self.figures;
+        let age = if f.age_us.is_empty() {
+            "no indirect light shown yet".to_string()
+        } else {
+            format!(
+                "age of indirect light p50 {:.0} ms, max {:.0} ms",
+                ms(&f.age_us, 0.5),
+                f.age_max_s * 1000.0
+            )
+        };
+        let frames = if self.gpu.is_some() {
+            format!("{} frames (p50 {:.0} ms), ", f.frames, ms(&f.frame_us, 0.5))
+        } else {
+            String::new()
+        };
+        ClientReport {
+            summary: format!("{frames}{age}, {}", self.technique.summary()),
+            frames: f.frames,
+            frames_written: f.frames_written,
+            frames_dir: self
+                .output
+                .frames_dir
+                .as_ref()
+                .map(|d| d.display().to_string()),
+            frame_ms_p50: ms(&f.frame_us, 0.5),
+            frame_ms_p99: ms(&f.frame_us, 0.99),
+            age_ms_p50: ms(&f.age_us, 0.5),
+            age_ms_p99: ms(&f.age_us, 0.99),
+            age_ms_max: f.age_max_s * 1000.0,
+            indirect_shown: self.technique.valid_as_of().is_some(),
+            first_indirect_s: f.first_indirect_s,
+            shadow_renders: f.shadow_renders,
+            technique: self.technique.report(),
+        }
+    }
+
+    fn publish(&self, ctx: &StageCtx) {
+        ctx.report(serde_json::to_value(self.report()).unwrap_or_default());
+    }
+
+    /// Samples the age of the indirect light at scene time `t`.
+    fn record_age(&mut self, t: f64) {
+        if let Some(valid) = self.technique.valid_as_of() {
+            let f = &mut self.figures;
+            let age = (t - valid).max(0.0);
+            f.age_max_s = f.age_max_s.max(age);
+            let _ = f.age_us.record(((age * 1e6) as u64).max(1));
+            if f.first_indirect_s.is_none() {
+                f.first_indirect_s = Some(f.started.elapsed().as_secs_f64());
+            }
+        }
+    }
+
+    /// The camera at `t` (a view of the whole scene when it has no camera paths).
+    fn camera_at(&self, t: f64) -> Camera {
+        if let Some(c) = self.scene.cameras.get(self.camera) {
+            return c.at(t);
+        }
+        let (lo, hi) = self.scene.bounds_at(0.0);
+        let (center, size) = if lo.is_finite() && hi.is_finite() {
+            ((lo + hi) * 0.5, (hi - lo).length())
+        } else {
+            (Vec3::ZERO, 3.0)
+        };
+        Camera {
+            position: center + Vec3::new(0.0, 0.0, size),
+            target: center,
+            up: Vec3::Y,
+            fov_y_rad: 1.0,
+        }
+    }
+
+    /// The client's own lights at `t`: punctual lights and the surface emitters' samples.
+    async fn lights_at(&mut self, t: f64) -> anyhow::Result<Vec<LightState>> {
+        let mut lights: Vec<LightState> = self.scene.lights.iter().map(|l| l.at(t)).collect();
+        let samples = match &self.surface_lights {
+            Some(s) => s.clone(),
+            None => {
+                let (scene, n) = (self.scene.clone(), self.params.light_samples);
+                let s = Arc::new(
+                    tokio::task::spawn_blocking(move || scene.surface_light_samples(t, n)).await?,
+                );
+                if !self.scene.has_moving_geometry() {
+                    self.surface_lights = Some(s.clone());
+                }
+                s
+            }
+        };
+        lights.extend(samples.iter().copied());
+        Ok(lights)
+    }
+
+    /// Renders (and maybe writes) the frame for scene time `t`; returns its time in ms.
+    async fn render(&mut self, t: f64) -> anyhow::Result<Option<f64>> {
+        let Some(gpu) = self.gpu.clone() else {
+            return Ok(None);
+        };
+        let geometry: Option<Arc<Vec<WorldTriangle>>> =
+            if !self.geometry_uploaded || self.scene.has_moving_geometry() {
+                let s = self.scene.clone();
+                self.geometry_uploaded = true;
+                Some(Arc::new(
+                    tokio::task::spawn_blocking(move || s.triangles_at(t)).await?,
+                ))
+            } else {
+                None
+            };
+        let update = self.technique.update();
+        let lights = self.lights_at(t).await?;
+        let camera = self.camera_at(t);
+        let write = self.output.frames_dir.is_some()
+            && self.figures.frames.is_multiple_of(self.params.write_every);
+        let scene = self.scene.clone();
+        let start = Instant::now();
+        let (images, shadow_renders) = tokio::task::spawn_blocking(move || {
+            let mut g = lock(&gpu);
+            let Gpu {
+                raster,
+                frame,
+                pass,
+            } = &mut *g;
+            if let Some(u) = update {
+                T::apply(pass, raster, u)?;
+            }
+            if let Some(tris) = geometry {
+                frame.set_geometry(raster, &scene, &tris)?;
+            }
+            let inputs = FrameInputs {
+                camera,
+                lights: &lights,
+            };
+            let readback = if write {
+                Readback::Composed
+            } else {
+                Readback::Nothing
+            };
+            let images = frame.render(raster, &inputs, pass, readback, false)?;
+            Ok::<_, RasterError>((images, frame.shadow_renders()))
+        })
+        .await??;
+        let frame_time = start.elapsed();
+        self.figures.shadow_renders = shadow_renders;
+        let _ = self
+            .figures
+            .frame_us
+            .record(frame_time.as_micros().max(1) as u64);
+        self.figures.frames += 1;
+        if let (Some(dir), Some(image)) = (&self.output.frames_dir, images.composed) {
+            let stops = *self
+                .exposure
+                .get_or_insert_with(|| cloudlight_render::image_io::auto_exposure(&image));
+            let path = dir.join(format!("frame_{:05}.png", self.figures.frames_written));
+            let (w, h) = (self.params.width, self.params.height);
+            tokio::task::spawn_blocking(move || {
+                cloudlight_render::image_io::write_png(&path, w, h, &image, stops)
+            })
+            .await??;
+            self.figures.frames_written += 1;
+        }
+        Ok(Some(frame_time.as_secs_f64() * 1000.0))
+    }
+
+    fn log_frame(&mut self, t: f64, frame_ms: Option<f64>) -> anyhow::Result<()> {
+        let Some(log) = &mut self.output.log else {
+            return Ok(());
+        };
+        let age = self.technique.valid_as_of().map_or(String::new(), |v| {
+            format!("{:.3}", (t - v).max(0.0) * 1000.0)
+        });
+        let ms = frame_ms.map_or(String::new(), |m| format!("{m:.3}"));
+        writeln!(
+            log,
+            "{},{t:.4},{ms},{age},{}",
+            self.figures.frames,
+            self.technique.csv_values()
+        )?;
+        Ok(())
+    }
+}
+
+#[async_trait::async_trait]
+impl<T: ClientTechnique> Stage for ClientShell<T> {
+    async fn on_start(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
+        self.figures.started = Instant::now();
+        self.publish(ctx);
+        Ok(())
+    }
+
+    async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
+        let msg = input.get::<T::Msg>()?;
+        self.technique.on_message(ctx.name(), &msg);
+        Ok(())
+    }
+
+    async fn on_tick(&mut self, ctx: &mut StageCtx) -> anyhow::Result<NextTick> {
+        if ctx.is_stopping() {
+            return Ok(NextTick::Never);
+        }
+        let due = *self.next_due.get_or_insert_with(Instant::now);
+        let t = ctx.clock().scene_time_at_s(now_unix_ns());
+        self.record_age(t);
+        let frame_ms = self.render(t).await?;
+        self.log_frame(t, frame_ms)?;
+        self.publish(ctx);
+        let interval = Duration::from_secs_f64(1.0 / self.params.fps);
+        let now = Instant::now();
+        let next = (due + interval).max(now);
+        self.next_due = Some(next);
+        Ok(NextTick::After(next - now))
+    }
+
+    async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
+        if let Some(log) = &mut self.output.log {
+            log.flush()?;
+        }
+        self.publish(ctx);
+        Ok(())
+    }
+}
+
+/// Registers a client kind `name` of technique `T` (stage technique `technique`), with its
+/// `in` port's default edge settings.
+pub fn register<T: ClientTechnique>(
+    registry: &mut cloudlight_runtime::StageRegistry,
+    name: &str,
+    technique: &str,
+    summary: &str,
+    edge: EdgeSettings,
+) {
+    registry.register(
+        StageKind::new(name, technique, summary, |s| {
+            Ok(Box::new(ClientShell::<T>::new(s)?))
+        })
+        .input::<T::Msg>("in", edge)
+        .params::<Params<T::Params>>(),
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn client_keys_are_the_fields_of_client_params() {
+        let table = toml::Table::try_from(ClientParams {
+            camera: Some(1),
+            ..Default::default()
+        })
+        .unwrap();
+        let mut keys: Vec<&str> = table.keys().map(String::as_str).collect();
+        keys.sort_unstable();
+        let mut expected = CLIENT_KEYS.to_vec();
+        expected.sort_unstable();
+        assert_eq!(keys, expected);
+    }
+
+    #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Own {
+        #[serde(default)]
+        knob: u32,
+    }
+
+    #[test]
+    fn params_split_between_shell_and_technique_and_unknown_keys_are_errors() {
+        let p: Params<Own> = toml::from_str("width = 64\nknob = 3\nfps = 2.0").unwrap();
+        assert_eq!(p.client.width, 64);
+        assert_eq!(p.client.fps, 2.0);
+        assert_eq!(p.technique, Own { knob: 3 });
+        let table = p.to_table().unwrap();
+        assert_eq!(table["knob"].as_integer(), Some(3));
+        let again: Params<Own> = toml::Value::Table(table).try_into().unwrap();
+        assert_eq!(again, p);
+        let e = toml::from_str::<Params<Own>>("widht = 64")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("widht") && e.contains("every client also takes"),
+            "{e}"
+        );
+        let e = toml::from_str::<Params<Own>>("fps = 0.0")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("fps"), "{e}");
+    }
+}

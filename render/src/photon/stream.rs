@@ -1,0 +1,372 @@
+//! The server side of the photon technique, iteration by iteration ([`PhotonStream`]): the
+//! one kernel behind the `photon_batcher` stage, the benchmarks and the tests.
+//!
+//! Phases of an iteration:
+//! 1. **Plan** ([`PhotonStream::plan`]): the lights at the scene time, photons per light
+//!    ([`BatchPlan`]), this iteration's splat radius, and which batches to trace: every batch
+//!    of a light that is new or changed (or of every light, with [`Retrace::Always`]).
+//! 2. **Trace** ([`PhotonStream::trace`]): one batch, traced and packed; independent of the
+//!    stream's state, so a caller may run batches on any thread and send each when done.
+//! 3. **Commit** ([`PhotonStream::commit`]): a light's new batches replace its set; lights
+//!    that vanished were dropped by the plan.
+//!
+//! Besides, the stream holds each light's current set for late receivers:
+//! [`PhotonStream::manifest`] describes it, [`PhotonStream::due_for_resend`] returns the
+//! sets that have not gone out for a while (every call takes `now`; the stream reads no
+//! clock).
+
+use std::collections::{BTreeMap, HashSet};
+use std::time::{Duration, Instant};
+
+use cloudlight_scenes::Scene;
+
+use super::pack::BatchHeader;
+use super::{
+    BatchPlan, Manifest, ManifestLight, PackFormat, PackedBatch, Photon, PhotonLight,
+    PhotonSettings, PhotonTracer, photon_lights_in,
+};
+use crate::bvh::SceneBvh;
+
+/// When a light's batches are traced again.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Retrace {
+    /// Only when the light changed (moved, changed power, appeared).
+    #[default]
+    Changed,
+    /// Every iteration, with fresh random numbers (the paper's continuous stream).
+    Always,
+}
+
+/// A light's current batch set.
+#[derive(Clone, Debug)]
+pub struct LightSet {
+    /// The light as it was traced.
+    pub light: PhotonLight,
+    /// Increases each time the light is traced again.
+    pub generation: u64,
+    /// Its batches by slot.
+    pub batches: BTreeMap<u32, PackedBatch>,
+    /// When the set last went out (traced or re-sent).
+    pub sent_at: Instant,
+}
+
+/// One batch to trace.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BatchJob {
+    /// Index into [`IterationPlan::lights`].
+    pub light: usize,
+    /// Slot among the light's batches.
+    pub slot: u32,
+    /// The light's batch count.
+    pub slots: u32,
+    /// The generation being traced.
+    pub generation: u64,
+}
+
+/// What one iteration traces.
+#[derive(Clone, Debug)]
+pub struct IterationPlan {
+    /// Scene time, seconds.
+    pub t_s: f64,
+    /// Every light emitting at `t_s`.
+    pub lights: Vec<PhotonLight>,
+    /// Batches per light.
+    pub plan: BatchPlan,
+    /// The tracer's settings, with this iteration's radius fixed.
+    pub settings: PhotonSettings,
+    /// The batches to trace, light by light and slot by slot.
+    pub jobs: Vec<BatchJob>,
+}
+
+impl IterationPlan {
+    /// The splat radius of this iteration, meters.
+    pub fn radius_m(&self) -> f32 {
+        self.settings.radius_m.unwrap_or(0.0)
+    }
+}
+
+/// One traced and packed batch.
+#[derive(Clone, Debug)]
+pub struct TracedBatch {
+    /// The packed batch.
+    pub batch: PackedBatch,
+    /// Photons stored.
+    pub stored: usize,
+    /// Time spent tracing.
+    pub trace_time: Duration,
+    /// Time spent packing.
+    pub pack_time: Duration,
+}
+
+/// The photon batches of a scene, kept current iteration by iteration.
+#[derive(Clone, Debug)]
+pub struct PhotonStream {
+    settings: PhotonSettings,
+    format: PackFormat,
+    retrace: Retrace,
+    seed: u64,
+    sets: BTreeMap<u32, LightSet>,
+    iteration: u64,
+}
+
+impl PhotonStream {
+    /// A stream without batches yet.
+    pub fn new(settings: PhotonSettings, format: PackFormat, retrace: Retrace, seed: u64) -> Self {
+        PhotonStream {
+            settings,
+            format,
+            retrace,
+            seed,
+            sets: BTreeMap::new(),
+            iteration: 0,
+        }
+    }
+
+    /// The tracer's settings.
+    pub fn settings(&self) -> &PhotonSettings {
+        &self.settings
+    }
+
+    /// The packing.
+    pub fn format(&self) -> PackFormat {
+        self.format
+    }
+
+    /// Iterations planned so far.
+    pub fn iteration(&self) -> u64 {
+        self.iteration
+    }
+
+    /// The current set of each light, by light id.
+    pub fn sets(&self) -> &BTreeMap<u32, LightSet> {
+        &self.sets
+    }
+
+    /// Phase 1: plans an iteration at scene time `t_s` (BVH `bvh` at that time) and drops
+    /// the sets of lights that no longer emit.
+    pub fn plan(&mut self, scene: &Scene, bvh: &SceneBvh, t_s: f64) -> IterationPlan {
+        let lights = photon_lights_in(scene, t_s, bvh.bounds());
+        let plan = BatchPlan::new(&lights, &self.settings);
+        let radius = PhotonTracer::new(scene, bvh, self.settings, &plan, self.seed).radius();
+        let settings = PhotonSettings {
+            radius_m: Some(radius),
+            ..self.settings
+        };
+        let live: HashSet<u32> = lights.iter().map(|l| l.id).collect();
+        self.sets.retain(|id, _| live.contains(id));
+        self.iteration += 1;
+        let mut jobs = Vec::new();
+        for (index, light) in lights.iter().enumerate() {
+            let slots = plan.batches_of(light.id);
+            let current = self.sets.get(&light.id);
+            let changed = current.is_none_or(|s| {
+                self.retrace == Retrace::Always
+                    || s.light != *light
+                    || s.batches.len() as u32 != slots
+            });
+            if !changed {
+                continue;
+            }
+            let generation = current.map_or(1, |s| s.generation + 1);
+            jobs.extend((0..slots).map(|slot| BatchJob {
+                light: index,
+                slot,
+                slots,
+                generation,
+            }));
+        }
+        IterationPlan {
+            t_s,
+            lights,
+            plan,
+            settings,
+            jobs,
+        }
+    }
+
+    /// Phase 2: traces and packs `job` of `plan` (seed `seed`).
+    pub fn trace(
+        scene: &Scene,
+        bvh: &SceneBvh,
+        plan: &IterationPlan,
+        job: &BatchJob,
+        seed: u64,
+        format: PackFormat,
+    ) -> TracedBatch {
+        let light = &plan.lights[job.light];
+        let tracer = PhotonTracer::new(scene, bvh, plan.settings, &plan.plan, seed);
+        let start = Instant::now();
+        let photons: Vec<Photon> = tracer.trace_batch(light, job.slot, job.slots, job.generation);
+        let trace_time = start.elapsed();
+        let start = Instant::now();
+        let batch = PackedBatch::pack(
+            BatchHeader {
+                light: light.id,
+                slot: job.slot,
+                slots: job.slots,
+                generation: job.generation,
+                scene_time_s: plan.t_s,
+                emitted: plan.settings.batch_size,
+            },
+            &photons,
+            format,
+        );
+        TracedBatch {
+            batch,
+            stored: photons.len(),
+            trace_time,
+            pack_time: start.elapsed(),
+        }
+    }
+
+    /// The seed batches are traced with.
+    pub fn seed(&self) -> u64 {
+        self.seed
+    }
+
+    /// Phase 3: `light`'s batches of `generation` are all traced; they replace its set
+    /// (sent at `now`).
+    pub fn commit(
+        &mut self,
+        light: PhotonLight,
+        generation: u64,
+        batches: BTreeMap<u32, PackedBatch>,
+        now: Instant,
+    ) {
+        self.sets.insert(
+            light.id,
+            LightSet {
+                light,
+                generation,
+                batches,
+                sent_at: now,
+            },
+        );
+    }
+
+    /// The complete set as of scene time `t_s`.
+    pub fn manifest(&self, t_s: f64) -> Manifest {
+        Manifest {
+            iteration: self.iteration,
+            scene_time_s: t_s,
+            lights: self
+                .sets
+                .values()
+                .map(|s| ManifestLight {
+                    light: s.light.id,
+                    generation: s.generation,
+                    slots: s.batches.len() as u32,
+                })
+                .collect(),
+        }
+    }
+
+    /// The batches of every set that has not gone out for `period` by `now`; they count as
+    /// sent at `now`.
+    pub fn due_for_resend(&mut self, period: Duration, now: Instant) -> Vec<PackedBatch> {
+        self.sets
+            .values_mut()
+            .filter(|s| now.saturating_duration_since(s.sent_at) >= period)
+            .flat_map(|s| {
+                s.sent_at = now;
+                s.batches.values().cloned().collect::<Vec<_>>()
+            })
+            .collect()
+    }
+
+    /// Bytes of packed photons held (the server's memory footprint).
+    pub fn footprint_bytes(&self) -> usize {
+        self.sets
+            .values()
+            .flat_map(|s| s.batches.values())
+            .map(|b| b.data.len())
+            .sum()
+    }
+
+    /// Batches held.
+    pub fn batch_count(&self) -> usize {
+        self.sets.values().map(|s| s.batches.len()).sum()
+    }
+
+    /// One whole iteration on this thread: plan, trace every job, commit.
+    pub fn iterate(&mut self, scene: &Scene, bvh: &SceneBvh, t_s: f64) -> Iteration {
+        let plan = self.plan(scene, bvh, t_s);
+        let mut batches = Vec::with_capacity(plan.jobs.len());
+        let (mut trace_time, mut pack_time, mut stored) = (Duration::ZERO, Duration::ZERO, 0);
+        let mut per_light: BTreeMap<usize, BTreeMap<u32, PackedBatch>> = BTreeMap::new();
+        for job in &plan.jobs {
+            let traced = Self::trace(scene, bvh, &plan, job, self.seed, self.format);
+            trace_time += traced.trace_time;
+            pack_time += traced.pack_time;
+            stored += traced.stored;
+            per_light
+                .entry(job.light)
+                .or_default()
+                .insert(job.slot, traced.batch.clone());
+            batches.push(traced.batch);
+        }
+        let now = Instant::now();
+        for (index, set) in per_light {
+            let generation = plan
+                .jobs
+                .iter()
+                .find(|j| j.light == index)
+                .map_or(1, |j| j.generation);
+            self.commit(plan.lights[index].clone(), generation, set, now);
+        }
+        Iteration {
+            radius: plan.radius_m(),
+            plan: plan.plan,
+            batches,
+            stored,
+            trace_time,
+            pack_time,
+        }
+    }
+}
+
+/// One whole iteration, traced and packed (what benchmarks and tests measure).
+#[derive(Clone, Debug)]
+pub struct Iteration {
+    /// Batches per light.
+    pub plan: BatchPlan,
+    /// Splat radius, meters.
+    pub radius: f32,
+    /// The packed batches, in light and slot order.
+    pub batches: Vec<PackedBatch>,
+    /// Photons stored.
+    pub stored: usize,
+    /// Time spent tracing.
+    pub trace_time: Duration,
+    /// Time spent packing.
+    pub pack_time: Duration,
+}
+
+impl Iteration {
+    /// Bytes of photon data (the batches' payloads).
+    pub fn data_bytes(&self) -> usize {
+        self.batches.iter().map(|b| b.data.len()).sum()
+    }
+
+    /// Every photon, decoded from the packed batches (as a client sees them).
+    pub fn unpacked(&self) -> Vec<Photon> {
+        self.batches
+            .iter()
+            .flat_map(|b| b.unpack().unwrap_or_default())
+            .collect()
+    }
+}
+
+/// Traces and packs every batch of every light of `scene` at `t_s` (BVH `bvh`): one
+/// iteration of a fresh [`PhotonStream`].
+pub fn trace_iteration(
+    scene: &Scene,
+    bvh: &SceneBvh,
+    t_s: f64,
+    settings: PhotonSettings,
+    seed: u64,
+    format: PackFormat,
+) -> Iteration {
+    PhotonStream::new(settings, format, Retrace::Always, seed).iterate(scene, bvh, t_s)
+}

@@ -1,0 +1,643 @@
+//! The photon technique's benchmarks: its [`Technique`] descriptor, the paper's Table 2 rows
+//! ([`table2`]), the client's frame ([`client_frame`]) and the speed/accuracy sweep over
+//! photon budgets ([`quality`]).
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::Context;
+use cloudlight_actors::client::{ClientParams, ClientReport, Params};
+use cloudlight_actors::photon_batcher::{BatcherParams, BatcherReport, Retrace};
+use cloudlight_actors::photon_reconstructor::{PhotonClientParams, PhotonClientReport};
+use cloudlight_actors::wire::PhotonMsg;
+use cloudlight_render::metrics::{ImageErrors, compare};
+use cloudlight_render::photon::{PackFormat, Photon, PhotonSettings, trace_iteration};
+use cloudlight_render::raster::{PhotonSplatPass, Raster, ShadowSettings, SplatSettings};
+use cloudlight_render::{BvhKind, SceneBvh};
+use cloudlight_scenes::glam::Vec3;
+use cloudlight_scenes::{Camera, Scene};
+use serde::{Deserialize, Serialize};
+
+use super::client::{ClientBench, ClientBenchOptions};
+use super::table::{Markdown, bytes, count};
+use super::{ClusterOptions, ClusterRun, ScalingRow, Technique, paper};
+
+/// The photon technique.
+pub struct Photons;
+
+/// The photon benchmarks' knobs.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct PhotonOptions {
+    /// Photons per iteration over all lights.
+    pub photons: u64,
+    /// Photons per batch.
+    pub batch_size: u32,
+    /// Iteration period, ms (every light is re-traced each iteration).
+    pub interval_ms: f64,
+    /// Packing.
+    pub format: PackFormat,
+}
+
+impl Default for PhotonOptions {
+    fn default() -> Self {
+        PhotonOptions {
+            photons: 10_000,
+            batch_size: 10_000,
+            interval_ms: 33.0,
+            format: PackFormat::Compact12,
+        }
+    }
+}
+
+impl Technique for Photons {
+    const NAME: &'static str = "photons";
+    const SERVER_KIND: &'static str = "photon_batcher";
+    const CLIENT_KIND: &'static str = "photon_reconstructor";
+    type ServerReport = BatcherReport;
+    type ClientReport = ClientReport<PhotonClientReport>;
+    type Options = PhotonOptions;
+
+    fn server_params(o: &PhotonOptions) -> anyhow::Result<toml::Table> {
+        let params = BatcherParams {
+            photons: Some(o.photons),
+            batch_size: o.batch_size,
+            interval_ms: o.interval_ms,
+            retrace: Retrace::Always,
+            resend_s: 0.0,
+            format: match o.format {
+                PackFormat::Compact12 => "compact12",
+                PackFormat::Wide20 => "wide20",
+            }
+            .into(),
+            ..BatcherParams::default()
+        };
+        Ok(toml::Table::try_from(params)?)
+    }
+
+    fn client_params(_: &PhotonOptions) -> anyhow::Result<toml::Table> {
+        let params = Params {
+            client: ClientParams {
+                render: false,
+                fps: 20.0,
+                ..ClientParams::default()
+            },
+            technique: PhotonClientParams::default(),
+        };
+        Ok(params.to_table()?)
+    }
+
+    fn scaling_row(run: &ClusterRun<Self>, clients: usize) -> ScalingRow {
+        let ages: Vec<f64> = run.clients.iter().map(|c| c.age_ms_p50).collect();
+        ScalingRow {
+            clients,
+            server_update_ms: run.server.iteration_ms_mean,
+            server_kernel_ms: run.server.trace_ms_mean * run.server.batches as f64,
+            updates: run.server.iterations,
+            total_wire_mbps: run.wire_mbps(),
+            total_payload_mbps: run.payload_mbps(),
+            age_ms_p50_mean: ages.iter().sum::<f64>() / ages.len().max(1) as f64,
+            age_ms_p99_max: run.clients.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
+            clients_showing_indirect: run.clients.iter().filter(|c| c.indirect_shown).count(),
+        }
+    }
+}
+
+/// One column of the photon block of Table 2.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct PhotonColumn {
+    /// Scene.
+    pub scene: String,
+    /// Triangles.
+    pub triangles: usize,
+    /// The paper's scene it is compared with.
+    pub paper_scene: &'static str,
+    /// Photons per iteration asked for.
+    pub photons_per_iteration: u64,
+    /// Batches per iteration.
+    pub batches: usize,
+    /// Photons per batch.
+    pub photons_per_batch: u32,
+    /// Packed photons held by the server, bytes.
+    pub memory_footprint_bytes: usize,
+    /// Iteration time, mean, ms.
+    pub iteration_interval_ms: f64,
+    /// Trace time per iteration, ms.
+    pub trace_ms: f64,
+    /// Packing time per iteration, ms.
+    pub packing_ms: f64,
+    /// Encoding an iteration's messages and handing them to the transport, ms.
+    pub send_ms: f64,
+    /// Encoded bytes per iteration.
+    pub encoded_bytes: usize,
+    /// Iterations measured.
+    pub iterations: u64,
+    /// Iteration period asked for, ms.
+    pub interval_target_ms: f64,
+    /// Server-to-client wire bandwidth, Mbps.
+    pub server_to_client_mbps: f64,
+    /// Server-to-client payload bandwidth, Mbps.
+    pub payload_mbps: f64,
+    /// Photons held by the client.
+    pub client_stored_photons: usize,
+    /// The client's indirect pass (splat + upsample), median, ms.
+    pub client_indirect_ms: f64,
+    /// Its frame size.
+    pub client_resolution: String,
+    /// Bytes per photon.
+    pub bytes_per_photon: usize,
+}
+
+/// Measures one Table 2 column: the cloud and one client over loopback for
+/// `cluster.seconds`, then the client's indirect pass at `width × height` on `raster`.
+pub fn table2_column(
+    runtime: &tokio::runtime::Runtime,
+    raster: &Raster,
+    options: &PhotonOptions,
+    cluster: &ClusterOptions,
+    (width, height): (u32, u32),
+) -> anyhow::Result<PhotonColumn> {
+    let run = super::run_cluster::<Photons>(runtime, options, cluster, 1)?;
+    let (bt, client) = (&run.server, &run.clients[0]);
+    let scene = cloudlight_scenes::load(&cluster.scene)?;
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let settings = PhotonSettings::for_budget(&scene, options.photons, options.batch_size);
+    let it = trace_iteration(&scene, &bvh, 0.0, settings, cluster.seed, options.format);
+    let start = Instant::now();
+    let mut encoded = 0;
+    for batch in &it.batches {
+        encoded += cloudlight_runtime::codec::encode(&PhotonMsg::Batch(batch.clone()))?.len();
+    }
+    let encode_ms = start.elapsed().as_secs_f64() * 1000.0;
+    let frame = client_frame(
+        raster,
+        &scene,
+        &it.unpacked(),
+        ClientBenchOptions {
+            width,
+            height,
+            frames: 5,
+            ..Default::default()
+        },
+    )?;
+    let batches = bt.batches as f64;
+    Ok(PhotonColumn {
+        scene: cluster.scene.clone(),
+        triangles: scene.triangle_count(),
+        paper_scene: paper::SCENES[paper::nearest_scene(scene.triangle_count() as u64)].name,
+        photons_per_iteration: options.photons,
+        batches: bt.batches,
+        photons_per_batch: bt.batch_size,
+        memory_footprint_bytes: bt.footprint_bytes,
+        iteration_interval_ms: bt.iteration_ms_mean,
+        trace_ms: bt.trace_ms_mean * batches,
+        packing_ms: bt.pack_ms_mean * batches,
+        send_ms: encode_ms + bt.send_ms_mean * (batches + 1.0),
+        encoded_bytes: encoded,
+        iterations: bt.iterations,
+        interval_target_ms: options.interval_ms,
+        server_to_client_mbps: run.wire_mbps(),
+        payload_mbps: run.payload_mbps(),
+        client_stored_photons: client.technique.photons_stored,
+        client_indirect_ms: frame
+            .passes
+            .iter()
+            .find(|p| p.pass == "indirect")
+            .map_or(0.0, |p| p.p50_ms),
+        client_resolution: format!("{width}x{height}"),
+        bytes_per_photon: bt.bytes_per_photon,
+    })
+}
+
+/// The photon block of Table 2: our columns, each followed by the paper's column of the
+/// nearest scene.
+pub fn table2_markdown(columns: &[PhotonColumn]) -> String {
+    let mut header = vec!["Photons".to_string()];
+    for c in columns {
+        header.push(c.scene.clone());
+        header.push(format!("paper: {}", c.paper_scene));
+    }
+    let header_refs: Vec<&str> = header.iter().map(String::as_str).collect();
+    let mut t = Markdown::new(&header_refs);
+    type Cell = fn(&PhotonColumn) -> String;
+    let rows: [(&str, usize, Cell); 11] = [
+        ("Triangles", usize::MAX, |c| c.triangles.to_string()),
+        ("Number of batches", 0, |c| c.batches.to_string()),
+        ("Photons per batch", 1, |c| c.photons_per_batch.to_string()),
+        ("Memory footprint", 2, |c| {
+            bytes(c.memory_footprint_bytes as f64)
+        }),
+        ("Iteration interval (total)", 3, |c| {
+            format!("{:.1} ms", c.iteration_interval_ms)
+        }),
+        ("Photon trace", 4, |c| format!("{:.1} ms", c.trace_ms)),
+        ("Photon packing (paper: compaction)", 5, |c| {
+            format!("{:.2} ms ({} B/photon)", c.packing_ms, c.bytes_per_photon)
+        }),
+        (
+            "Send: encode + hand-off (paper: GPU to CPU to NIC)",
+            6,
+            |c| format!("{:.2} ms", c.send_ms),
+        ),
+        ("Server-to-client bandwidth (mean, wire)", 7, |c| {
+            format!("{:.1} Mbps", c.server_to_client_mbps)
+        }),
+        ("Local device stored photons", 8, |c| {
+            count(c.client_stored_photons as f64)
+        }),
+        (
+            "Client indirect: splat + upsample (paper: local device indirect time)",
+            9,
+            |c| format!("{:.1} ms at {}", c.client_indirect_ms, c.client_resolution),
+        ),
+    ];
+    for (label, paper_row, cell) in rows {
+        let mut cells = vec![label.to_string()];
+        for c in columns {
+            cells.push(cell(c));
+            let scene = paper::SCENES
+                .iter()
+                .position(|s| s.name == c.paper_scene)
+                .unwrap_or(0);
+            cells.push(match paper_row {
+                usize::MAX => paper::SCENES[scene].polygons.to_string(),
+                r => paper::PHOTONS[r].1[scene].to_string(),
+            });
+        }
+        t.row(cells);
+    }
+    t.render()
+}
+
+/// The client's frame with `photons` splatted at the default settings (see
+/// [`super::client::measure`]).
+pub fn client_frame(
+    raster: &Raster,
+    scene: &Scene,
+    photons: &[Photon],
+    options: ClientBenchOptions,
+) -> anyhow::Result<ClientBench> {
+    client_frame_with(raster, scene, photons, SplatSettings::default(), options)
+}
+
+/// [`client_frame`] with these splat settings.
+pub fn client_frame_with(
+    raster: &Raster,
+    scene: &Scene,
+    photons: &[Photon],
+    splat: SplatSettings,
+    options: ClientBenchOptions,
+) -> anyhow::Result<ClientBench> {
+    let mut pass = PhotonSplatPass::new(raster, splat);
+    pass.set_photons(raster, photons)?;
+    super::client::measure(raster, scene, &mut pass, options)
+}
+
+/// The speed/accuracy sweep's settings.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct QualityOptions {
+    /// Photon budgets per iteration.
+    pub budgets: Vec<u64>,
+    /// Photons per batch (at most the budget).
+    pub batch_size: u32,
+    /// Reference samples per pixel.
+    pub spp: u32,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Updates per second the Mbps assume (capped by the update time).
+    pub rate_hz: f64,
+    /// Seed of the photon streams.
+    pub seed: u64,
+}
+
+/// One point of the trade: a budget in one packing.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct QualityPoint {
+    /// `12 B`, `20 B`, or `20 B, same bytes` (20-byte photons at 12/20 of the budget).
+    pub packing: String,
+    /// Photons emitted per update.
+    pub photons: u64,
+    /// Photons stored.
+    pub stored: usize,
+    /// Splat radius, m.
+    pub radius_m: f32,
+    /// Trace + pack time of one update, ms.
+    pub update_ms: f64,
+    /// Trace time, ms.
+    pub trace_ms: f64,
+    /// Photon bytes per update, kB.
+    pub kbytes: f64,
+    /// Megabits per second at the update rate.
+    pub mbps: f64,
+    /// Errors of the client's indirect light against the reference.
+    pub errors: ImageErrors,
+}
+
+/// One budget in the three packings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct QualityRow {
+    /// Photons per update.
+    pub photons: u64,
+    /// 12-byte photons.
+    pub twelve: QualityPoint,
+    /// 20-byte photons, same budget (the packing's own error).
+    pub twenty: QualityPoint,
+    /// 20-byte photons at 12/20 of the budget (what the same bandwidth buys).
+    pub twenty_same_bytes: QualityPoint,
+}
+
+/// The view a quality sweep measures: the scene's first camera at time 0, the reference's
+/// indirect light.
+pub struct QualityView {
+    /// The scene.
+    pub scene: Scene,
+    /// Its BVH at time 0.
+    pub bvh: SceneBvh,
+    /// The camera.
+    pub camera: Camera,
+    /// The path tracer's indirect-only radiance.
+    pub reference: Vec<Vec3>,
+    /// Seconds the reference took.
+    pub reference_s: f64,
+}
+
+impl QualityView {
+    /// Renders the reference of `scene` at `width × height`, `spp` samples per pixel.
+    pub fn new(scene: Scene, width: u32, height: u32, spp: u32) -> anyhow::Result<Self> {
+        let camera = scene
+            .cameras
+            .first()
+            .map(|c| c.at(0.0))
+            .with_context(|| format!("scene `{}` has no camera", scene.name))?;
+        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+        let start = Instant::now();
+        let settings = cloudlight_render::RenderSettings {
+            width,
+            height,
+            camera,
+            time_s: 0.0,
+            seed: 77,
+            max_bounces: 64,
+        };
+        let reference = cloudlight_render::render(&scene, &bvh, settings, spp).indirect();
+        Ok(QualityView {
+            scene,
+            bvh,
+            camera,
+            reference,
+            reference_s: start.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// One update of `photons` in `format`, splatted and compared with the reference;
+    /// returns the point and the client's indirect image.
+    #[allow(clippy::too_many_arguments)]
+    pub fn point(
+        &self,
+        raster: &Raster,
+        packing: &str,
+        photons: u64,
+        format: PackFormat,
+        o: &QualityOptions,
+    ) -> anyhow::Result<(QualityPoint, Vec<Vec3>)> {
+        let settings = PhotonSettings::for_budget(
+            &self.scene,
+            photons,
+            o.batch_size.min(photons as u32).max(1),
+        );
+        let it = trace_iteration(&self.scene, &self.bvh, 0.0, settings, o.seed, format);
+        let frame = raster.photon_frame(
+            &self.scene,
+            self.bvh.triangles(),
+            &[],
+            &self.camera,
+            o.width,
+            o.height,
+            ShadowSettings {
+                size: 16,
+                ..Default::default()
+            },
+            &it.unpacked(),
+            SplatSettings::default(),
+        )?;
+        let mask: Vec<bool> = (0..frame.indirect.len())
+            .map(|i| frame.gbuffer.covered(i))
+            .collect();
+        let errors = compare(&frame.indirect, &self.reference, &mask, o.width, o.height);
+        let update_ms = (it.trace_time + it.pack_time).as_secs_f64() * 1000.0;
+        let bytes = it.data_bytes() as f64;
+        let rate = o.rate_hz.min(1000.0 / update_ms.max(1e-3));
+        let point = QualityPoint {
+            packing: packing.to_string(),
+            photons,
+            stored: it.stored,
+            radius_m: it.radius,
+            update_ms,
+            trace_ms: it.trace_time.as_secs_f64() * 1000.0,
+            kbytes: bytes / 1e3,
+            mbps: bytes * 8.0 * rate / 1e6,
+            errors,
+        };
+        Ok((point, frame.indirect))
+    }
+
+    /// One budget in the three packings; the 12-byte client image too.
+    pub fn row(
+        &self,
+        raster: &Raster,
+        photons: u64,
+        o: &QualityOptions,
+    ) -> anyhow::Result<(QualityRow, Vec<Vec3>)> {
+        let (twelve, image) = self.point(raster, "12 B", photons, PackFormat::Compact12, o)?;
+        let (twenty, _) = self.point(raster, "20 B", photons, PackFormat::Wide20, o)?;
+        let same = (photons * 12 / 20).max(1);
+        let (twenty_same_bytes, _) =
+            self.point(raster, "20 B, same bytes", same, PackFormat::Wide20, o)?;
+        Ok((
+            QualityRow {
+                photons,
+                twelve,
+                twenty,
+                twenty_same_bytes,
+            },
+            image,
+        ))
+    }
+}
+
+/// The quality table.
+pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
+    let mut t = Markdown::new(&[
+        "photons",
+        "stored",
+        "radius cm",
+        "update ms",
+        "KB/update (12 B)",
+        &format!("Mbps @ {rate_hz} Hz (12 B)"),
+        "relMSE (12 B)",
+        "relMSE (20 B)",
+        "relMSE (20 B, same bytes)",
+        "HDR-FLIP (12 B)",
+        "energy ours / reference",
+    ]);
+    for r in rows {
+        let p = &r.twelve;
+        t.row(vec![
+            r.photons.to_string(),
+            p.stored.to_string(),
+            format!("{:.2}", p.radius_m * 100.0),
+            format!("{:.1}", p.update_ms),
+            format!("{:.1}", p.kbytes),
+            format!("{:.1}", p.mbps),
+            format!("{:.4}", p.errors.relmse),
+            format!("{:.4}", r.twenty.errors.relmse),
+            format!("{:.4}", r.twenty_same_bytes.errors.relmse),
+            format!("{:.3}", p.errors.flip),
+            format!("{:.3}", p.errors.energy_ratio),
+        ]);
+    }
+    t.render()
+}
+
+/// `cloudlight bench quality --technique photons`: the sweep over budgets on `scene`, with
+/// the table, `quality.json`, the Pareto plot `quality.png` and EXRs written to `out`.
+pub fn quality(
+    raster: &Raster,
+    scene_spec: &str,
+    o: &QualityOptions,
+    out: &Path,
+) -> anyhow::Result<Vec<QualityRow>> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let scene = cloudlight_scenes::load(scene_spec)?;
+    eprintln!(
+        "reference: {}x{}, {} spp, indirect only...",
+        o.width, o.height, o.spp
+    );
+    let view = QualityView::new(scene, o.width, o.height, o.spp)?;
+    eprintln!("reference took {:.1} s", view.reference_s);
+    let exr = |name: String, img: &[Vec3]| {
+        cloudlight_render::image_io::write_exr(&out.join(name), o.width, o.height, img)
+    };
+    exr("reference_indirect.exr".into(), &view.reference)?;
+    let mut rows = Vec::new();
+    for &budget in &o.budgets {
+        let (row, image) = view.row(raster, budget, o)?;
+        eprintln!(
+            "{budget} photons: relMSE {:.4}, FLIP {:.3}, energy {:.3}",
+            row.twelve.errors.relmse, row.twelve.errors.flip, row.twelve.errors.energy_ratio
+        );
+        exr(format!("indirect_{budget}.exr"), &image)?;
+        rows.push(row);
+    }
+    println!("{}", quality_markdown(&rows, o.rate_hz));
+    println!(
+        "relMSE of the client's indirect radiance ({}x{}) against the path tracer's indirect image ({} spp) of the same \
+         view and time, both divided by the reference's mean luminance over pixels that see geometry (ε = 0.01 of that \
+         mean); Mbps if updated at {} Hz or as fast as the update allows. Paper's operating point: 10k photons, {} Mbps, {} ms.",
+        o.width,
+        o.height,
+        o.spp,
+        o.rate_hz,
+        paper::PHOTON_OPERATING_POINT.0,
+        paper::PHOTON_OPERATING_POINT.1
+    );
+    let report = serde_json::json!({ "technique": "photons", "scene": scene_spec, "options": o,
+        "reference_seconds": view.reference_s, "rows": rows });
+    let json = out.join("quality.json");
+    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("writing {}", json.display()))?;
+    let png = quality_plot(&out.join("quality.png"), scene_spec, &rows)?;
+    println!("wrote {} and {}", json.display(), png.display());
+    Ok(rows)
+}
+
+/// The Pareto plot: relMSE against Mbps and against update time, per packing, with the
+/// paper's operating point marked.
+fn quality_plot(
+    path: &Path,
+    scene: &str,
+    rows: &[QualityRow],
+) -> anyhow::Result<std::path::PathBuf> {
+    use crate::plot::{Marker, ParetoPanel, Series};
+    let series = |x: fn(&QualityPoint) -> f64| -> Vec<Series> {
+        type Pick = fn(&QualityRow) -> &QualityPoint;
+        let pick: [(&str, Pick); 3] = [
+            ("12-byte photons", |r| &r.twelve),
+            ("20-byte photons", |r| &r.twenty),
+            ("20-byte photons, same bytes", |r| &r.twenty_same_bytes),
+        ];
+        pick.iter()
+            .map(|(label, f)| Series {
+                label: label.to_string(),
+                points: rows
+                    .iter()
+                    .map(|r| {
+                        let p = f(r);
+                        (x(p), p.errors.relmse, count(p.photons as f64))
+                    })
+                    .collect(),
+            })
+            .collect()
+    };
+    let (mbps, ms) = paper::PHOTON_OPERATING_POINT;
+    crate::plot::pareto(
+        path,
+        &format!("Photons, {scene}: error against bandwidth and update time"),
+        &[
+            ParetoPanel {
+                x_label: "server-to-client Mbps".into(),
+                y_label: "relMSE (scale-invariant)".into(),
+                series: series(|p| p.mbps),
+                marker: Some(Marker {
+                    x: mbps,
+                    label: format!("paper: {mbps} Mbps (10k photons)"),
+                }),
+            },
+            ParetoPanel {
+                x_label: "update ms (trace + pack)".into(),
+                y_label: "relMSE (scale-invariant)".into(),
+                series: series(|p| p.update_ms),
+                marker: Some(Marker {
+                    x: ms,
+                    label: format!("paper: {ms} ms per iteration"),
+                }),
+            },
+        ],
+    )
+}
+
+/// `cloudlight bench table2 --technique photons`: one column per scene (`budgets[i]`
+/// photons for scene `i`, the last repeating), every light re-traced each iteration.
+pub fn table2(
+    runtime: &tokio::runtime::Runtime,
+    raster: &Raster,
+    scenes: &[String],
+    budgets: &[u64],
+    options: &PhotonOptions,
+    cluster: &ClusterOptions,
+    size: (u32, u32),
+) -> anyhow::Result<Vec<PhotonColumn>> {
+    let mut columns = Vec::new();
+    for (i, scene) in scenes.iter().enumerate() {
+        let photons = budgets
+            .get(i)
+            .or(budgets.last())
+            .copied()
+            .unwrap_or(options.photons);
+        eprintln!(
+            "{scene}: {photons} photons per iteration, running the cloud and a client for {} s...",
+            cluster.seconds
+        );
+        let o = PhotonOptions {
+            photons,
+            ..options.clone()
+        };
+        let c = ClusterOptions {
+            scene: scene.clone(),
+            ..cluster.clone()
+        };
+        columns.push(table2_column(runtime, raster, &o, &c, size)?);
+    }
+    Ok(columns)
+}

@@ -1,0 +1,121 @@
+//! `cloudlight bench client --technique T`: the client's frame split by pass.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use cloudlight::bench::client::ClientBenchOptions;
+use cloudlight::render::photon::{PackFormat, PhotonSettings, trace_iteration};
+use cloudlight::render::raster::Raster;
+use cloudlight::render::{BvhKind, SceneBvh};
+
+/// Options of `bench client`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// Technique (`photons`).
+    #[arg(long, default_value = "photons")]
+    technique: String,
+    /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.
+    #[arg(long, default_value = "cornell")]
+    scene: String,
+    /// Frame width, pixels.
+    #[arg(long, default_value_t = 640)]
+    width: u32,
+    /// Frame height, pixels.
+    #[arg(long, default_value_t = 360)]
+    height: u32,
+    /// Frames timed (whole, then split by pass).
+    #[arg(long, default_value_t = 30)]
+    frames: usize,
+    /// Scene time advances 1/fps per frame (lights move as the scene's animation says).
+    #[arg(long, default_value_t = 30.0)]
+    fps: f64,
+    /// Photons splatted (one iteration of this budget).
+    #[arg(long, default_value_t = 10_000)]
+    photons: u64,
+    /// Emissive surfaces become n² × 2 point emitters per triangle.
+    #[arg(long, default_value_t = 2)]
+    light_samples: u32,
+    /// Shadow-map side, texels.
+    #[arg(long, default_value_t = 512)]
+    shadow_size: u32,
+    /// Photon accumulation buffer downsampling per axis (1, 2 or 4; the client's default 2).
+    #[arg(long, default_value_t = 2)]
+    downsample: u32,
+    /// Also write the JSON report to this file.
+    #[arg(long, value_name = "PATH")]
+    json: Option<PathBuf>,
+}
+
+/// The targets of TARGETS.md for a client frame on lavapipe (2 cores), and the paper's.
+fn target_line(scene: &str, width: u32, height: u32) -> String {
+    let target = match (scene, width, height) {
+        ("cornell" | "cornell-animated", 640, 360) => "target <= 33 ms p50 (lavapipe, 2 cores)",
+        ("city:250000", 640, 360) => "target <= 100 ms p50 (lavapipe, 2 cores)",
+        _ => {
+            "no target set for this scene and size (TARGETS.md: Cornell 640x360 <= 33 ms, city:250000 <= 100 ms)"
+        }
+    };
+    format!("{target}; paper: 8 ms local device indirect time (GeForce 670, Cornell box, photons)")
+}
+
+pub fn run(a: Args) -> ExitCode {
+    let go = || -> anyhow::Result<()> {
+        cloudlight::bench::require_technique(&a.technique)?;
+        if a.frames == 0 || !(a.fps > 0.0 && a.fps.is_finite()) {
+            anyhow::bail!("--frames must be at least 1 and --fps a positive number");
+        }
+        if ![1, 2, 4].contains(&a.downsample) {
+            anyhow::bail!("--downsample must be 1, 2 or 4");
+        }
+        let scene = cloudlight::scenes::load(&a.scene)?;
+        let raster = Raster::new()?;
+        eprintln!("{}: tracing {} photons...", scene.name, a.photons);
+        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+        let settings =
+            PhotonSettings::for_budget(&scene, a.photons, 10_000.min(a.photons.max(1) as u32));
+        let photons =
+            trace_iteration(&scene, &bvh, 0.0, settings, 1, PackFormat::Compact12).unpacked();
+        eprintln!(
+            "{} photons stored; rendering {} + {} frames at {}x{} on {}...",
+            photons.len(),
+            a.frames,
+            a.frames,
+            a.width,
+            a.height,
+            raster.describe()
+        );
+        let options = ClientBenchOptions {
+            width: a.width,
+            height: a.height,
+            frames: a.frames,
+            fps: a.fps,
+            light_samples: a.light_samples,
+            shadow_size: a.shadow_size,
+        };
+        let splat = cloudlight::render::raster::SplatSettings {
+            downsample: a.downsample,
+            ..Default::default()
+        };
+        let r = cloudlight::bench::photons::client_frame_with(
+            &raster, &scene, &photons, splat, options,
+        )?;
+        println!(
+            "{}: {} triangles, {} lights, {} photons, {}x{} on {}; shadow maps rendered in {} of {} split frames",
+            r.scene,
+            r.triangles,
+            r.lights,
+            photons.len(),
+            a.width,
+            a.height,
+            r.adapter,
+            r.frames_with_shadows,
+            a.frames
+        );
+        println!("{}", r.table());
+        println!("{}", target_line(&a.scene, a.width, a.height));
+        let json = serde_json::to_string_pretty(&r)?;
+        println!("{json}");
+        super::write_json(a.json.as_ref(), &json)
+    };
+    go().map_or_else(crate::cli::report_error, |()| ExitCode::SUCCESS)
+}

@@ -1,0 +1,165 @@
+//! `cloudlight bench transport`: two endpoints through the link emulator on loopback,
+//! against a plain UDP blast of the same datagrams.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Options of `bench transport`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// Bytes per message.
+    #[arg(long, default_value_t = 1024)]
+    size: usize,
+    /// Messages in the bulk phase.
+    #[arg(long, default_value_t = 10_000)]
+    count: usize,
+    /// Loss probability in [0, 1], applied in both directions.
+    #[arg(long, default_value_t = 0.0)]
+    loss: f64,
+    /// One-way latency, milliseconds.
+    #[arg(long, default_value_t = 0.0)]
+    latency_ms: f64,
+    /// Latency standard deviation, milliseconds.
+    #[arg(long, default_value_t = 0.0)]
+    jitter_ms: f64,
+    /// Bandwidth cap per direction, megabits per second (default: none).
+    #[arg(long)]
+    bandwidth_mbps: Option<f64>,
+    /// Duplication probability in [0, 1].
+    #[arg(long, default_value_t = 0.0)]
+    duplicate: f64,
+    /// Reordering probability in [0, 1].
+    #[arg(long, default_value_t = 0.0)]
+    reorder: f64,
+    /// Largest packet handed to laminar, bytes (the UDP datagram is 5 bytes more).
+    #[arg(long, default_value_t = 1200)]
+    packet_bytes: usize,
+    /// Messages in flight end to end (the edge capacity).
+    #[arg(long, default_value_t = 64)]
+    capacity: u64,
+    /// Most unacknowledged packets per peer (the transport's send window).
+    #[arg(long, default_value_t = 1024)]
+    window: usize,
+    /// Message round trips measured after the bulk phase.
+    #[arg(long, default_value_t = 200)]
+    rtt_rounds: usize,
+    /// Skip the plain UDP blast baseline.
+    #[arg(long)]
+    no_baseline: bool,
+    /// Seed of the link emulators.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Also write the JSON report to this file.
+    #[arg(long, value_name = "PATH")]
+    json: Option<PathBuf>,
+}
+
+pub fn run(args: Args) -> ExitCode {
+    use cloudlight::transport::LinkProfile;
+    use cloudlight::transport::bench::{BenchOptions, run};
+    for (name, p) in [
+        ("loss", args.loss),
+        ("duplicate", args.duplicate),
+        ("reorder", args.reorder),
+    ] {
+        if !(0.0..=1.0).contains(&p) {
+            eprintln!("error: --{name} must be in [0, 1], got {p}");
+            return ExitCode::from(2);
+        }
+    }
+    if args.latency_ms < 0.0
+        || args.jitter_ms < 0.0
+        || args.bandwidth_mbps.is_some_and(|b| b <= 0.0)
+        || args.packet_bytes < 128
+        || args.capacity == 0
+    {
+        eprintln!(
+            "error: latency and jitter must be >= 0, bandwidth > 0, packet bytes >= 128, capacity >= 1"
+        );
+        return ExitCode::from(2);
+    }
+    let opts = BenchOptions {
+        size: args.size,
+        count: args.count,
+        rtt_rounds: args.rtt_rounds,
+        link: LinkProfile {
+            latency_ms: args.latency_ms,
+            jitter_ms: args.jitter_ms,
+            bandwidth_mbps: args.bandwidth_mbps,
+            loss: args.loss,
+            duplicate: args.duplicate,
+            reorder: args.reorder,
+        },
+        packet_bytes: args.packet_bytes,
+        capacity: args.capacity,
+        window_packets: args.window.max(1),
+        seed: args.seed,
+        udp_baseline: !args.no_baseline,
+        ..BenchOptions::default()
+    };
+    let rt = match crate::cli::async_runtime() {
+        Ok(r) => r,
+        Err(e) => return crate::cli::report_error(e),
+    };
+    eprintln!(
+        "transport bench: {} messages of {} bytes, link {:?}",
+        args.count, args.size, opts.link
+    );
+    let report = match rt.block_on(run(opts)) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let yes = |b: bool| if b { "yes" } else { "NO" }.to_string();
+    let mut t = comfy_table::Table::new();
+    t.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
+        .set_header(["measure", "value"]);
+    let rows = [
+        (
+            "messages sent / delivered",
+            format!("{} / {}", report.sent, report.delivered),
+        ),
+        ("byte-identical", yes(report.byte_identical)),
+        ("in order", yes(report.in_order)),
+        ("goodput MB/s", format!("{:.1}", report.goodput_mb_s)),
+        (
+            "UDP blast MB/s (same datagrams)",
+            report
+                .udp_blast_mb_s
+                .map_or("-".into(), |b| format!("{b:.1}")),
+        ),
+        (
+            "goodput / blast",
+            report
+                .fraction_of_blast
+                .map_or("-".into(), |f| format!("{:.0}%", f * 100.0)),
+        ),
+        (
+            "retransmission ratio",
+            format!("{:.4}", report.retransmission_ratio),
+        ),
+        (
+            "round trip p50 / p99 us",
+            format!("{:.0} / {:.0}", report.rtt_p50_us, report.rtt_p99_us),
+        ),
+    ];
+    for (k, v) in rows {
+        t.add_row([k.to_string(), v]);
+    }
+    println!("{t}");
+    let json = serde_json::to_string_pretty(&report).expect("report serializes");
+    println!("{json}");
+    if let Some(path) = args.json
+        && let Err(e) = std::fs::write(&path, &json)
+    {
+        eprintln!("error: cannot write {}: {e}", path.display());
+        return ExitCode::FAILURE;
+    }
+    if report.delivered == report.sent && report.byte_identical && report.in_order {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(4)
+    }
+}

@@ -1,0 +1,88 @@
+//! `cloudlight plan SCENE`: what a scene is and what each technique would allocate for it.
+
+use std::process::ExitCode;
+
+/// Options of `plan`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.
+    scene: String,
+}
+
+pub fn run(args: Args) -> ExitCode {
+    use cloudlight::render::plan::{PlanSettings, plan};
+    let scene = match super::load_scene(&args.scene) {
+        Ok(s) => s,
+        Err(code) => return code,
+    };
+    let settings = PlanSettings::default();
+    let p = plan(&scene, &settings);
+    let (lo, hi) = p.bounds;
+    println!(
+        "scene {}: {} triangles, {:.3} m² of surface{}",
+        scene.name,
+        p.triangles,
+        p.area_m2,
+        if p.animated { ", animated" } else { "" }
+    );
+    println!(
+        "bounds [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}] m",
+        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+    );
+    println!(
+        "emitted power (lights and emissive surfaces, directional excluded): {:.4} / {:.4} / {:.4} W (R/G/B)",
+        p.emitted_w.x, p.emitted_w.y, p.emitted_w.z
+    );
+    for l in &scene.lights {
+        println!(
+            "  light {}: {:?}, {:.4} W",
+            l.name,
+            l.kind,
+            l.power_w.element_sum()
+        );
+    }
+    let mut t = comfy_table::Table::new();
+    t.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
+        .set_header([
+            "photons: light",
+            "W (sum of channels)",
+            "photons",
+            "batches",
+        ]);
+    for l in &p.lights {
+        t.add_row([
+            l.name.clone(),
+            format!("{:.4}", l.power_w),
+            l.photons.to_string(),
+            l.batches.to_string(),
+        ]);
+    }
+    println!(
+        "photons ({} per W, {} per batch):\n{t}",
+        settings.photons_per_watt, settings.batch_size
+    );
+    let mut v = comfy_table::Table::new();
+    v.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
+        .set_header(["voxels: level", "grid", "occupied", "of grid"]);
+    for (l, n) in p.voxels_per_level.iter().enumerate() {
+        let cells = 1u64 << (3 * l);
+        v.add_row([
+            l.to_string(),
+            format!("{0}³", 1u64 << l),
+            n.to_string(),
+            format!("{:.3}%", *n as f64 / cells as f64 * 100.0),
+        ]);
+    }
+    println!("voxels (leaf {:.4} m):\n{v}", p.leaf_voxel_m);
+    println!(
+        "irradiance maps at the Cornell density ({:.0} texels per m²): {} texels (about {}²), {} bases of {:.0} texels; \
+         a 1024² atlas would give each texel {:.4} m²",
+        settings.texels_per_m2,
+        p.lightmap_texels,
+        (p.lightmap_texels as f64).sqrt().ceil(),
+        p.bases,
+        settings.texels_per_basis,
+        p.area_m2 / (1024.0 * 1024.0)
+    );
+    ExitCode::SUCCESS
+}
