@@ -324,7 +324,7 @@ fn plan_describes_the_scene_and_the_allocations() {
 }
 
 #[test]
-fn photon_benchmarks_write_tables_json_and_plots() {
+fn photon_table2_benchmark_prints_our_rows_beside_the_papers() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("table2.json");
     let out = cloudlight()
@@ -373,7 +373,12 @@ fn photon_benchmarks_write_tables_json_and_plots() {
         col["client_stored_photons"].as_f64().unwrap() > 1000.0,
         "{col}"
     );
+    assert!(text.contains("paper: Cornell Box"), "{text}");
+}
 
+#[test]
+fn photon_scaling_benchmark_writes_its_table_json_and_plot() {
+    let dir = tempfile::tempdir().unwrap();
     let scaling = dir.path().join("scaling");
     let out = cloudlight()
         .args([
@@ -396,7 +401,11 @@ fn photon_benchmarks_write_tables_json_and_plots() {
     assert_eq!(rows.len(), 2);
     assert_eq!(rows[1]["clients_showing_indirect"], 3);
     assert!(scaling.join("scaling.png").metadata().unwrap().len() > 1000);
+}
 
+#[test]
+fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
+    let dir = tempfile::tempdir().unwrap();
     let quality = dir.path().join("quality");
     let out = cloudlight()
         .args([
@@ -434,7 +443,10 @@ fn photon_benchmarks_write_tables_json_and_plots() {
         }
     }
     assert!(quality.join("quality.png").metadata().unwrap().len() > 1000);
+}
 
+#[test]
+fn benchmarks_of_missing_techniques_say_so() {
     for bench in ["table2", "scaling", "quality", "client"] {
         let out = cloudlight()
             .args(["bench", bench, "--technique", "voxels"])

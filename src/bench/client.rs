@@ -96,6 +96,16 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1000.0
 }
 
+/// The scene's lights at `t` and its emitters' samples (`samples` when they do not move).
+fn lights_at(scene: &Scene, t: f64, samples: Option<&[LightState]>, n: u32) -> Vec<LightState> {
+    let mut lights: Vec<LightState> = scene.lights.iter().map(|l| l.at(t)).collect();
+    match samples {
+        Some(s) => lights.extend(s.iter().copied()),
+        None => lights.extend(scene.surface_light_samples(t, n)),
+    }
+    lights
+}
+
 /// Renders `options.frames` frames of `scene`'s first camera with `indirect` as the
 /// technique's pass, twice (whole frames, then split by pass), after two warm-up frames.
 pub fn measure(
@@ -131,11 +141,7 @@ pub fn measure(
             triangles = scene.triangles_at(t);
             frame.set_geometry(raster, scene, &triangles)?;
         }
-        let mut lights: Vec<LightState> = scene.lights.iter().map(|l| l.at(t)).collect();
-        match &static_samples {
-            Some(s) => lights.extend(s.iter().copied()),
-            None => lights.extend(scene.surface_light_samples(t, options.light_samples)),
-        }
+        let lights = lights_at(scene, t, static_samples.as_deref(), options.light_samples);
         lights_count = lights.len();
         let inputs = FrameInputs {
             camera: camera_path.at(t),

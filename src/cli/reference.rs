@@ -77,16 +77,55 @@ fn parse_camera(
     })
 }
 
+/// Renders `spp` samples per pixel in passes of 4, with a progress bar.
+fn render_with_progress(
+    renderer: &cloudlight::render::ReferenceRenderer<'_>,
+    images: &mut cloudlight::render::ReferenceImages,
+    spp: u32,
+) {
+    let bar = ProgressBar::new(spp as u64).with_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} spp, eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    let pass = 4.min(spp);
+    let mut done = 0;
+    while done < spp {
+        let n = pass.min(spp - done);
+        renderer.render_pass(images, done, n);
+        done += n;
+        bar.set_position(done as u64);
+    }
+    bar.finish_and_clear();
+}
+
+/// Writes full, direct and indirect as EXR and PNG (one exposure for all three).
+fn write_images(
+    args: &Args,
+    images: &cloudlight::render::ReferenceImages,
+) -> Result<(), cloudlight::render::image_io::ImageError> {
+    use cloudlight::render::image_io;
+    let full = images.full();
+    let stops = image_io::auto_exposure(&full);
+    for (name, img) in [
+        ("full", full.clone()),
+        ("direct", images.direct()),
+        ("indirect", images.indirect()),
+    ] {
+        let (w, h) = (args.width, args.height);
+        image_io::write_exr(&args.out.join(format!("{name}.exr")), w, h, &img)?;
+        image_io::write_png(&args.out.join(format!("{name}.png")), w, h, &img, stops)?;
+    }
+    Ok(())
+}
+
 pub fn run(args: Args) -> ExitCode {
     use cloudlight::render::{
-        BvhKind, ReferenceImages, ReferenceRenderer, RenderSettings, SceneBvh, image_io,
+        BvhKind, ReferenceImages, ReferenceRenderer, RenderSettings, SceneBvh,
     };
-    let scene = match cloudlight::scenes::load(&args.scene) {
+    let scene = match super::load_scene(&args.scene) {
         Ok(s) => s,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return ExitCode::from(2);
-        }
+        Err(code) => return code,
     };
     let camera = match parse_camera(&args.camera, &scene, args.time) {
         Ok(c) => c,
@@ -115,49 +154,12 @@ pub fn run(args: Args) -> ExitCode {
     };
     let renderer = ReferenceRenderer::new(&scene, &bvh, settings);
     let mut images = ReferenceImages::new(args.width, args.height);
-    let bar = ProgressBar::new(args.spp as u64).with_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} spp, eta {eta}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
     let render_start = Instant::now();
-    let pass = 4.min(args.spp);
-    let mut done = 0;
-    while done < args.spp {
-        let n = pass.min(args.spp - done);
-        renderer.render_pass(&mut images, done, n);
-        done += n;
-        bar.set_position(done as u64);
-    }
-    bar.finish_and_clear();
+    render_with_progress(&renderer, &mut images, args.spp);
     let render_s = render_start.elapsed().as_secs_f64();
-    let full = images.full();
-    let stops = image_io::auto_exposure(&full);
-    for (name, img) in [
-        ("full", full.clone()),
-        ("direct", images.direct()),
-        ("indirect", images.indirect()),
-    ] {
-        for r in [
-            image_io::write_exr(
-                &args.out.join(format!("{name}.exr")),
-                args.width,
-                args.height,
-                &img,
-            ),
-            image_io::write_png(
-                &args.out.join(format!("{name}.png")),
-                args.width,
-                args.height,
-                &img,
-                stops,
-            ),
-        ] {
-            if let Err(e) = r {
-                eprintln!("error: {e}");
-                return ExitCode::FAILURE;
-            }
-        }
+    if let Err(e) = write_images(&args, &images) {
+        eprintln!("error: {e}");
+        return ExitCode::FAILURE;
     }
     println!(
         "{}: {}x{} at {} spp, time {} s: rendered in {:.2} s ({:.2} s with BVH build); wrote full, direct and indirect .exr/.png to {}",

@@ -156,57 +156,7 @@ pub fn photon_lights_in(scene: &Scene, t_s: f64, (lo, hi): (Vec3, Vec3)) -> Vec<
     };
     let mut out = Vec::new();
     for (i, light) in scene.lights.iter().enumerate() {
-        let (power_w, emitter) = match light.at(t_s) {
-            LightState::Point {
-                position,
-                intensity,
-            } => (
-                intensity * 4.0 * std::f32::consts::PI,
-                Emitter::Punctual {
-                    position,
-                    axis: Vec3::Z,
-                    cos_cone: -1.0,
-                },
-            ),
-            LightState::Spot {
-                position,
-                direction,
-                cos_cone,
-                intensity,
-            } => (
-                intensity * std::f32::consts::TAU * (1.0 - cos_cone),
-                Emitter::Punctual {
-                    position,
-                    axis: direction,
-                    cos_cone,
-                },
-            ),
-            LightState::Surface {
-                position,
-                normal,
-                intensity,
-            } => (
-                intensity * std::f32::consts::PI,
-                Emitter::Surface {
-                    triangles: vec![tiny_triangle(position, normal, half_diag * 1e-4)],
-                    cdf: vec![1.0],
-                },
-            ),
-            LightState::Directional {
-                direction,
-                irradiance,
-            } => {
-                let radius = half_diag * 1.01;
-                (
-                    irradiance * std::f32::consts::PI * radius * radius,
-                    Emitter::Directional {
-                        direction,
-                        origin: center - direction * radius * 1.5,
-                        radius,
-                    },
-                )
-            }
-        };
+        let (power_w, emitter) = emitter_of(light.at(t_s), center, half_diag);
         if power_w.max_element() > 0.0 && power_w.is_finite() {
             out.push(PhotonLight {
                 id: i as u32,
@@ -232,6 +182,62 @@ pub fn photon_lights_in(scene: &Scene, t_s: f64, (lo, hi): (Vec3, Vec3)) -> Vec<
         }
     }
     out
+}
+
+/// The emitted power (per channel, watts) and the emission geometry of a light's state, in
+/// a scene of centre `center` and half-diagonal `half_diag` (m).
+fn emitter_of(state: LightState, center: Vec3, half_diag: f32) -> (Vec3, Emitter) {
+    match state {
+        LightState::Point {
+            position,
+            intensity,
+        } => (
+            intensity * 4.0 * std::f32::consts::PI,
+            Emitter::Punctual {
+                position,
+                axis: Vec3::Z,
+                cos_cone: -1.0,
+            },
+        ),
+        LightState::Spot {
+            position,
+            direction,
+            cos_cone,
+            intensity,
+        } => (
+            intensity * std::f32::consts::TAU * (1.0 - cos_cone),
+            Emitter::Punctual {
+                position,
+                axis: direction,
+                cos_cone,
+            },
+        ),
+        LightState::Surface {
+            position,
+            normal,
+            intensity,
+        } => (
+            intensity * std::f32::consts::PI,
+            Emitter::Surface {
+                triangles: vec![tiny_triangle(position, normal, half_diag * 1e-4)],
+                cdf: vec![1.0],
+            },
+        ),
+        LightState::Directional {
+            direction,
+            irradiance,
+        } => {
+            let radius = half_diag * 1.01;
+            (
+                irradiance * std::f32::consts::PI * radius * radius,
+                Emitter::Directional {
+                    direction,
+                    origin: center - direction * radius * 1.5,
+                    radius,
+                },
+            )
+        }
+    }
 }
 
 fn tiny_triangle(position: Vec3, normal: Vec3, size: f32) -> [Vec3; 3] {

@@ -20,8 +20,10 @@ use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use glam::{Mat4, Vec3};
 use wgpu::util::DeviceExt;
 
+use super::compose::ComposePass;
 use super::direct::DirectPass;
-use super::pipelines::{GBufferVertex, VIEW_STRIDE};
+use super::gbuffer::{Chunks, GBufferPass, Geometry};
+use super::pipelines::GBufferVertex;
 use super::readback::{Layout, read_planes, rgb};
 use super::shadow::ShadowMaps;
 use super::{GBuffer, Raster, RasterError, ShadowSettings, camera_matrices};
@@ -236,93 +238,6 @@ pub(crate) fn view_bind_group(
     })
 }
 
-/// The geometry as the G-buffer and shadow passes draw it.
-#[derive(Default)]
-struct Geometry {
-    gbuffer: Option<wgpu::Buffer>,
-    shadow: Option<wgpu::Buffer>,
-    vertices: u32,
-    bounds: (Vec3, Vec3),
-    version: u64,
-    culled: Chunks,
-}
-
-/// Triangles in consecutive chunks with their bounds, so that a view draws only the chunks
-/// its frustum reaches (scenes list an object's triangles together, so chunks are compact).
-#[derive(Clone, Debug, Default)]
-pub(crate) struct Chunks {
-    /// Per chunk: bounds (min, max).
-    bounds: Vec<(Vec3, Vec3)>,
-    vertices: u32,
-}
-
-/// Triangles per culling chunk.
-const CHUNK_TRIANGLES: usize = 256;
-
-impl Chunks {
-    fn new(triangles: &[WorldTriangle]) -> Self {
-        let bounds = triangles
-            .chunks(CHUNK_TRIANGLES)
-            .map(|c| {
-                c.iter().flat_map(|t| t.v).fold(
-                    (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-                    |(lo, hi), v| (lo.min(v), hi.max(v)),
-                )
-            })
-            .collect();
-        Chunks {
-            bounds,
-            vertices: triangles.len() as u32 * 3,
-        }
-    }
-
-    /// Whether a box can be seen by `clip_from_world` (false only when all eight corners are
-    /// outside one clip plane).
-    fn in_frustum(clip_from_world: Mat4, (lo, hi): (Vec3, Vec3)) -> bool {
-        if !(lo.is_finite() && hi.is_finite()) {
-            return true;
-        }
-        let mut outside = [true; 6];
-        for k in 0..8 {
-            let corner = Vec3::new(
-                if k & 1 == 0 { lo.x } else { hi.x },
-                if k & 2 == 0 { lo.y } else { hi.y },
-                if k & 4 == 0 { lo.z } else { hi.z },
-            );
-            let c = clip_from_world * corner.extend(1.0);
-            let inside = [
-                c.x >= -c.w,
-                c.x <= c.w,
-                c.y >= -c.w,
-                c.y <= c.w,
-                c.z >= 0.0,
-                c.z <= c.w,
-            ];
-            for (o, i) in outside.iter_mut().zip(inside) {
-                *o &= !i;
-            }
-        }
-        !outside.iter().any(|o| *o)
-    }
-
-    /// The vertex ranges `clip_from_world` may see, neighbouring chunks merged.
-    pub(crate) fn visible(&self, clip_from_world: Mat4) -> Vec<std::ops::Range<u32>> {
-        let mut runs: Vec<std::ops::Range<u32>> = Vec::new();
-        let per = CHUNK_TRIANGLES as u32 * 3;
-        for (i, b) in self.bounds.iter().enumerate() {
-            if !Self::in_frustum(clip_from_world, *b) {
-                continue;
-            }
-            let (start, end) = (i as u32 * per, ((i as u32 + 1) * per).min(self.vertices));
-            match runs.last_mut() {
-                Some(r) if r.end == start => r.end = end,
-                _ => runs.push(start..end),
-            }
-        }
-        runs
-    }
-}
-
 /// Times passes when asked: after each pass, submits what was recorded, waits, and starts a
 /// new encoder.
 struct PassTimer {
@@ -361,11 +276,10 @@ pub struct FrameRenderer {
     height: u32,
     targets: FrameTargets,
     geometry: Geometry,
-    camera: wgpu::Buffer,
-    camera_bind: wgpu::BindGroup,
+    gbuffer: GBufferPass,
     shadows: ShadowMaps,
     direct: DirectPass,
-    compose_bind: wgpu::BindGroup,
+    compose: ComposePass,
 }
 
 impl FrameRenderer {
@@ -394,38 +308,17 @@ impl FrameRenderer {
                 indirect: target("indirect radiance", f.exact4),
                 composed: target("composed radiance", f.exact4),
             };
-            let camera = raster.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("camera"),
-                size: VIEW_STRIDE,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
-            let camera_bind = view_bind_group(raster, &camera, "camera");
-            let compose_bind = raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("compose"),
-                layout: &raster.pipelines.compose_layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: wgpu::BindingResource::TextureView(&targets.direct.view),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: wgpu::BindingResource::TextureView(&targets.indirect.view),
-                    },
-                ],
-            });
+            let compose = ComposePass::new(raster, &targets.direct, &targets.indirect);
             Ok(FrameRenderer {
                 id: NEXT_RENDERER.fetch_add(1, Ordering::Relaxed),
                 width,
                 height,
                 targets,
                 geometry: Geometry::default(),
-                camera,
-                camera_bind,
+                gbuffer: GBufferPass::new(raster),
                 shadows: ShadowMaps::new(raster, shadows),
                 direct: DirectPass::new(raster),
-                compose_bind,
+                compose,
             })
         })
     }
@@ -546,7 +439,13 @@ impl FrameRenderer {
             let mut enc = raster.device.create_command_encoder(&Default::default());
             let (clip_from_view, view_from_world) = self.camera_matrices(&inputs.camera);
             let clip = clip_from_view * view_from_world;
-            self.gbuffer_pass(raster, &mut enc, clip);
+            self.gbuffer.encode(
+                raster,
+                &mut enc,
+                &self.targets.gbuffer,
+                &self.geometry,
+                clip,
+            );
             timer.lap(raster, &mut enc, &mut times.gbuffer)?;
             let g = &self.geometry;
             times.shadows_rendered = self.shadows.update(
@@ -580,7 +479,8 @@ impl FrameRenderer {
             };
             indirect.encode(raster, &ctx, &mut enc)?;
             timer.lap(raster, &mut enc, &mut times.indirect)?;
-            self.compose_pass(raster, &mut enc);
+            self.compose
+                .encode(raster, &mut enc, &self.targets.composed.view);
             timer.lap(raster, &mut enc, &mut times.compose)?;
             let mut images = self.read_back(raster, enc, readback)?;
             times.readback = timer.mark.elapsed();
@@ -588,58 +488,6 @@ impl FrameRenderer {
             images.times = times;
             Ok(images)
         })
-    }
-
-    fn gbuffer_pass(&self, raster: &Raster, enc: &mut wgpu::CommandEncoder, clip: Mat4) {
-        raster
-            .queue
-            .write_buffer(&self.camera, 0, bytemuck::cast_slice(&clip.to_cols_array()));
-        let g = &self.targets.gbuffer;
-        let colour = |view| {
-            Some(wgpu::RenderPassColorAttachment {
-                view,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                    store: wgpu::StoreOp::Store,
-                },
-            })
-        };
-        let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some("gbuffer"),
-            color_attachments: &[
-                colour(&g.position.view),
-                colour(&g.normal.view),
-                colour(&g.albedo.view),
-            ],
-            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                view: &g.depth.view,
-                depth_ops: Some(wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(1.0),
-                    store: wgpu::StoreOp::Store,
-                }),
-                stencil_ops: None,
-            }),
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
-        if let Some(vbuf) = &self.geometry.gbuffer {
-            pass.set_pipeline(&raster.pipelines.gbuffer);
-            pass.set_bind_group(0, &self.camera_bind, &[0]);
-            pass.set_vertex_buffer(0, vbuf.slice(..));
-            for run in self.geometry.culled.visible(clip) {
-                pass.draw(run, 0..1);
-            }
-        }
-    }
-
-    fn compose_pass(&self, raster: &Raster, enc: &mut wgpu::CommandEncoder) {
-        let mut pass = clear_pass(enc, "compose", &self.targets.composed.view);
-        pass.set_pipeline(&raster.pipelines.compose);
-        pass.set_bind_group(0, &self.compose_bind, &[]);
-        pass.draw(0..3, 0..1);
     }
 
     fn read_back(

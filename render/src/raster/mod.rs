@@ -13,9 +13,11 @@
 use cloudlight_scenes::Camera;
 use glam::{Mat4, Vec3, Vec4};
 
+mod compose;
 pub mod device;
 pub mod direct;
 pub mod frame;
+mod gbuffer;
 mod pipelines;
 mod readback;
 pub mod shadow;

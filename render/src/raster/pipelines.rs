@@ -158,47 +158,7 @@ impl Pipelines {
         );
         let view_pipeline_layout = pipeline_layout(device, "view", &view_layout);
         let (gbuffer, shadow) = geometry_pipelines(device, formats, &view_pipeline_layout);
-        let direct_layout = layout(
-            device,
-            "direct",
-            &[
-                texture_entry(0, FRAGMENT, UINT, D2),
-                texture_entry(1, FRAGMENT, UINT, D2),
-                texture_entry(2, FRAGMENT, UINT, D2),
-                texture_entry(
-                    3,
-                    FRAGMENT,
-                    wgpu::TextureSampleType::Depth,
-                    wgpu::TextureViewDimension::D2Array,
-                ),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 4,
-                    visibility: FRAGMENT,
-                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
-                    count: None,
-                },
-                buffer_entry(
-                    5,
-                    FRAGMENT,
-                    wgpu::BufferBindingType::Storage { read_only: true },
-                ),
-                buffer_entry(
-                    6,
-                    FRAGMENT,
-                    wgpu::BufferBindingType::Storage { read_only: true },
-                ),
-                buffer_entry(7, FRAGMENT, wgpu::BufferBindingType::Uniform),
-            ],
-        );
-        let shader = device.create_shader_module(wgpu::include_wgsl!("direct.wgsl"));
-        let direct = fullscreen_pipeline(
-            device,
-            "direct",
-            &pipeline_layout(device, "direct", &direct_layout),
-            &shader,
-            ("vs_main", "fs_main"),
-            formats.exact4,
-        );
+        let (direct_layout, direct) = direct_pipeline(device, formats);
         let compose_layout = layout(
             device,
             "compose",
@@ -230,6 +190,55 @@ impl Pipelines {
             upsample,
         }
     }
+}
+
+/// The direct-light pass: G-buffer, shadow maps, lights, views, parameters → radiance.
+fn direct_pipeline(
+    device: &wgpu::Device,
+    formats: &Formats,
+) -> (wgpu::BindGroupLayout, wgpu::RenderPipeline) {
+    let direct_layout = layout(
+        device,
+        "direct",
+        &[
+            texture_entry(0, FRAGMENT, UINT, D2),
+            texture_entry(1, FRAGMENT, UINT, D2),
+            texture_entry(2, FRAGMENT, UINT, D2),
+            texture_entry(
+                3,
+                FRAGMENT,
+                wgpu::TextureSampleType::Depth,
+                wgpu::TextureViewDimension::D2Array,
+            ),
+            wgpu::BindGroupLayoutEntry {
+                binding: 4,
+                visibility: FRAGMENT,
+                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
+                count: None,
+            },
+            buffer_entry(
+                5,
+                FRAGMENT,
+                wgpu::BufferBindingType::Storage { read_only: true },
+            ),
+            buffer_entry(
+                6,
+                FRAGMENT,
+                wgpu::BufferBindingType::Storage { read_only: true },
+            ),
+            buffer_entry(7, FRAGMENT, wgpu::BufferBindingType::Uniform),
+        ],
+    );
+    let shader = device.create_shader_module(wgpu::include_wgsl!("direct.wgsl"));
+    let direct = fullscreen_pipeline(
+        device,
+        "direct",
+        &pipeline_layout(device, "direct", &direct_layout),
+        &shader,
+        ("vs_main", "fs_main"),
+        formats.exact4,
+    );
+    (direct_layout, direct)
 }
 
 /// The G-buffer pipeline and the depth-only shadow pipeline (both take one view matrix).

@@ -6,7 +6,7 @@
 use cloudlight_scenes::LightState;
 use glam::{Mat4, Vec3};
 
-use super::frame::Chunks;
+use super::gbuffer::Chunks;
 use super::pipelines::VIEW_STRIDE;
 use super::{Raster, RasterError};
 
@@ -339,8 +339,24 @@ impl ShadowMaps {
             first += n;
         }
         self.write_buffers(raster, &gpu_lights, (hi - lo).length());
-        let r = self.resources.as_ref().expect("made above");
-        for &layer in &dirty {
+        self.render_layers(raster, enc, &dirty, vertices);
+        self.views_rendered += dirty.len() as u64;
+        self.renders += u64::from(!dirty.is_empty());
+        Ok(!dirty.is_empty())
+    }
+
+    /// Records the shadow pass of each of `layers`.
+    fn render_layers(
+        &self,
+        raster: &Raster,
+        enc: &mut wgpu::CommandEncoder,
+        layers: &[usize],
+        vertices: Option<(&wgpu::Buffer, &Chunks)>,
+    ) {
+        let Some(r) = self.resources.as_ref() else {
+            return;
+        };
+        for &layer in layers {
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("shadow"),
                 color_attachments: &[],
@@ -365,9 +381,6 @@ impl ShadowMaps {
                 }
             }
         }
-        self.views_rendered += dirty.len() as u64;
-        self.renders += u64::from(!dirty.is_empty());
-        Ok(!dirty.is_empty())
     }
 
     /// Writes the view matrices the maps hold, the lights and the direct pass's parameters.

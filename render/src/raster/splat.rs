@@ -325,3 +325,6 @@ impl Raster {
         }
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -54,17 +54,17 @@ pub struct Args {
     json: Option<PathBuf>,
 }
 
-pub fn run(args: Args) -> ExitCode {
+/// The bench's options, or why they are not valid.
+fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, String> {
     use cloudlight::transport::LinkProfile;
-    use cloudlight::transport::bench::{BenchOptions, run};
+    use cloudlight::transport::bench::BenchOptions;
     for (name, p) in [
         ("loss", args.loss),
         ("duplicate", args.duplicate),
         ("reorder", args.reorder),
     ] {
         if !(0.0..=1.0).contains(&p) {
-            eprintln!("error: --{name} must be in [0, 1], got {p}");
-            return ExitCode::from(2);
+            return Err(format!("--{name} must be in [0, 1], got {p}"));
         }
     }
     if args.latency_ms < 0.0
@@ -73,12 +73,12 @@ pub fn run(args: Args) -> ExitCode {
         || args.packet_bytes < 128
         || args.capacity == 0
     {
-        eprintln!(
-            "error: latency and jitter must be >= 0, bandwidth > 0, packet bytes >= 128, capacity >= 1"
+        return Err(
+            "latency and jitter must be >= 0, bandwidth > 0, packet bytes >= 128, capacity >= 1"
+                .into(),
         );
-        return ExitCode::from(2);
     }
-    let opts = BenchOptions {
+    Ok(BenchOptions {
         size: args.size,
         count: args.count,
         rtt_rounds: args.rtt_rounds,
@@ -96,22 +96,11 @@ pub fn run(args: Args) -> ExitCode {
         seed: args.seed,
         udp_baseline: !args.no_baseline,
         ..BenchOptions::default()
-    };
-    let rt = match crate::cli::async_runtime() {
-        Ok(r) => r,
-        Err(e) => return crate::cli::report_error(e),
-    };
-    eprintln!(
-        "transport bench: {} messages of {} bytes, link {:?}",
-        args.count, args.size, opts.link
-    );
-    let report = match rt.block_on(run(opts)) {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
+    })
+}
+
+/// The report as a two-column table.
+fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Table {
     let yes = |b: bool| if b { "yes" } else { "NO" }.to_string();
     let mut t = comfy_table::Table::new();
     t.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
@@ -148,14 +137,37 @@ pub fn run(args: Args) -> ExitCode {
     for (k, v) in rows {
         t.add_row([k.to_string(), v]);
     }
-    println!("{t}");
+    t
+}
+
+pub fn run(args: Args) -> ExitCode {
+    let opts = match options(&args) {
+        Ok(o) => o,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let rt = match crate::cli::async_runtime() {
+        Ok(r) => r,
+        Err(e) => return crate::cli::report_error(e),
+    };
+    eprintln!(
+        "transport bench: {} messages of {} bytes, link {:?}",
+        args.count, args.size, opts.link
+    );
+    let report = match rt.block_on(cloudlight::transport::bench::run(opts)) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    println!("{}", table(&report));
     let json = serde_json::to_string_pretty(&report).expect("report serializes");
     println!("{json}");
-    if let Some(path) = args.json
-        && let Err(e) = std::fs::write(&path, &json)
-    {
-        eprintln!("error: cannot write {}: {e}", path.display());
-        return ExitCode::FAILURE;
+    if let Err(e) = super::write_json(args.json.as_ref(), &json) {
+        return crate::cli::report_error(e);
     }
     if report.delivered == report.sent && report.byte_identical && report.in_order {
         ExitCode::SUCCESS
