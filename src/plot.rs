@@ -1,7 +1,7 @@
 //! PNG plots of benchmark results (plotters, bitmap backend, text in the system's DejaVu
 //! Sans through ab_glyph): [`lines`] stacks one panel per series over a shared log x axis;
 //! [`pareto`] draws error against cost per configuration, with the Pareto front and a
-//! reference mark. Axes are logarithmic with ticks at round numbers.
+//! reference mark. Cost axes are logarithmic, error axes linear from 0, ticks at round numbers.
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};
@@ -122,6 +122,7 @@ pub fn lines(
                 .build_cartesian_2d(x_range.clone().log_scale(), y_range)?;
             chart
                 .configure_mesh()
+                .x_labels(12)
                 .x_desc(x_label)
                 .y_desc(*label)
                 .x_label_formatter(&tick)
@@ -203,7 +204,7 @@ where
         .series
         .iter()
         .flat_map(|s| s.points.iter().map(|p| (p.0, p.1)))
-        .filter(|(x, y)| *x > 0.0 && *y > 0.0)
+        .filter(|(x, y)| *x > 0.0 && *y >= 0.0)
         .collect();
     let front = pareto_front(&all);
     let grey = RGBColor(90, 90, 90);
@@ -216,7 +217,7 @@ where
         let pts: Vec<_> = s
             .points
             .iter()
-            .filter(|p| p.0 > 0.0 && p.1 > 0.0)
+            .filter(|p| p.0 > 0.0 && p.1 >= 0.0 && p.1.is_finite())
             .cloned()
             .collect();
         chart
@@ -227,11 +228,12 @@ where
             .label(s.label.clone())
             .legend(move |(x, y)| Circle::new((x + 9, y), 5, colour.filled()));
         chart.draw_series(pts.iter().map(|p| {
-            Text::new(
-                p.2.clone(),
-                (p.0, p.1),
-                ("sans-serif", 13).into_font().color(&colour),
-            )
+            EmptyElement::at((p.0, p.1))
+                + Text::new(
+                    p.2.clone(),
+                    (7, -16),
+                    ("sans-serif", 13).into_font().color(&colour),
+                )
         }))?;
     }
     if let Some(m) = &panel.marker {
@@ -269,20 +271,27 @@ pub fn pareto(path: &Path, title: &str, panels: &[ParetoPanel]) -> anyhow::Resul
                 .series
                 .iter()
                 .flat_map(|s| s.points.iter().map(|p| p.0));
-            let x_range = log_range(xs.chain(panel.marker.iter().map(|m| m.x)));
-            let y_range = log_range(
-                panel
-                    .series
-                    .iter()
-                    .flat_map(|s| s.points.iter().map(|p| p.1)),
-            );
+            // Headroom on the right for the points' tags.
+            let xs: Vec<f64> = xs.chain(panel.marker.iter().map(|m| m.x)).collect();
+            let widest = xs.iter().copied().fold(0.0f64, f64::max) * 1.6;
+            let x_range = log_range(xs.into_iter().chain([widest]));
+            // Errors on a linear axis from 0 (their ticks at round steps), costs on a log one.
+            let top = panel
+                .series
+                .iter()
+                .flat_map(|s| s.points.iter().map(|p| p.1))
+                .filter(|y| y.is_finite())
+                .fold(0.0f64, f64::max);
+            let y_range = 0.0..log_range([top * 1.1].into_iter()).end;
             let mut chart = ChartBuilder::on(area)
                 .margin(16)
                 .x_label_area_size(48)
                 .y_label_area_size(80)
-                .build_cartesian_2d(x_range.log_scale(), y_range.clone().log_scale())?;
+                .build_cartesian_2d(x_range.log_scale(), y_range.clone())?;
             chart
                 .configure_mesh()
+                .x_labels(12)
+                .y_labels(8)
                 .x_desc(panel.x_label.as_str())
                 .y_desc(panel.y_label.as_str())
                 .x_label_formatter(&tick)

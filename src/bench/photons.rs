@@ -19,7 +19,7 @@ use cloudlight_scenes::{Camera, Scene};
 use serde::{Deserialize, Serialize};
 
 use super::client::{ClientBench, ClientBenchOptions};
-use super::table::{Markdown, bytes, count};
+use super::table::{Markdown, bytes, count, short};
 use super::{ClusterOptions, ClusterRun, ScalingRow, Technique, paper};
 
 /// The photon technique.
@@ -574,7 +574,7 @@ fn quality_plot(
                     .iter()
                     .map(|r| {
                         let p = f(r);
-                        (x(p), p.errors.relmse, count(p.photons as f64))
+                        (x(p), p.errors.relmse, short(p.photons as f64))
                     })
                     .collect(),
             })

@@ -43,6 +43,19 @@ pub fn count(v: f64) -> String {
     }
 }
 
+/// A count as a short tag: `2.5k`, `10k`, `160k`, `1.5M`.
+pub fn short(v: f64) -> String {
+    let (x, unit) = if v >= 1e6 {
+        (v / 1e6, "M")
+    } else if v >= 1e3 {
+        (v / 1e3, "k")
+    } else {
+        (v, "")
+    };
+    let s = format!("{x:.1}");
+    format!("{}{unit}", s.trim_end_matches(".0"))
+}
+
 /// Bytes as kB or MB.
 pub fn bytes(v: f64) -> String {
     if v >= 1e6 {
@@ -62,6 +75,9 @@ mod tests {
         t.row(vec!["1".into()]);
         assert_eq!(t.render(), "| a | b |\n|---|---|\n| 1 |  |\n");
         assert_eq!(count(9_800.0), "9.8k");
+        assert_eq!(short(2_500.0), "2.5k");
+        assert_eq!(short(160_000.0), "160k");
+        assert_eq!(short(40.0), "40");
         assert_eq!(bytes(67_000.0), "67 kB");
         assert_eq!(bytes(6_100_000.0), "6.1 MB");
     }
