@@ -9,13 +9,21 @@ use crate::bvh::{BvhKind, SceneBvh};
 /// an adapter (or excluded by `WGPU_BACKEND`) is skipped with a printed reason; no adapter at
 /// all fails the test.
 pub(crate) fn on_every_backend(test: impl Fn(&Raster)) {
+    use std::io::Write;
+    // Written to the process's stderr, not through `eprintln!`, so that the test harness does
+    // not capture it: a skipped backend shows in every test log.
+    let say = |line: String| {
+        let _ = writeln!(std::io::stderr(), "{line}");
+    };
     let mut ran = 0;
     for (name, backend) in [
         ("Vulkan", wgpu::Backends::VULKAN),
         ("GL", wgpu::Backends::GL),
     ] {
         if device::backends(wgpu::Backends::all()) & backend != backend {
-            eprintln!("skipped on {name}: WGPU_BACKEND excludes it");
+            say(format!(
+                "raster test skipped on {name}: WGPU_BACKEND excludes it"
+            ));
             continue;
         }
         match Raster::with_backends(backend) {
@@ -24,7 +32,7 @@ pub(crate) fn on_every_backend(test: impl Fn(&Raster)) {
                 test(&raster);
                 ran += 1;
             }
-            Err(e) => eprintln!("skipped on {name}: {e}"),
+            Err(e) => say(format!("raster test skipped on {name}: {e}")),
         }
     }
     assert!(ran > 0, "no backend has an adapter");
