@@ -6,7 +6,7 @@
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use glam::Vec3;
 
-use super::frame::{FrameInputs, FrameRenderer, GBufferTargets, NoIndirect, Readback};
+use super::frame::{GBufferTargets, NoIndirect, OneFrame, Readback};
 use super::shadow::ShadowMaps;
 use super::{GBuffer, Raster, RasterError, ShadowSettings};
 
@@ -87,7 +87,7 @@ impl DirectPass {
 
 impl Raster {
     /// The G-buffer and the direct radiance (ρ/π · E_direct, with shadow maps) of one view
-    /// (a one-frame [`FrameRenderer`]).
+    /// (rendered once: [`Raster::render_once`]).
     #[allow(clippy::too_many_arguments)]
     pub fn direct(
         &self,
@@ -99,18 +99,16 @@ impl Raster {
         height: u32,
         shadows: ShadowSettings,
     ) -> Result<(GBuffer, Vec<Vec3>), RasterError> {
-        let mut frame = FrameRenderer::new(self, width, height, shadows)?;
-        frame.set_geometry(self, scene, triangles)?;
-        let images = frame.render(
-            self,
-            &FrameInputs {
-                camera: *camera,
-                lights,
-            },
-            &mut NoIndirect,
-            Readback::Everything,
-            false,
-        )?;
+        let view = OneFrame {
+            scene,
+            triangles,
+            lights,
+            camera: *camera,
+            width,
+            height,
+            shadows,
+        };
+        let images = self.render_once(&view, &mut NoIndirect, Readback::Everything)?;
         match (images.gbuffer, images.direct) {
             (Some(g), Some(d)) => Ok((g, d)),
             _ => Err(RasterError::Readback("no direct light read back".into())),

@@ -194,6 +194,35 @@ impl IndirectPass for NoIndirect {
     }
 }
 
+/// A colour attachment cleared to zero, then stored.
+pub(crate) fn cleared_colour(
+    view: &wgpu::TextureView,
+) -> Option<wgpu::RenderPassColorAttachment<'_>> {
+    Some(wgpu::RenderPassColorAttachment {
+        view,
+        depth_slice: None,
+        resolve_target: None,
+        ops: wgpu::Operations {
+            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+            store: wgpu::StoreOp::Store,
+        },
+    })
+}
+
+/// A depth attachment cleared to the far plane, then stored.
+pub(crate) fn cleared_depth(
+    view: &wgpu::TextureView,
+) -> Option<wgpu::RenderPassDepthStencilAttachment<'_>> {
+    Some(wgpu::RenderPassDepthStencilAttachment {
+        view,
+        depth_ops: Some(wgpu::Operations {
+            load: wgpu::LoadOp::Clear(1.0),
+            store: wgpu::StoreOp::Store,
+        }),
+        stencil_ops: None,
+    })
+}
+
 /// A render pass into one colour target, cleared first, without depth.
 pub(crate) fn clear_pass<'e>(
     enc: &'e mut wgpu::CommandEncoder,
@@ -202,20 +231,50 @@ pub(crate) fn clear_pass<'e>(
 ) -> wgpu::RenderPass<'e> {
     enc.begin_render_pass(&wgpu::RenderPassDescriptor {
         label: Some(label),
-        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-            view,
-            depth_slice: None,
-            resolve_target: None,
-            ops: wgpu::Operations {
-                load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                store: wgpu::StoreOp::Store,
-            },
-        })],
+        color_attachments: &[cleared_colour(view)],
         depth_stencil_attachment: None,
         timestamp_writes: None,
         occlusion_query_set: None,
         multiview_mask: None,
     })
+}
+
+/// One view to render once, on a frame renderer made for it (tests, references and
+/// one-off measurements; a client keeps its [`FrameRenderer`]).
+#[derive(Clone, Copy)]
+pub struct OneFrame<'a> {
+    /// The scene (materials).
+    pub scene: &'a Scene,
+    /// Its triangles.
+    pub triangles: &'a [WorldTriangle],
+    /// Lights of the direct pass.
+    pub lights: &'a [LightState],
+    /// The view.
+    pub camera: Camera,
+    /// Frame width, pixels.
+    pub width: u32,
+    /// Frame height, pixels.
+    pub height: u32,
+    /// Shadow maps.
+    pub shadows: ShadowSettings,
+}
+
+impl Raster {
+    /// Renders `view` once with `indirect` as the technique's pass and reads back `readback`.
+    pub fn render_once(
+        &self,
+        view: &OneFrame<'_>,
+        indirect: &mut dyn IndirectPass,
+        readback: Readback,
+    ) -> Result<FrameImages, RasterError> {
+        let mut frame = FrameRenderer::new(self, view.width, view.height, view.shadows)?;
+        frame.set_geometry(self, view.scene, view.triangles)?;
+        let inputs = FrameInputs {
+            camera: view.camera,
+            lights: view.lights,
+        };
+        frame.render(self, &inputs, indirect, readback, false)
+    }
 }
 
 /// A bind group of the `view` layout over `buffer` (matrices at [`VIEW_STRIDE`]).

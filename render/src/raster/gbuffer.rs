@@ -6,7 +6,7 @@ use cloudlight_scenes::WorldTriangle;
 use glam::{Mat4, Vec3};
 
 use super::Raster;
-use super::frame::{GBufferTargets, view_bind_group};
+use super::frame::{GBufferTargets, cleared_colour, cleared_depth, view_bind_group};
 use super::pipelines::VIEW_STRIDE;
 
 /// The geometry as the G-buffer and shadow passes draw it.
@@ -127,32 +127,14 @@ impl GBufferPass {
             .queue
             .write_buffer(&self.camera, 0, bytemuck::cast_slice(&clip.to_cols_array()));
         let g = targets;
-        let colour = |view| {
-            Some(wgpu::RenderPassColorAttachment {
-                view,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                    store: wgpu::StoreOp::Store,
-                },
-            })
-        };
         let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("gbuffer"),
             color_attachments: &[
-                colour(&g.position.view),
-                colour(&g.normal.view),
-                colour(&g.albedo.view),
+                cleared_colour(&g.position.view),
+                cleared_colour(&g.normal.view),
+                cleared_colour(&g.albedo.view),
             ],
-            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                view: &g.depth.view,
-                depth_ops: Some(wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(1.0),
-                    store: wgpu::StoreOp::Store,
-                }),
-                stencil_ops: None,
-            }),
+            depth_stencil_attachment: cleared_depth(&g.depth.view),
             timestamp_writes: None,
             occlusion_query_set: None,
             multiview_mask: None,

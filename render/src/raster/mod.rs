@@ -26,7 +26,7 @@ pub mod splat;
 pub use device::Formats;
 pub use frame::{
     FrameImages, FrameInputs, FrameRenderer, GBufferTargets, IndirectContext, IndirectPass,
-    NoIndirect, PassTimes, Readback,
+    NoIndirect, OneFrame, PassTimes, Readback,
 };
 pub use shadow::ShadowSettings;
 pub use splat::{PhotonFrame, PhotonSplatPass, SplatSettings};
@@ -266,26 +266,19 @@ impl Raster {
         width: u32,
         height: u32,
     ) -> Result<GBuffer, RasterError> {
-        let mut frame = FrameRenderer::new(
-            self,
+        let view = OneFrame {
+            scene,
+            triangles,
+            lights: &[],
+            camera: *camera,
             width,
             height,
-            ShadowSettings {
+            shadows: ShadowSettings {
                 size: 1,
                 ..Default::default()
             },
-        )?;
-        frame.set_geometry(self, scene, triangles)?;
-        let images = frame.render(
-            self,
-            &FrameInputs {
-                camera: *camera,
-                lights: &[],
-            },
-            &mut NoIndirect,
-            Readback::GBuffer,
-            false,
-        )?;
+        };
+        let images = self.render_once(&view, &mut NoIndirect, Readback::GBuffer)?;
         images
             .gbuffer
             .ok_or_else(|| RasterError::Readback("no G-buffer read back".into()))

@@ -6,6 +6,7 @@
 use cloudlight_scenes::LightState;
 use glam::{Mat4, Vec3};
 
+use super::frame::cleared_depth;
 use super::gbuffer::Chunks;
 use super::pipelines::VIEW_STRIDE;
 use super::{Raster, RasterError};
@@ -360,14 +361,7 @@ impl ShadowMaps {
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("shadow"),
                 color_attachments: &[],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &r.layer_views[layer],
-                    depth_ops: Some(wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(1.0),
-                        store: wgpu::StoreOp::Store,
-                    }),
-                    stencil_ops: None,
-                }),
+                depth_stencil_attachment: cleared_depth(&r.layer_views[layer]),
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,

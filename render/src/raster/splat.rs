@@ -6,7 +6,7 @@
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use glam::Vec3;
 
-use super::frame::{FrameInputs, FrameRenderer, IndirectContext, IndirectPass, Readback, Target};
+use super::frame::{IndirectContext, IndirectPass, OneFrame, Readback, Target};
 use super::pipelines::SplatPhoton;
 use super::{GBuffer, Raster, RasterError, ShadowSettings};
 use crate::photon::Photon;
@@ -287,7 +287,7 @@ impl IndirectPass for PhotonSplatPass {
 
 impl Raster {
     /// A one-frame photon client: direct light of `lights` plus the indirect light of
-    /// `photons` (a [`FrameRenderer`] with a [`PhotonSplatPass`], everything read back).
+    /// `photons` (a [`PhotonSplatPass`] rendered once, everything read back).
     #[allow(clippy::too_many_arguments)]
     pub fn photon_frame(
         &self,
@@ -301,20 +301,18 @@ impl Raster {
         photons: &[Photon],
         splat: SplatSettings,
     ) -> Result<PhotonFrame, RasterError> {
-        let mut frame = FrameRenderer::new(self, width, height, shadows)?;
-        frame.set_geometry(self, scene, triangles)?;
         let mut pass = PhotonSplatPass::new(self, splat);
         pass.set_photons(self, photons)?;
-        let images = frame.render(
-            self,
-            &FrameInputs {
-                camera: *camera,
-                lights,
-            },
-            &mut pass,
-            Readback::Everything,
-            false,
-        )?;
+        let view = OneFrame {
+            scene,
+            triangles,
+            lights,
+            camera: *camera,
+            width,
+            height,
+            shadows,
+        };
+        let images = self.render_once(&view, &mut pass, Readback::Everything)?;
         match (images.gbuffer, images.direct, images.indirect) {
             (Some(gbuffer), Some(direct), Some(indirect)) => Ok(PhotonFrame {
                 gbuffer,
