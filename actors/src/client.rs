@@ -27,7 +27,6 @@ use cloudlight_runtime::clock::now_unix_ns;
 use cloudlight_runtime::{
     EdgeSettings, Input, Message, NextTick, Stage, StageCtx, StageKind, StageSetup, Stamped,
 };
-use cloudlight_scenes::glam::Vec3;
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use hdrhistogram::Histogram;
 use serde::de::DeserializeOwned;
@@ -354,6 +353,8 @@ pub struct ClientShell<T: ClientTechnique> {
     geometry_uploaded: bool,
     /// Surface emitters as point lights, kept while the geometry does not move.
     surface_lights: Option<Arc<Vec<LightState>>>,
+    /// The view of scenes without camera paths.
+    overview: Camera,
     output: Output,
     exposure: Option<f32>,
     figures: Figures,
@@ -392,6 +393,7 @@ impl<T: ClientTechnique> ClientShell<T> {
             None
         };
         let output = Output::open::<T>(setup, &params.client)?;
+        let overview = scene.overview_camera();
         Ok(ClientShell {
             params: params.client,
             technique,
@@ -400,6 +402,7 @@ impl<T: ClientTechnique> ClientShell<T> {
             gpu,
             geometry_uploaded: false,
             surface_lights: None,
+            overview,
             output,
             exposure: None,
             figures: Figures {
@@ -472,26 +475,14 @@ impl<T: ClientTechnique> ClientShell<T> {
 
     /// The camera at `t` (a view of the whole scene when it has no camera paths).
     fn camera_at(&self, t: f64) -> Camera {
-        if let Some(c) = self.scene.cameras.get(self.camera) {
-            return c.at(t);
-        }
-        let (lo, hi) = self.scene.bounds_at(0.0);
-        let (center, size) = if lo.is_finite() && hi.is_finite() {
-            ((lo + hi) * 0.5, (hi - lo).length())
-        } else {
-            (Vec3::ZERO, 3.0)
-        };
-        Camera {
-            position: center + Vec3::new(0.0, 0.0, size),
-            target: center,
-            up: Vec3::Y,
-            fov_y_rad: 1.0,
+        match self.scene.cameras.get(self.camera) {
+            Some(c) => c.at(t),
+            None => self.overview,
         }
     }
 
     /// The client's own lights at `t`: punctual lights and the surface emitters' samples.
     async fn lights_at(&mut self, t: f64) -> anyhow::Result<Vec<LightState>> {
-        let mut lights: Vec<LightState> = self.scene.lights.iter().map(|l| l.at(t)).collect();
         let samples = match &self.surface_lights {
             Some(s) => s.clone(),
             None => {
@@ -505,8 +496,7 @@ impl<T: ClientTechnique> ClientShell<T> {
                 s
             }
         };
-        lights.extend(samples.iter().copied());
-        Ok(lights)
+        Ok(self.scene.direct_lights(t, &samples))
     }
 
     /// Renders (and maybe writes) the frame for scene time `t`; returns its time in ms.

@@ -474,6 +474,31 @@ pub struct WorldTriangle {
 }
 
 impl Scene {
+    /// The lights a client shades itself with at `t_s`: every light's state, then the
+    /// emissive surfaces' point samples `samples` (from [`Scene::surface_light_samples`], which
+    /// a caller keeps while the geometry does not move).
+    pub fn direct_lights(&self, t_s: f64, samples: &[LightState]) -> Vec<LightState> {
+        let mut lights: Vec<LightState> = self.lights.iter().map(|l| l.at(t_s)).collect();
+        lights.extend_from_slice(samples);
+        lights
+    }
+
+    /// A view of the whole scene (at time 0) for scenes without camera paths.
+    pub fn overview_camera(&self) -> Camera {
+        let (lo, hi) = self.bounds_at(0.0);
+        let (center, size) = if lo.is_finite() && hi.is_finite() {
+            ((lo + hi) * 0.5, (hi - lo).length())
+        } else {
+            (Vec3::ZERO, 3.0)
+        };
+        Camera {
+            position: center + Vec3::new(0.0, 0.0, size),
+            target: center,
+            up: Vec3::Y,
+            fov_y_rad: 1.0,
+        }
+    }
+
     /// The same scene with every light's power, the sun's irradiance and every surface's
     /// emission multiplied by `k` (what a change of light unit does; error metrics must not
     /// notice).

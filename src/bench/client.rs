@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use cloudlight_render::raster::{
     FrameInputs, FrameRenderer, IndirectPass, PassTimes, Raster, Readback, ShadowSettings,
 };
-use cloudlight_scenes::{LightState, Scene};
+use cloudlight_scenes::Scene;
 use serde::Serialize;
 
 /// What to measure.
@@ -96,16 +96,6 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1000.0
 }
 
-/// The scene's lights at `t` and its emitters' samples (`samples` when they do not move).
-fn lights_at(scene: &Scene, t: f64, samples: Option<&[LightState]>, n: u32) -> Vec<LightState> {
-    let mut lights: Vec<LightState> = scene.lights.iter().map(|l| l.at(t)).collect();
-    match samples {
-        Some(s) => lights.extend(s.iter().copied()),
-        None => lights.extend(scene.surface_light_samples(t, n)),
-    }
-    lights
-}
-
 /// Renders `options.frames` frames of `scene`'s first camera with `indirect` as the
 /// technique's pass, twice (whole frames, then split by pass), after two warm-up frames.
 pub fn measure(
@@ -141,7 +131,10 @@ pub fn measure(
             triangles = scene.triangles_at(t);
             frame.set_geometry(raster, scene, &triangles)?;
         }
-        let lights = lights_at(scene, t, static_samples.as_deref(), options.light_samples);
+        let lights = match &static_samples {
+            Some(s) => scene.direct_lights(t, s),
+            None => scene.direct_lights(t, &scene.surface_light_samples(t, options.light_samples)),
+        };
         lights_count = lights.len();
         let inputs = FrameInputs {
             camera: camera_path.at(t),
