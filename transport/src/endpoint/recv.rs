@@ -52,10 +52,45 @@ impl RecvEdge {
     }
 }
 
+/// Packet numbers received from a peer, as the ranges an ACK reports.
+///
+/// An acknowledgement must never cover a packet that did not arrive: the sender forgets
+/// what is acknowledged. So the set is bounded by *forgetting* its oldest ranges (those
+/// packets are then never acknowledged and the sender sends their chunks again, which the
+/// reassembly ignores as duplicates), never by merging ranges across a gap.
+#[derive(Default)]
+pub(crate) struct Received {
+    ranges: RangeInclusiveSet<u64>,
+}
+
+/// Most ranges kept: four ACKs' worth.
+pub(crate) const MAX_TRACKED_RANGES: usize = 4 * MAX_ACK_RANGES;
+
+impl Received {
+    /// Records that packet `pn` arrived.
+    pub(crate) fn record(&mut self, pn: u64) {
+        self.ranges.insert(pn..=pn);
+        while self.ranges.len() > MAX_TRACKED_RANGES {
+            let oldest = self.ranges.iter().next().cloned().expect("non-empty");
+            self.ranges.remove(oldest);
+        }
+    }
+
+    /// The newest ranges, highest first, at most [`MAX_ACK_RANGES`].
+    pub(crate) fn ack_ranges(&self) -> Vec<(u64, u64)> {
+        self.ranges
+            .iter()
+            .rev()
+            .take(MAX_ACK_RANGES)
+            .map(|r| (*r.start(), *r.end()))
+            .collect()
+    }
+}
+
 /// Per-peer receiving state.
 #[derive(Default)]
 pub(crate) struct RecvState {
-    received: RangeInclusiveSet<u64>,
+    received: Received,
     pub(crate) ack_due: Option<Instant>,
     unacked: u32,
     pub(crate) credit_dirty: bool,
@@ -157,7 +192,7 @@ pub(crate) fn on_data(
     })();
     match result {
         Ok(()) => {
-            state.received.insert(pn..=pn);
+            state.received.record(pn);
             state.unacked += 1;
             state.ack_due.get_or_insert(now + config.ack_delay);
         }
@@ -177,21 +212,7 @@ pub(crate) fn poll_ack(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec<
     }
     s.unacked = 0;
     s.ack_due = None;
-    let ranges: Vec<(u64, u64)> = s
-        .received
-        .iter()
-        .rev()
-        .take(MAX_ACK_RANGES)
-        .map(|r| (*r.start(), *r.end()))
-        .collect();
-    // Keep the set small: old gaps will never be filled, merge everything below the ranges
-    // we still report.
-    if s.received.len() > 4 * MAX_ACK_RANGES
-        && let Some(&(lo, _)) = ranges.last()
-        && let Some(first) = s.received.iter().next().map(|r| *r.start())
-    {
-        s.received.insert(first..=lo);
-    }
+    let ranges = s.received.ack_ranges();
     Some(Body::Ack { ranges }.encode(config.incarnation))
 }
 
@@ -212,4 +233,57 @@ pub(crate) fn poll_credit(ep: &mut Endpoint, p: usize) -> Option<Vec<u8>> {
     }
     grants.sort_unstable();
     Some(Body::Credit { grants }.encode(ep.config.incarnation))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use std::collections::BTreeSet;
+
+    proptest! {
+        /// Under any arrival pattern (loss, reordering, duplicates, forged far-away numbers,
+        /// any number of ranges), every acknowledged packet number was received.
+        #[test]
+        fn acks_only_cover_received_packets(
+            arrivals in proptest::collection::vec(
+                prop_oneof![
+                    8 => 0u64..5_000,
+                    1 => any::<u64>(),
+                ],
+                0..3_000,
+            ),
+            ack_every in 1usize..64,
+        ) {
+            let mut r = Received::default();
+            let mut got = BTreeSet::new();
+            for (i, pn) in arrivals.into_iter().enumerate() {
+                r.record(pn);
+                got.insert(pn);
+                if i % ack_every == 0 {
+                    let ranges = r.ack_ranges();
+                    prop_assert!(ranges.len() <= MAX_ACK_RANGES);
+                    for (lo, hi) in ranges {
+                        prop_assert!(lo <= hi);
+                        // Ranges are small here except around forged numbers; check each one.
+                        let covered = got.range(lo..=hi).count() as u64;
+                        prop_assert_eq!(covered, hi - lo + 1, "ack {}..={} covers a gap", lo, hi);
+                    }
+                }
+            }
+            prop_assert!(r.ranges.len() <= MAX_TRACKED_RANGES);
+        }
+    }
+
+    #[test]
+    fn the_newest_packets_are_acknowledged_after_many_gaps() {
+        let mut r = Received::default();
+        for pn in (0..10_000u64).step_by(2) {
+            r.record(pn);
+        }
+        let ranges = r.ack_ranges();
+        assert_eq!(ranges.len(), MAX_ACK_RANGES);
+        assert_eq!(ranges[0], (9_998, 9_998));
+        assert!(ranges.iter().all(|&(lo, hi)| lo == hi && lo % 2 == 0));
+    }
 }
