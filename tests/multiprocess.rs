@@ -148,6 +148,7 @@ fn a_killed_node_is_reported_lost_and_rejoins_when_restarted() {
         format!(
             r#"techniques = ["probe"]
 cluster = "restart-test"
+secret = "test secret"
 duration_s = 6.0
 [transport]
 peer_timeout_ms = 500
@@ -215,6 +216,7 @@ fn a_photon_client_that_rejoins_gets_the_current_set() {
             r#"techniques = ["photons"]
 scene = "cornell"
 cluster = "photon-rejoin"
+secret = "test secret"
 duration_s = 7.0
 [transport]
 peer_timeout_ms = 500
@@ -416,6 +418,7 @@ fn two_nodes_in_network_namespaces_joined_by_veth() {
         &topo,
         r#"techniques = ["probe"]
 cluster = "netns-test"
+secret = "test secret"
 duration_s = 2.0
 [[node]]
 name = "a"

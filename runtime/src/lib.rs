@@ -23,7 +23,7 @@ pub use clock::SceneClock;
 pub use cluster::{Cluster, EndReason, RunError, RunOptions, RunReport, run};
 pub use edge::{EdgeSettings, Policy};
 pub use message::{Message, MessageType, Stamped};
-pub use metrics::{MetricsSnapshot, RunStatus};
+pub use metrics::{MetricsSnapshot, PeerLinkSnapshot, RunStatus, TransportSnapshot};
 pub use stage::{
     Input, InstanceInfo, NextTick, SendError, Stage, StageCtx, StageKind, StageRegistry, StageSetup,
 };

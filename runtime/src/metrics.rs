@@ -139,6 +139,55 @@ pub struct WireSnapshot {
     pub lost: u64,
     /// Incoming messages refused (undecodable, or beyond credit).
     pub refused: u64,
+    /// Outgoing messages over the transport's size limit, dropped (sending half).
+    #[serde(default)]
+    pub oversize: u64,
+}
+
+/// One node's transport at one moment: what it refused and what its peer links did.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Default)]
+pub struct TransportSnapshot {
+    /// The node.
+    pub node: String,
+    /// Handshake packets from unknown names, other clusters, or without proof of the secret.
+    pub strangers: u64,
+    /// Datagrams that did not decode (laminar framing other than ours, or our format).
+    pub malformed: u64,
+    /// Packets naming no current session (strangers, or a peer's previous session).
+    pub unknown_session: u64,
+    /// Valid but stale handshake packets (recorded ones replayed).
+    pub stale_handshakes: u64,
+    /// Handshake answers withheld by the rate limit.
+    pub rate_limited: u64,
+    /// Per peer.
+    pub peers: Vec<PeerLinkSnapshot>,
+}
+
+/// One peer link of a node.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Default)]
+pub struct PeerLinkSnapshot {
+    /// The peer.
+    pub peer: String,
+    /// `up`, `lost`, `left`, `mismatch` (another topology) or `connecting`.
+    pub state: String,
+    /// Smoothed round trip, milliseconds.
+    pub rtt_ms: f64,
+    /// Sessions completed.
+    pub handshakes: u64,
+    /// Restarts of the peer (a new session replaced a live one).
+    pub restarts: u64,
+    /// Messages lost with restarts.
+    pub lost_messages: u64,
+    /// DATA packets sent again.
+    pub retransmissions: u64,
+    /// Authentic DATA refused.
+    pub refused: u64,
+    /// Packets whose number was seen before (replays, network duplicates).
+    pub replayed: u64,
+    /// Packets naming the session that failed authentication.
+    pub forged: u64,
+    /// Address moves after a path challenge.
+    pub moves: u64,
 }
 
 /// One stage instance at one moment.
@@ -193,6 +242,9 @@ pub struct MetricsSnapshot {
     pub edges: Vec<EdgeSnapshot>,
     /// Every stage instance of the nodes run in this process.
     pub stages: Vec<StageSnapshot>,
+    /// The transport of every node run in this process that has cut edges.
+    #[serde(default)]
+    pub transport: Vec<TransportSnapshot>,
 }
 
 impl MetricsSnapshot {
@@ -259,9 +311,56 @@ impl MetricsSnapshot {
                 w(&|w| format!("{:.3}", w.rtt_ms)),
             ]);
         }
-        format!(
+        let mut text = format!(
             "run {:?} after {:.2} s (scene time {:.2} s)\n{stages}\n{edges}",
             self.status, self.elapsed_s, self.scene_time_s
-        )
+        );
+        if !self.transport.is_empty() {
+            text.push('\n');
+            text.push_str(&self.transport_table().to_string());
+        }
+        text
+    }
+
+    /// Per node and peer: link state, restarts, losses, and everything refused.
+    fn transport_table(&self) -> Table {
+        let mut t = Table::new();
+        t.load_preset(UTF8_FULL_CONDENSED).set_header([
+            "node",
+            "peer",
+            "state",
+            "rtt ms",
+            "sessions",
+            "restarts",
+            "msgs lost",
+            "retx",
+            "refused",
+            "replayed",
+            "forged",
+            "strangers / malformed / no session / stale / limited",
+        ]);
+        for n in &self.transport {
+            let node_row = format!(
+                "{} / {} / {} / {} / {}",
+                n.strangers, n.malformed, n.unknown_session, n.stale_handshakes, n.rate_limited
+            );
+            for p in &n.peers {
+                t.add_row([
+                    n.node.clone(),
+                    p.peer.clone(),
+                    p.state.clone(),
+                    format!("{:.3}", p.rtt_ms),
+                    p.handshakes.to_string(),
+                    p.restarts.to_string(),
+                    p.lost_messages.to_string(),
+                    p.retransmissions.to_string(),
+                    p.refused.to_string(),
+                    p.replayed.to_string(),
+                    p.forged.to_string(),
+                    node_row.clone(),
+                ]);
+            }
+        }
+        t
     }
 }

@@ -19,6 +19,8 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use tokio::sync::mpsc::UnboundedSender;
+
 use cloudlight_transport::driver::DriverConfig;
 use cloudlight_transport::{
     Command, Commander, Driver, DriverHandle, DriverStats, EdgeDirection, EndpointConfig, Event,
@@ -30,6 +32,7 @@ use tokio::task::JoinHandle;
 use crate::control::RunControl;
 use crate::edge::{Delivery, Edge, TryPushError};
 use crate::message::MessageType;
+use crate::metrics::{PeerLinkSnapshot, TransportSnapshot};
 use crate::topology::TransportSettings;
 
 /// What a node knows about its peers.
@@ -42,11 +45,15 @@ pub(crate) struct PeerBoard {
 #[derive(Clone, Debug, Default)]
 pub(crate) struct PeerState {
     pub(crate) up: bool,
+    /// It was up, then went silent for the peer timeout (and has not been heard since).
+    pub(crate) lost: bool,
     pub(crate) epoch: u64,
     pub(crate) restarts: u64,
     pub(crate) lost_messages: u64,
     /// It said goodbye.
     pub(crate) left: bool,
+    /// It runs a different topology.
+    pub(crate) mismatch: bool,
 }
 
 impl PeerBoard {
@@ -78,6 +85,8 @@ struct SenderShared {
     notify: Notify,
     /// Messages given up: lost with a restarted peer, or abandoned at shutdown.
     lost: AtomicU64,
+    /// Messages over the transport's size limit, dropped (and counted on the edge).
+    oversize: AtomicU64,
 }
 
 struct Receiving {
@@ -91,6 +100,22 @@ struct Receiving {
 pub(crate) struct CutCounters {
     pub(crate) lost: u64,
     pub(crate) refused: u64,
+    pub(crate) oversize: u64,
+}
+
+/// What a node's transport is started with.
+pub(crate) struct NetArgs<'a> {
+    pub(crate) node: &'a str,
+    pub(crate) addr: SocketAddr,
+    pub(crate) cluster: &'a str,
+    pub(crate) secret: &'a str,
+    pub(crate) epoch_unix_ns: u64,
+    pub(crate) settings: &'a TransportSettings,
+    pub(crate) seed: u64,
+    /// The plan's digest: peers with another one are refused.
+    pub(crate) digest: [u8; cloudlight_transport::wire::DIGEST_BYTES],
+    /// Where failures of the transport go (they fail the run).
+    pub(crate) failures: UnboundedSender<String>,
 }
 
 /// One node's transport: its driver and the proxies of its cut edges.
@@ -104,36 +129,32 @@ pub(crate) struct NodeNet {
     refused: Arc<Mutex<HashMap<u32, u64>>>,
     flush: Arc<Notify>,
     tasks: Vec<JoinHandle<()>>,
+    failures: UnboundedSender<String>,
+    rejoin_timeout: Duration,
+    max_message_bytes: usize,
 }
 
 impl NodeNet {
     /// Binds the node's socket and starts its I/O thread (no peers yet).
-    pub(crate) fn bind(
-        node: &str,
-        addr: SocketAddr,
-        cluster: &str,
-        secret: &str,
-        epoch_unix_ns: u64,
-        settings: &TransportSettings,
-        seed: u64,
-    ) -> std::io::Result<NodeNet> {
-        let incarnation = (crate::clock::now_unix_ns()
-            ^ ((std::process::id() as u64) << 40)
-            ^ seed.rotate_left(17))
-            | 1;
-        let mut c = EndpointConfig::new(node, cluster, secret.as_bytes(), incarnation);
-        c.epoch = epoch_unix_ns;
+    pub(crate) fn bind(args: NetArgs<'_>) -> std::io::Result<NodeNet> {
+        let settings = args.settings;
+        let mut c = EndpointConfig::new(args.node, args.cluster, args.secret.as_bytes());
+        c.epoch = args.epoch_unix_ns;
+        c.topology_digest = args.digest;
+        c.confidential = settings.encrypt;
         c.max_packet_bytes = settings.max_packet_bytes;
         c.window_packets = settings.window_packets;
         c.pacing_bytes_per_s = settings.pacing_mbps.map(|m| m * 1e6 / 8.0);
         c.peer_timeout = Duration::from_secs_f64(settings.peer_timeout_ms / 1000.0);
         c.heartbeat_interval = Duration::from_secs_f64(settings.heartbeat_ms / 1000.0);
-        let mut dc = DriverConfig::new(c, addr);
-        dc.seed = seed;
+        c.stall_timeout = Duration::from_secs_f64(settings.stall_timeout_s);
+        let max_message_bytes = c.max_message_bytes;
+        let mut dc = DriverConfig::new(c, args.addr);
+        dc.seed = args.seed;
         let driver = Driver::start(dc)?;
         let commander = driver.commander();
         Ok(NodeNet {
-            node: node.to_string(),
+            node: args.node.to_string(),
             driver,
             commander,
             board: Arc::default(),
@@ -142,6 +163,9 @@ impl NodeNet {
             refused: Arc::default(),
             flush: Arc::default(),
             tasks: Vec::new(),
+            failures: args.failures,
+            rejoin_timeout: Duration::from_secs_f64(settings.rejoin_timeout_s),
+            max_message_bytes,
         })
     }
 
@@ -189,14 +213,18 @@ impl NodeNet {
             peer_lost: AtomicBool::new(false),
             notify: Notify::new(),
             lost: AtomicU64::new(0),
+            oversize: AtomicU64::new(0),
         });
         let waker = shared.clone();
         edge.set_waker(move || waker.notify.notify_one());
         let task = tokio::spawn(sender_proxy(
-            id,
-            edge,
-            ty,
-            shared.clone(),
+            SenderProxy {
+                id,
+                edge,
+                ty,
+                shared: shared.clone(),
+                max_bytes: self.max_message_bytes,
+            },
             self.commander.clone(),
             control,
         ));
@@ -238,13 +266,19 @@ impl NodeNet {
             .map(|(&id, (_, r))| (id, r.released.clone()))
             .collect();
         let returns: HashMap<u32, Arc<AtomicU64>> = releases.iter().cloned().collect();
+        let watch = Watch {
+            node: self.node.clone(),
+            board: self.board.clone(),
+            failures: self.failures.clone(),
+            driver_failure: self.driver.failure_slot(),
+            rejoin_timeout: self.rejoin_timeout,
+        };
         self.tasks.push(tokio::spawn(dispatch(
-            self.node.clone(),
+            watch,
             events,
             senders,
             receivers,
             returns,
-            self.board.clone(),
             self.refused.clone(),
             self.flush.clone(),
         )));
@@ -276,6 +310,19 @@ impl NodeNet {
             .any(|(peer, _)| !local.contains(peer) && !self.board.get(peer).left)
     }
 
+    /// Upstream peers (those that send to this node) that are lost now.
+    pub(crate) fn lost_upstream(&self) -> Vec<String> {
+        let mut v: Vec<String> = self
+            .receivers
+            .values()
+            .map(|(p, _)| p.clone())
+            .filter(|p| self.board.get(p).lost)
+            .collect();
+        v.sort();
+        v.dedup();
+        v
+    }
+
     /// Peers this node needs (the other ends of its cut edges).
     pub(crate) fn needed_peers(&self) -> Vec<String> {
         let mut v: Vec<String> = self
@@ -294,6 +341,57 @@ impl NodeNet {
         self.driver.stats()
     }
 
+    /// The node's transport counters, per peer with the link's state.
+    pub(crate) fn snapshot(&self, stats: &DriverStats) -> TransportSnapshot {
+        let peers = self
+            .needed_peers()
+            .into_iter()
+            .map(|peer| {
+                let b = self.board.get(&peer);
+                let p = stats
+                    .peers
+                    .iter()
+                    .find(|(n, _)| *n == peer)
+                    .map(|(_, p)| *p)
+                    .unwrap_or_default();
+                let state = if b.mismatch {
+                    "mismatch"
+                } else if b.up {
+                    "up"
+                } else if b.left {
+                    "left"
+                } else if b.lost {
+                    "lost"
+                } else {
+                    "connecting"
+                };
+                PeerLinkSnapshot {
+                    peer,
+                    state: state.into(),
+                    rtt_ms: p.srtt_s * 1000.0,
+                    handshakes: p.handshakes,
+                    restarts: p.restarts,
+                    lost_messages: p.lost_messages,
+                    retransmissions: p.retransmissions,
+                    refused: p.refused,
+                    replayed: p.replayed,
+                    forged: p.forged,
+                    moves: p.moves,
+                }
+            })
+            .collect();
+        let e = stats.endpoint;
+        TransportSnapshot {
+            node: self.node.clone(),
+            strangers: e.strangers,
+            malformed: stats.malformed,
+            unknown_session: e.unknown_session,
+            stale_handshakes: e.stale_handshakes,
+            rate_limited: e.rate_limited,
+            peers,
+        }
+    }
+
     /// Extra counters of a cut edge half.
     pub(crate) fn cut_counters(&self, id: u32) -> CutCounters {
         CutCounters {
@@ -308,6 +406,10 @@ impl NodeNet {
                 .get(&id)
                 .copied()
                 .unwrap_or(0),
+            oversize: self
+                .senders
+                .get(&id)
+                .map_or(0, |(_, s)| s.oversize.load(Ordering::SeqCst)),
         }
     }
 
@@ -335,14 +437,24 @@ impl NodeNet {
     }
 }
 
-async fn sender_proxy(
+/// What a sender proxy carries.
+struct SenderProxy {
     id: u32,
     edge: Arc<Edge>,
     ty: MessageType,
     shared: Arc<SenderShared>,
-    commander: Commander,
-    control: Arc<RunControl>,
-) {
+    /// The transport's message size limit.
+    max_bytes: usize,
+}
+
+async fn sender_proxy(proxy: SenderProxy, commander: Commander, control: Arc<RunControl>) {
+    let SenderProxy {
+        id,
+        edge,
+        ty,
+        shared,
+        max_bytes,
+    } = proxy;
     let mut held: std::collections::VecDeque<Delivery> = std::collections::VecDeque::new();
     let mut sent: u64 = 0;
     let mut finished: u64 = 0;
@@ -385,6 +497,20 @@ async fn sender_proxy(
                 break;
             };
             match ty.encode(d.message()) {
+                Ok(bytes) if bytes.len() > max_bytes => {
+                    // Dropping the delivery returns its credit; the drop is counted.
+                    let n = shared.oversize.fetch_add(1, Ordering::SeqCst) + 1;
+                    edge.counters().dropped.fetch_add(1, Ordering::Relaxed);
+                    if n == 1 || n.is_multiple_of(100) {
+                        tracing::error!(
+                            edge = edge.name(),
+                            bytes = bytes.len(),
+                            max_bytes,
+                            dropped = n,
+                            "message too large for the transport: dropped"
+                        );
+                    }
+                }
                 Ok(bytes) => {
                     if commander
                         .command(Command::Send { edge: id, bytes })
@@ -406,17 +532,51 @@ async fn sender_proxy(
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-async fn dispatch(
+/// What the dispatcher needs to watch peers and report failures.
+struct Watch {
     node: String,
+    board: Arc<PeerBoard>,
+    failures: UnboundedSender<String>,
+    driver_failure: Arc<Mutex<Option<String>>>,
+    rejoin_timeout: Duration,
+}
+
+impl Watch {
+    fn fail(&self, why: String) {
+        tracing::error!(node = %self.node, "{why}");
+        let _ = self.failures.send(format!("node `{}`: {why}", self.node));
+    }
+
+    /// A lost peer that is not back within the rejoin timeout fails the run.
+    fn expect_rejoin(&self, peer: String) {
+        let (board, failures, node) =
+            (self.board.clone(), self.failures.clone(), self.node.clone());
+        let wait = self.rejoin_timeout;
+        tokio::spawn(async move {
+            tokio::time::sleep(wait).await;
+            let s = board.get(&peer);
+            if s.lost && !s.left {
+                let why = format!(
+                    "peer `{peer}` was lost and has not come back within {:.1} s",
+                    wait.as_secs_f64()
+                );
+                tracing::error!(%node, "{why}");
+                let _ = failures.send(format!("node `{node}`: {why}"));
+            }
+        });
+    }
+}
+
+async fn dispatch(
+    watch: Watch,
     mut events: tokio::sync::mpsc::Receiver<Event>,
     senders: HashMap<u32, (String, Arc<SenderShared>)>,
     receivers: HashMap<u32, (Arc<Edge>, MessageType)>,
     returns: HashMap<u32, Arc<AtomicU64>>,
-    board: Arc<PeerBoard>,
     refused: Arc<Mutex<HashMap<u32, u64>>>,
     flush: Arc<Notify>,
 ) {
+    let node = watch.node.clone();
     let refuse = |id: u32, why: String| {
         tracing::error!(%node, edge = id, "incoming message refused: {why}");
         *refused
@@ -457,60 +617,92 @@ async fn dispatch(
                 }
             }
             Event::Delivered { .. } => {}
-            Event::PeerUp { peer, epoch } => {
-                tracing::info!(%node, %peer, "peer up");
-                for (p, s) in senders.values() {
-                    if *p == peer {
-                        s.peer_lost.store(false, Ordering::SeqCst);
-                    }
-                }
-                board.update(&peer, |s| {
-                    s.up = true;
-                    s.left = false;
-                    s.epoch = epoch;
-                });
-            }
-            Event::PeerLeft { peer } => {
-                tracing::info!(%node, %peer, "peer left");
-                for (p, s) in senders.values() {
-                    if *p == peer {
-                        s.peer_lost.store(true, Ordering::SeqCst);
-                        s.notify.notify_one();
-                    }
-                }
-                board.update(&peer, |s| {
-                    s.up = false;
-                    s.left = true;
-                });
-            }
-            Event::PeerLost { peer } => {
-                tracing::warn!(%node, %peer, "peer lost");
-                for (p, s) in senders.values() {
-                    if *p == peer {
-                        s.peer_lost.store(true, Ordering::SeqCst);
-                        s.notify.notify_one();
-                    }
-                }
-                board.update(&peer, |s| s.up = false);
-            }
-            Event::PeerRestarted {
-                peer,
-                lost_messages,
-            } => {
-                tracing::warn!(%node, %peer, lost_messages, "peer restarted");
-                for (p, s) in senders.values() {
-                    if *p == peer {
-                        s.granted.store(s.capacity, Ordering::SeqCst);
-                        s.generation.fetch_add(1, Ordering::SeqCst);
-                        s.notify.notify_one();
-                    }
-                }
-                board.update(&peer, |s| {
-                    s.up = false;
-                    s.restarts += 1;
-                    s.lost_messages += lost_messages;
-                });
-            }
+            other => on_peer_event(&watch, &senders, other),
         }
+    }
+    // The driver never closes its events while the node runs: its thread died.
+    let why = watch
+        .driver_failure
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .clone()
+        .unwrap_or_else(|| "stopped".into());
+    watch.fail(format!(
+        "the transport thread failed ({why}); this node has no network"
+    ));
+}
+
+/// Marks the senders towards `peer` lost (or not) and wakes them.
+fn mark_senders(senders: &HashMap<u32, (String, Arc<SenderShared>)>, peer: &str, lost: bool) {
+    for (p, s) in senders.values() {
+        if p == peer {
+            s.peer_lost.store(lost, Ordering::SeqCst);
+            s.notify.notify_one();
+        }
+    }
+}
+
+fn on_peer_event(watch: &Watch, senders: &HashMap<u32, (String, Arc<SenderShared>)>, event: Event) {
+    let (node, board) = (&watch.node, &watch.board);
+    match event {
+        Event::PeerUp { peer, epoch } => {
+            tracing::info!(%node, %peer, "peer up");
+            mark_senders(senders, &peer, false);
+            board.update(&peer, |s| {
+                s.up = true;
+                s.lost = false;
+                s.left = false;
+                s.epoch = epoch;
+            });
+        }
+        Event::PeerLeft { peer } => {
+            tracing::info!(%node, %peer, "peer left");
+            mark_senders(senders, &peer, true);
+            board.update(&peer, |s| {
+                s.up = false;
+                s.lost = false;
+                s.left = true;
+            });
+        }
+        Event::PeerLost { peer } => {
+            tracing::warn!(%node, %peer, "peer lost");
+            mark_senders(senders, &peer, true);
+            board.update(&peer, |s| {
+                s.up = false;
+                s.lost = true;
+            });
+            watch.expect_rejoin(peer);
+        }
+        Event::PeerRestarted {
+            peer,
+            lost_messages,
+        } => {
+            tracing::warn!(%node, %peer, lost_messages, "peer restarted");
+            for (p, s) in senders.values() {
+                if *p == peer {
+                    s.granted.store(s.capacity, Ordering::SeqCst);
+                    s.generation.fetch_add(1, Ordering::SeqCst);
+                    s.notify.notify_one();
+                }
+            }
+            board.update(&peer, |s| {
+                s.up = false;
+                s.restarts += 1;
+                s.lost_messages += lost_messages;
+            });
+        }
+        Event::TopologyMismatch { peer } => {
+            board.update(&peer, |s| s.mismatch = true);
+            watch.fail(format!(
+                "peer `{peer}` runs a different topology (nodes, stages, edges, ports or \
+                 policies differ): start every node from the same file"
+            ));
+        }
+        Event::Stalled { peer, waited_ms } => watch.fail(format!(
+            "the link to peer `{peer}` stalled: no data acknowledged for {:.1} s while it \
+             answers heartbeats",
+            waited_ms as f64 / 1000.0
+        )),
+        Event::Message { .. } | Event::Credit { .. } | Event::Delivered { .. } => {}
     }
 }

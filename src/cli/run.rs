@@ -204,6 +204,15 @@ fn print_result(result: Result<RunReport, RunError>, out: &Path) -> ExitCode {
             );
             ExitCode::from(3)
         }
+        Err(RunError::NetworkFailed { error, report }) => {
+            println!("{}", report.metrics.table());
+            eprintln!("error: {error}");
+            eprintln!(
+                "the run was stopped; metrics: {}",
+                out.join("metrics.json").display()
+            );
+            ExitCode::from(5)
+        }
         Err(e) => {
             eprintln!("error: {e}");
             ExitCode::FAILURE

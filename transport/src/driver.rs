@@ -13,7 +13,7 @@
 
 use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -118,14 +118,16 @@ pub struct DriverStats {
     pub peers: Vec<(String, PeerStats)>,
     /// Per edge.
     pub edges: HashMap<u32, EdgeWireStats>,
-    /// Packets from strangers or stale incarnations.
+    /// Handshake packets from strangers or without proof of the secret.
     pub strangers: u64,
-    /// Datagrams that did not decode.
+    /// Datagrams that did not decode (laminar's framing or ours).
     pub malformed: u64,
     /// Per emulated link (by peer name).
     pub emulators: Vec<(String, EmulatorStats)>,
     /// Messages refused by the endpoint (too large).
     pub refused_sends: u64,
+    /// Counters of packets that belong to no peer.
+    pub endpoint: crate::endpoint::EndpointStats,
 }
 
 /// The driver is gone (closed or its thread failed).
@@ -180,6 +182,7 @@ pub struct DriverHandle {
     commander: Commander,
     events: tokio::sync::mpsc::Receiver<Event>,
     stats: Arc<Mutex<DriverStats>>,
+    failure: Arc<Mutex<Option<String>>>,
     local_addr: SocketAddr,
     thread: Option<JoinHandle<()>>,
 }
@@ -187,22 +190,42 @@ pub struct DriverHandle {
 /// Starts I/O threads.
 pub struct Driver;
 
+/// The socket laminar drives. It hands laminar only datagrams that carry laminar's header of
+/// an *unreliable, unordered, unfragmented* packet of its protocol version — the only kind
+/// this transport sends — so no datagram from anyone makes laminar buffer, reorder or
+/// acknowledge anything; everything else is counted and dropped here.
 #[derive(Debug)]
-struct MioSocket(mio::net::UdpSocket);
+struct MioSocket {
+    socket: mio::net::UdpSocket,
+    filtered: Arc<AtomicU64>,
+}
+
+/// Laminar's header of an unreliable packet: its protocol version's CRC-16 (big-endian), then
+/// packet type `Packet`, delivery `Unreliable`, ordering `None` (all 0).
+fn laminar_unreliable_header() -> [u8; 5] {
+    let v = crc::crc16::checksum_x25(b"laminar-0.1.0").to_be_bytes();
+    [v[0], v[1], 0, 0, 0]
+}
 
 impl DatagramSocket for MioSocket {
     fn send_packet(&mut self, addr: &SocketAddr, payload: &[u8]) -> std::io::Result<usize> {
-        self.0.send_to(payload, *addr)
+        self.socket.send_to(payload, *addr)
     }
     fn receive_packet<'a>(
         &mut self,
         buffer: &'a mut [u8],
     ) -> std::io::Result<(&'a [u8], SocketAddr)> {
-        let (n, from) = self.0.recv_from(buffer)?;
-        Ok((&buffer[..n], from))
+        let header = laminar_unreliable_header();
+        loop {
+            let (n, from) = self.socket.recv_from(buffer)?;
+            if n >= header.len() && buffer[..header.len()] == header {
+                return Ok((&buffer[..n], from));
+            }
+            self.filtered.fetch_add(1, Ordering::Relaxed);
+        }
     }
     fn local_addr(&self) -> std::io::Result<SocketAddr> {
-        self.0.local_addr()
+        self.socket.local_addr()
     }
     fn is_blocking_mode(&self) -> bool {
         false
@@ -241,30 +264,44 @@ impl Driver {
         let stats = Arc::new(Mutex::new(DriverStats::default()));
         let laminar_config = LaminarConfig {
             receive_buffer_max_size: config.endpoint.max_packet_bytes + 64,
-            idle_connection_timeout: Duration::from_secs(3600),
+            // Laminar keeps a little state per address it hears from or sends to; strangers'
+            // expires quickly (peers are heard every heartbeat; laminar's own reliability,
+            // which this transport never uses, is all it would forget).
+            idle_connection_timeout: (config.endpoint.peer_timeout * 2).max(Duration::from_secs(5)),
+            max_unestablished_connections: 32,
             heartbeat_interval: None,
             ..LaminarConfig::default()
         };
+        let filtered = Arc::new(AtomicU64::new(0));
         let manager = ConnectionManager::<MioSocket, VirtualConnection>::new(
-            MioSocket(socket),
+            MioSocket {
+                socket,
+                filtered: filtered.clone(),
+            },
             laminar_config,
         );
         let thread_stats = stats.clone();
         let thread_sleeping = sleeping.clone();
         let name = format!("transport-{}", config.endpoint.node);
+        let failure: Arc<Mutex<Option<String>>> = Arc::default();
+        let thread_failure = failure.clone();
         let thread = std::thread::Builder::new().name(name).spawn(move || {
-            let mut io = Io::new(
-                config,
-                manager,
-                poll,
-                command_rx,
-                event_tx,
-                thread_stats,
-                thread_sleeping,
-            );
-            if let Err(e) = io.run() {
-                tracing::error!(error = %e, "transport I/O thread failed");
-            }
+            let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || {
+                let shared = IoShared {
+                    stats: thread_stats,
+                    sleeping: thread_sleeping,
+                    filtered,
+                };
+                let mut io = Io::new(config, manager, poll, (command_rx, event_tx), shared);
+                io.run()
+            }));
+            let why = match run {
+                Ok(Ok(())) => return,
+                Ok(Err(e)) => format!("I/O error: {e}"),
+                Err(panic) => format!("panicked: {}", panic_text(&*panic)),
+            };
+            tracing::error!("transport thread {why}");
+            *thread_failure.lock().unwrap_or_else(|e| e.into_inner()) = Some(why);
         })?;
         Ok(DriverHandle {
             commander: Commander {
@@ -274,6 +311,7 @@ impl Driver {
             },
             events,
             stats,
+            failure,
             local_addr,
             thread: Some(thread),
         })
@@ -317,6 +355,19 @@ impl DriverHandle {
         self.stats.lock().unwrap_or_else(|e| e.into_inner()).clone()
     }
 
+    /// Why the I/O thread stopped by itself (an I/O error or a panic), if it did.
+    pub fn failure(&self) -> Option<String> {
+        self.failure
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// A shareable view of [`DriverHandle::failure`].
+    pub fn failure_slot(&self) -> Arc<Mutex<Option<String>>> {
+        self.failure.clone()
+    }
+
     /// Stops the thread without saying goodbye (peers see a crash) and waits for it.
     pub fn abort(&mut self) {
         let _ = self.try_command(Command::Abort);
@@ -340,6 +391,13 @@ impl Drop for DriverHandle {
     }
 }
 
+/// What the I/O thread shares with the handle.
+struct IoShared {
+    stats: Arc<Mutex<DriverStats>>,
+    sleeping: Arc<AtomicBool>,
+    filtered: Arc<AtomicU64>,
+}
+
 struct Io {
     seed: u64,
     sleeping: Arc<AtomicBool>,
@@ -353,8 +411,17 @@ struct Io {
     backlog: HashMap<u32, VecDeque<Vec<u8>>>,
     pending_events: VecDeque<Event>,
     refused_sends: u64,
+    filtered: Arc<AtomicU64>,
     closing: Option<Instant>,
     aborted: bool,
+}
+
+fn panic_text(panic: &(dyn std::any::Any + Send)) -> String {
+    panic
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "(no message)".into())
 }
 
 /// A stable hash of a peer name, to give each emulated link its own seed.
@@ -369,11 +436,14 @@ impl Io {
         config: DriverConfig,
         manager: ConnectionManager<MioSocket, VirtualConnection>,
         poll: Poll,
-        commands: Receiver<Command>,
-        events: tokio::sync::mpsc::Sender<Event>,
-        stats: Arc<Mutex<DriverStats>>,
-        sleeping: Arc<AtomicBool>,
+        (commands, events): (Receiver<Command>, tokio::sync::mpsc::Sender<Event>),
+        shared: IoShared,
     ) -> Self {
+        let IoShared {
+            stats,
+            sleeping,
+            filtered,
+        } = shared;
         let now = Instant::now();
         let endpoint = Endpoint::new(config.endpoint, now);
         let emulators = HashMap::new();
@@ -390,6 +460,7 @@ impl Io {
             backlog: HashMap::new(),
             pending_events: VecDeque::new(),
             refused_sends: 0,
+            filtered,
             closing: None,
             aborted: false,
         };
@@ -467,8 +538,9 @@ impl Io {
             .edge_ids()
             .filter_map(|e| Some((e, self.endpoint.edge_stats(e)?)))
             .collect();
+        s.endpoint = self.endpoint.stats();
         s.strangers = self.endpoint.strangers();
-        s.malformed = self.endpoint.malformed();
+        s.malformed = self.endpoint.malformed() + self.filtered.load(Ordering::Relaxed);
         s.emulators = self
             .emulators
             .values()

@@ -17,6 +17,7 @@
 //! stages or topologies.
 
 pub mod bench;
+pub mod crypto;
 pub mod driver;
 pub mod emulator;
 pub mod endpoint;
@@ -25,5 +26,6 @@ pub mod wire;
 pub use driver::{Command, Commander, Driver, DriverConfig, DriverHandle, DriverStats};
 pub use emulator::{LinkEmulator, LinkProfile};
 pub use endpoint::{
-    EdgeDirection, EdgeWireStats, Endpoint, EndpointConfig, Event, PeerStats, SendError,
+    EdgeDirection, EdgeWireStats, Endpoint, EndpointConfig, EndpointStats, Event, PeerStats,
+    SendError,
 };

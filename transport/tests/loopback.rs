@@ -7,11 +7,11 @@ use cloudlight_transport::{
     Command, Driver, DriverConfig, DriverHandle, EdgeDirection, EndpointConfig, Event, LinkProfile,
 };
 
-fn start(name: &str, incarnation: u64) -> DriverHandle {
-    let mut c = EndpointConfig::new(name, "loopback-test", b"secret", incarnation);
+fn start(name: &str, seed: u64) -> DriverHandle {
+    let mut c = EndpointConfig::new(name, "loopback-test", b"secret");
     c.peer_timeout = Duration::from_millis(600);
     let mut d = DriverConfig::new(c, SocketAddr::from(([127, 0, 0, 1], 0)));
-    d.seed = incarnation;
+    d.seed = seed;
     Driver::start(d).unwrap()
 }
 
@@ -143,8 +143,8 @@ async fn a_killed_peer_is_reported_lost_and_a_restarted_one_rejoins() {
         took < Duration::from_millis(600 + 400),
         "lost after {took:?} with a 600 ms timeout"
     );
-    // A new incarnation of b on the same address, as a restarted process would be.
-    let mut c = EndpointConfig::new("b", "loopback-test", b"secret", 21);
+    // A new b on the same address, as a restarted process would be.
+    let mut c = EndpointConfig::new("b", "loopback-test", b"secret");
     c.peer_timeout = Duration::from_millis(600);
     let b2 = Driver::start(DriverConfig::new(c, b_addr)).unwrap();
     b2.command(Command::AddPeer {

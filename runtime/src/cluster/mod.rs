@@ -143,6 +143,18 @@ pub enum RunError {
         /// Why.
         error: String,
     },
+    /// A node's transport failed before the run started (e.g. a peer runs another topology).
+    #[error("{0}")]
+    Link(String),
+    /// The network failed while running (a transport thread died, a link stalled, a peer
+    /// was lost for good); the run was stopped.
+    #[error("{error}")]
+    NetworkFailed {
+        /// What failed.
+        error: String,
+        /// What the run left behind.
+        report: Box<RunReport>,
+    },
     /// A stage failed while running; the run was stopped.
     #[error("stage `{stage}` failed: {error}")]
     StageFailed {
@@ -156,6 +168,23 @@ pub enum RunError {
     /// The output folder could not be written.
     #[error("cannot write run output: {0}")]
     Io(#[from] std::io::Error),
+}
+
+/// What stopped a run.
+enum Failure {
+    /// A stage returned an error or panicked.
+    Stage { stage: String, error: String },
+    /// A node's transport failed, a link stalled or a peer was lost for good.
+    Network(String),
+}
+
+impl Failure {
+    fn text(&self) -> String {
+        match self {
+            Failure::Stage { stage, error } => format!("stage `{stage}` failed: {error}"),
+            Failure::Network(why) => why.clone(),
+        }
+    }
 }
 
 struct Running {
@@ -184,6 +213,8 @@ pub struct Cluster {
     edges: Vec<EdgeRun>,
     nets: Vec<NodeNet>,
     events: mpsc::UnboundedReceiver<RunEvent>,
+    /// Failures reported by the nodes' transports.
+    net_failures: mpsc::UnboundedReceiver<String>,
     supervisor: (ActorRef<()>, JoinHandle<()>),
     started: Instant,
 }
@@ -209,7 +240,16 @@ impl Cluster {
                 .is_none_or(|n| &plan.instances[i].node == n)
         };
         let control = Arc::new(RunControl::default());
-        let (edges, nets, clock) = wire_edges(&plan, &local, &control, &options).await?;
+        let (failures, mut net_failures) = mpsc::unbounded_channel();
+        let (edges, nets, clock) = wire_edges(
+            &plan,
+            &local,
+            &control,
+            &options,
+            failures,
+            &mut net_failures,
+        )
+        .await?;
 
         let (tx, events) = mpsc::unbounded_channel();
         let names: Names = Arc::default();
@@ -236,6 +276,7 @@ impl Cluster {
             edges: Vec::new(),
             nets,
             events,
+            net_failures,
             supervisor,
             started: Instant::now(),
         };
@@ -383,6 +424,7 @@ impl Cluster {
                         .map(|(_, p)| *p)
                         .unwrap_or_default();
                     let extra = net.cut_counters(*id);
+                    let oversize = extra.oversize;
                     Some(WireSnapshot {
                         peer,
                         peer_up: p.up,
@@ -396,6 +438,7 @@ impl Cluster {
                         rtt_ms: p.srtt_s * 1000.0,
                         lost: extra.lost,
                         refused: extra.refused,
+                        oversize,
                     })
                 });
                 let c = r.edge.counters();
@@ -424,6 +467,12 @@ impl Cluster {
             .iter()
             .map(|s| s.metrics.snapshot(&s.name, &s.kind, &s.node))
             .collect();
+        let transport = self
+            .nets
+            .iter()
+            .zip(&net_stats)
+            .map(|(n, (_, stats))| n.snapshot(stats))
+            .collect();
         MetricsSnapshot {
             status,
             elapsed_s,
@@ -431,6 +480,7 @@ impl Cluster {
             failure,
             edges,
             stages,
+            transport,
         }
     }
 
@@ -459,7 +509,7 @@ impl Cluster {
                 .duration
                 .or(self.plan.topology.duration_s.map(Duration::from_secs_f64));
         let deadline = duration.map(|d| tokio::time::Instant::now() + d);
-        let mut failure: Option<(String, String)> = None;
+        let mut failure: Option<Failure> = None;
         let mut metrics_tick = tokio::time::interval(self.options.metrics_interval);
         metrics_tick.tick().await;
         let mut poll = tokio::time::interval(Duration::from_millis(10));
@@ -471,9 +521,13 @@ impl Cluster {
                 _ = &mut stop => break EndReason::Stopped,
                 Some(ev) = self.events.recv() => {
                     if let RunEvent::Failed { stage, error } = ev {
-                        failure = Some((stage.to_string(), error));
+                        failure = Some(Failure::Stage { stage: stage.to_string(), error });
                         break EndReason::Failed;
                     }
+                }
+                Some(why) = self.net_failures.recv() => {
+                    failure = Some(Failure::Network(why));
+                    break EndReason::Failed;
                 }
                 _ = metrics_tick.tick() => {
                     let snap = self.snapshot(RunStatus::Running, None);
@@ -493,39 +547,22 @@ impl Cluster {
         for n in &self.nets {
             n.poke();
         }
-        if end != EndReason::Failed {
-            // Drain: sources no longer tick; let every queued message be handled.
-            let drain_deadline = tokio::time::Instant::now() + self.options.drain_timeout;
-            loop {
-                if self.control.is_drained() {
-                    break;
-                }
-                if tokio::time::Instant::now() >= drain_deadline {
-                    tracing::warn!(pending = self.control.pending(), "drain timed out");
-                    break;
-                }
-                tokio::select! {
-                    Some(ev) = self.events.recv() => {
-                        if let RunEvent::Failed { stage, error } = ev {
-                            failure = Some((stage.to_string(), error));
-                            end = EndReason::Failed;
-                            break;
-                        }
-                    }
-                    _ = poll.tick() => {}
-                }
-            }
+        if end != EndReason::Failed
+            && let Some(f) = self.drain().await
+        {
+            failure = Some(f);
+            end = EndReason::Failed;
+        }
+        if failure.is_none() {
+            failure = self.lost_upstream().map(Failure::Network);
         }
         let undrained = self.control.pending();
-        if let Some((stage, error)) = &failure {
-            tracing::error!(%stage, %error, "stage failed; stopping the run");
+        if let Some(f) = &failure {
+            tracing::error!("{}; stopping the run", f.text());
         }
         let stopped = self.stop_all().await;
         let (status, fail_text) = match &failure {
-            Some((stage, error)) => (
-                RunStatus::Failed,
-                Some(format!("stage `{stage}` failed: {error}")),
-            ),
+            Some(f) => (RunStatus::Failed, Some(f.text())),
             None => (RunStatus::Finished, None),
         };
         let metrics = self.snapshot(status, fail_text);
@@ -540,13 +577,57 @@ impl Cluster {
         };
         self.supervisor.0.stop(None);
         match failure {
-            Some((stage, error)) => Err(RunError::StageFailed {
+            Some(Failure::Stage { stage, error }) => Err(RunError::StageFailed {
                 stage,
+                error,
+                report: Box::new(report),
+            }),
+            Some(Failure::Network(error)) => Err(RunError::NetworkFailed {
                 error,
                 report: Box::new(report),
             }),
             None => Ok(report),
         }
+    }
+
+    /// Sources no longer tick: lets every queued message be handled, up to the drain
+    /// timeout; a failure meanwhile ends the drain.
+    async fn drain(&mut self) -> Option<Failure> {
+        let drain_deadline = tokio::time::Instant::now() + self.options.drain_timeout;
+        let mut poll = tokio::time::interval(Duration::from_millis(10));
+        loop {
+            if self.control.is_drained() {
+                return None;
+            }
+            if tokio::time::Instant::now() >= drain_deadline {
+                tracing::warn!(pending = self.control.pending(), "drain timed out");
+                return None;
+            }
+            tokio::select! {
+                Some(ev) = self.events.recv() => {
+                    if let RunEvent::Failed { stage, error } = ev {
+                        return Some(Failure::Stage { stage: stage.to_string(), error });
+                    }
+                }
+                Some(why) = self.net_failures.recv() => return Some(Failure::Network(why)),
+                _ = poll.tick() => {}
+            }
+        }
+    }
+
+    /// A node whose upstream peer is lost at the end got only part of what was sent.
+    fn lost_upstream(&self) -> Option<String> {
+        let lost: Vec<String> = self
+            .nets
+            .iter()
+            .flat_map(|n| {
+                n.lost_upstream()
+                    .into_iter()
+                    .map(move |p| format!("node `{}`: upstream peer `{p}` is lost", n.node))
+            })
+            .collect();
+        (!lost.is_empty())
+            .then(|| format!("{} (the run ended without it coming back)", lost.join("; ")))
     }
 
     /// Closes every edge and stops every actor; returns the instances that terminated.

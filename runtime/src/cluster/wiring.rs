@@ -8,8 +8,9 @@ use super::{EdgeRun, RunError, RunOptions};
 use crate::clock::{SceneClock, now_unix_ns};
 use crate::control::RunControl;
 use crate::edge::Edge;
-use crate::net::NodeNet;
+use crate::net::{NetArgs, NodeNet};
 use crate::topology::Plan;
+use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender};
 
 /// The local halves of one plan edge: the edge a producer sends into and the edge a
 /// consumer reads from (the same edge unless the plan edge is cut).
@@ -27,6 +28,8 @@ pub(super) async fn wire_edges(
     local: &impl Fn(usize) -> bool,
     control: &Arc<RunControl>,
     options: &RunOptions,
+    failures: UnboundedSender<String>,
+    failed: &mut UnboundedReceiver<String>,
 ) -> Result<(Vec<Wired>, Vec<NodeNet>, SceneClock), RunError> {
     let t = &plan.topology;
     let mut wired = Vec::new();
@@ -80,17 +83,20 @@ pub(super) async fn wire_edges(
     net_nodes.sort();
     net_nodes.dedup();
     let mut nets = Vec::new();
+    let digest = plan.digest();
     for node in &net_nodes {
         let decl = t.node(node).expect("plan nodes are declared");
-        let net = NodeNet::bind(
+        let net = NodeNet::bind(NetArgs {
             node,
-            decl.address,
-            &t.cluster,
-            &t.secret,
-            epoch,
-            &t.transport,
-            t.seed,
-        )
+            addr: decl.address,
+            cluster: &t.cluster,
+            secret: &t.secret,
+            epoch_unix_ns: epoch,
+            settings: &t.transport,
+            seed: t.seed,
+            digest,
+            failures: failures.clone(),
+        })
         .map_err(|e| RunError::Transport {
             node: node.clone(),
             addr: decl.address,
@@ -164,6 +170,12 @@ pub(super) async fn wire_edges(
             .collect();
         if missing.is_empty() {
             break;
+        }
+        if let Ok(why) = failed.try_recv() {
+            for n in &mut nets {
+                n.shutdown();
+            }
+            return Err(RunError::Link(why));
         }
         if waited.elapsed() >= limit {
             for n in &mut nets {

@@ -214,6 +214,13 @@ pub struct TransportSettings {
     pub heartbeat_ms: f64,
     /// How long a node waits at start for the peers it needs, seconds.
     pub connect_timeout_s: f64,
+    /// Data unacknowledged this long while the peer answers heartbeats fails the run, seconds.
+    pub stall_timeout_s: f64,
+    /// A peer lost (silent for `peer_timeout_ms`) that is not back this much later fails the
+    /// run, seconds.
+    pub rejoin_timeout_s: f64,
+    /// Whether cut edges' packets are encrypted (they are always authenticated).
+    pub encrypt: bool,
 }
 
 impl Default for TransportSettings {
@@ -225,6 +232,9 @@ impl Default for TransportSettings {
             peer_timeout_ms: 2000.0,
             heartbeat_ms: 100.0,
             connect_timeout_s: 60.0,
+            stall_timeout_s: 15.0,
+            rejoin_timeout_s: 10.0,
+            encrypt: true,
         }
     }
 }
@@ -251,8 +261,13 @@ pub struct Topology {
     pub scene: String,
     /// Cluster id: nodes of other clusters are strangers.
     pub cluster: String,
-    /// Shared secret proving membership of the cluster (empty: none).
+    /// Shared secret proving membership of the cluster (empty: none, allowed only with
+    /// `insecure`).
     pub secret: String,
+    /// Where `secret` is set (empty when it is not).
+    pub secret_span: Range<usize>,
+    /// Whether cut edges may run without a secret (loopback demos).
+    pub insecure: bool,
     /// Transport settings.
     pub transport: TransportSettings,
     /// Run seed.

@@ -23,6 +23,7 @@ const TOP_KEYS: &[&str] = &[
     "scene",
     "cluster",
     "secret",
+    "insecure",
     "transport",
     "seed",
     "duration_s",
@@ -47,6 +48,8 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
         scene: "cornell".into(),
         cluster: "cloudlight".into(),
         secret: String::new(),
+        secret_span: 0..0,
+        insecure: false,
         transport: TransportSettings::default(),
         seed: 0,
         duration_s: None,
@@ -123,7 +126,11 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
         topo.cluster = c.into_inner();
     }
     if let Some(s) = top.string(&mut w, "secret") {
+        topo.secret_span = s.span();
         topo.secret = s.into_inner();
+    }
+    if let Some(b) = top.boolean(&mut w, "insecure") {
+        topo.insecure = b.into_inner();
     }
     if let Some(mut t) = top.table(&mut w, "transport") {
         topo.transport = transport(&mut w, &mut t);
@@ -136,6 +143,9 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
                 "peer_timeout_ms",
                 "heartbeat_ms",
                 "connect_timeout_s",
+                "stall_timeout_s",
+                "rejoin_timeout_s",
+                "encrypt",
             ],
         );
     }
@@ -196,6 +206,8 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
         ("peer_timeout_ms", &mut s.peer_timeout_ms),
         ("heartbeat_ms", &mut s.heartbeat_ms),
         ("connect_timeout_s", &mut s.connect_timeout_s),
+        ("stall_timeout_s", &mut s.stall_timeout_s),
+        ("rejoin_timeout_s", &mut s.rejoin_timeout_s),
     ] {
         if let Some(v) = t.float(w, k) {
             if *v.get_ref() <= 0.0 {
@@ -203,6 +215,9 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
             }
             *slot = v.into_inner();
         }
+    }
+    if let Some(v) = t.boolean(w, "encrypt") {
+        s.encrypt = v.into_inner();
     }
     if let Some(v) = t.float(w, "pacing_mbps") {
         if *v.get_ref() <= 0.0 {

@@ -290,6 +290,20 @@ impl Plan {
                 }
             }
         }
+        if edges.iter().any(|e| e.cut) && topology.secret.is_empty() && !topology.insecure {
+            let span = if topology.secret_span.is_empty() {
+                0..0
+            } else {
+                topology.secret_span.clone()
+            };
+            errors.push(map.diag(
+                &span,
+                "secret",
+                "cut edges need a shared secret, or anyone who can reach a node's port can join \
+                 the cluster: set `secret` (e.g. the output of `openssl rand -hex 16`), or \
+                 `insecure = true` for a loopback demo",
+            ));
+        }
         if errors.is_empty() {
             Ok(Plan {
                 topology,
@@ -301,6 +315,50 @@ impl Plan {
             errors.sort_by_key(|d| (d.line, d.column));
             Err(TopologyErrors(errors))
         }
+    }
+
+    /// What every node of a cluster must agree on, hashed: cluster, techniques, scene, seed
+    /// and clock, nodes and addresses, instances with their kinds, nodes and parameters, and
+    /// edges with their ports, capacities, policies and cuts, and the packet format. Nodes
+    /// whose digests differ refuse each other at the handshake.
+    pub fn digest(&self) -> [u8; cloudlight_transport::wire::DIGEST_BYTES] {
+        let t = &self.topology;
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "cluster {:?} techniques {:?} scene {:?} seed {} start {} scale {}",
+            t.cluster, t.techniques, t.scene, t.seed, t.scene_start_s, t.time_scale
+        );
+        let _ = writeln!(
+            s,
+            "packets {} encrypt {}",
+            t.transport.max_packet_bytes, t.transport.encrypt
+        );
+        for n in &t.nodes {
+            let _ = writeln!(s, "node {:?} {}", n.name, n.address);
+        }
+        for st in &t.stages {
+            let _ = writeln!(
+                s,
+                "stage {:?} {:?} {:?} {}",
+                st.name, st.kind, st.nodes, st.params
+            );
+        }
+        for i in &self.instances {
+            let _ = writeln!(s, "instance {:?} {:?} {:?}", i.name, i.kind, i.node);
+        }
+        for (k, e) in self.edges.iter().enumerate() {
+            let _ = writeln!(
+                s,
+                "edge {k} {:?} {} {} {} {}",
+                e.name,
+                e.ty.name(),
+                e.settings.capacity,
+                e.settings.policy,
+                e.cut
+            );
+        }
+        cloudlight_transport::crypto::digest(s.as_bytes())
     }
 
     /// Node names in declaration order.

@@ -88,6 +88,21 @@ impl<'t, 'i> Tbl<'t, 'i> {
         }
     }
 
+    pub(super) fn boolean(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<bool>> {
+        let v = self.get(k)?;
+        match v.get_ref() {
+            DeValue::Boolean(b) => Some(Spanned::new(v.span(), *b)),
+            other => {
+                w.err(
+                    &v.span(),
+                    &self.key(k),
+                    format!("expected true or false, found {}", kind(other)),
+                );
+                None
+            }
+        }
+    }
+
     pub(super) fn req_string(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<String>> {
         if self.table.get(k).is_none() {
             self.missing(w, k);

@@ -107,7 +107,7 @@ impl TopologySpec {
             seed: 0,
             duration_s: None,
             cluster: "cloudlight".into(),
-            secret: String::new(),
+            secret: cloudlight_transport::crypto::random_secret(),
             nodes: Vec::new(),
             stages: Vec::new(),
             edges: Vec::new(),

@@ -40,15 +40,19 @@ pub struct Args {
     /// Most unacknowledged packets per peer (the transport's send window).
     #[arg(long, default_value_t = 1024)]
     window: usize,
-    /// Message round trips measured after the bulk phase.
-    #[arg(long, default_value_t = 200)]
-    rtt_rounds: usize,
+    /// Message round trips measured after the bulk phase [default: 200, fewer for large
+    /// messages so that the round trips move at most 64 MiB each way, at least 5].
+    #[arg(long)]
+    rtt_rounds: Option<usize>,
     /// Skip the plain UDP blast baseline.
     #[arg(long)]
     no_baseline: bool,
     /// Seed of the link emulators.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Longest the bench may take, seconds; messages not delivered by then are missing.
+    #[arg(long, default_value_t = 120.0)]
+    time_limit_s: f64,
     /// Also write the JSON report to this file.
     #[arg(long, value_name = "PATH")]
     json: Option<PathBuf>,
@@ -67,6 +71,13 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
             return Err(format!("--{name} must be in [0, 1], got {p}"));
         }
     }
+    let finite = [args.latency_ms, args.jitter_ms, args.time_limit_s]
+        .into_iter()
+        .chain(args.bandwidth_mbps)
+        .all(f64::is_finite);
+    if !(finite && args.time_limit_s > 0.0 && args.time_limit_s <= 86_400.0) {
+        return Err("latency, jitter, bandwidth and the time limit must be finite numbers, the time limit in (0, 86400] seconds".into());
+    }
     if args.latency_ms < 0.0
         || args.jitter_ms < 0.0
         || args.bandwidth_mbps.is_some_and(|b| b <= 0.0)
@@ -81,7 +92,9 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
     Ok(BenchOptions {
         size: args.size,
         count: args.count,
-        rtt_rounds: args.rtt_rounds,
+        rtt_rounds: args
+            .rtt_rounds
+            .unwrap_or_else(|| ((64 << 20) / args.size.max(1)).clamp(5, 200)),
         link: LinkProfile {
             latency_ms: args.latency_ms,
             jitter_ms: args.jitter_ms,
@@ -95,7 +108,7 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
         window_packets: args.window.max(1),
         seed: args.seed,
         udp_baseline: !args.no_baseline,
-        ..BenchOptions::default()
+        time_limit: std::time::Duration::from_secs_f64(args.time_limit_s),
     })
 }
 
@@ -107,11 +120,15 @@ fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Tab
         .set_header(["measure", "value"]);
     let rows = [
         (
-            "messages sent / delivered",
-            format!("{} / {}", report.sent, report.delivered),
+            "messages delivered / offered",
+            format!("{} / {}", report.delivered, report.options.count),
         ),
-        ("byte-identical", yes(report.byte_identical)),
-        ("in order", yes(report.in_order)),
+        ("all delivered", yes(report.complete)),
+        (
+            "byte-identical (of those delivered)",
+            yes(report.byte_identical),
+        ),
+        ("in order (of those delivered)", yes(report.in_order)),
         ("goodput MB/s", format!("{:.1}", report.goodput_mb_s)),
         (
             "UDP blast MB/s (same datagrams)",
@@ -156,11 +173,26 @@ pub fn run(args: Args) -> ExitCode {
         "transport bench: {} messages of {} bytes, link {:?}",
         args.count, args.size, opts.link
     );
-    let report = match rt.block_on(cloudlight::transport::bench::run(opts)) {
-        Ok(r) => r,
-        Err(e) => {
+    let interrupted = async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    let outcome = rt.block_on(async {
+        tokio::select! {
+            r = cloudlight::transport::bench::run(opts) => Some(r),
+            _ = interrupted => None,
+        }
+    });
+    let report = match outcome {
+        Some(Ok(r)) => r,
+        Some(Err(e)) => {
             eprintln!("error: {e}");
             return ExitCode::FAILURE;
+        }
+        None => {
+            eprintln!("interrupted");
+            return ExitCode::from(130);
         }
     };
     println!("{}", table(&report));
@@ -169,9 +201,24 @@ pub fn run(args: Args) -> ExitCode {
     if let Err(e) = super::write_json(args.json.as_ref(), &json) {
         return crate::cli::report_error(e);
     }
-    if report.delivered == report.sent && report.byte_identical && report.in_order {
+    if report.complete && report.byte_identical && report.in_order {
         ExitCode::SUCCESS
     } else {
+        eprintln!(
+            "error: {} of {} messages delivered{}{}",
+            report.delivered,
+            report.options.count,
+            if report.byte_identical {
+                ""
+            } else {
+                ", some damaged"
+            },
+            if report.in_order {
+                ""
+            } else {
+                ", out of order"
+            },
+        );
         ExitCode::from(4)
     }
 }

@@ -1,131 +1,397 @@
-//! The handshake: HELLO packets with the cluster id, both names, incarnations and a
-//! truncated HMAC-SHA256 under the shared secret; peer restarts are detected here.
+//! The handshake: HELLO → CHALLENGE → CONFIRM, each tagged with an HMAC under the shared
+//! secret; sessions are installed here, and a new session replacing a live one is a restart.
+//!
+//! Who initiates: a node without a session sends HELLOs (a fresh nonce per attempt) to the
+//! peer's address every `hello_interval`. A HELLO is answered by a CHALLENGE to the address
+//! it came from (at most `challenges_per_s` to addresses other than the peer's own), except
+//! that when both sides are initiating, only the one with the greater name answers, so that
+//! one handshake completes. The initiator installs the session on a CHALLENGE that echoes its
+//! current nonce (the responder proved itself *now*) and sends CONFIRM until it hears an
+//! authentic packet of the session, starting over if none comes within a second; the
+//! responder installs on a CONFIRM that echoes a challenge it issued and still holds (each
+//! challenge completes at most once). Recorded packets from this or an earlier run therefore
+//! install nothing: their nonces are not current.
 
 use std::net::SocketAddr;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-use hmac::{KeyInit, Mac};
+use rand::RngExt;
 
-use super::{Endpoint, Event, RecvState};
-use crate::wire::{Body, MAC_BYTES};
+use super::{Control, Endpoint, Event, Peer, RecvState, Session};
+use crate::crypto::{
+    ReplayWindow, Role, SessionInputs, SessionSecrets, handshake_tag, handshake_tag_ok,
+};
+use crate::wire::{Handshake, Ids, NONCE_BYTES, TAG_BYTES};
 
-type HmacSha256 = hmac::Hmac<sha2::Sha256>;
+/// Challenges a responder holds per peer, at most (the oldest is forgotten first).
+const MAX_PENDING: usize = 4;
+/// How long an issued challenge may be confirmed.
+const CHALLENGE_TTL: Duration = Duration::from_secs(10);
+/// How long an initiator waits for its session to be confirmed before starting over.
+const CONFIRM_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// A HELLO this node sent and awaits an answer to.
+pub(crate) struct Initiation {
+    nonce_i: [u8; NONCE_BYTES],
+}
+
+/// A CHALLENGE this node issued.
+pub(crate) struct PendingChallenge {
+    addr: SocketAddr,
+    nonce_i: [u8; NONCE_BYTES],
+    nonce_r: [u8; NONCE_BYTES],
+    at: Instant,
+}
 
 impl Endpoint {
-    #[allow(clippy::too_many_arguments)]
-    fn mac_state(
-        &self,
-        cluster: &str,
-        from: &str,
-        to: &str,
-        incarnation: u64,
-        epoch: u64,
-        seen: u64,
-        reply: bool,
-    ) -> HmacSha256 {
-        let mut m =
-            HmacSha256::new_from_slice(&self.config.secret).expect("HMAC takes keys of any length");
-        m.update(b"cloudlight-hello-v1");
-        for part in [cluster, from, to] {
-            m.update(&[part.len() as u8]);
-            m.update(part.as_bytes());
-        }
-        m.update(&incarnation.to_le_bytes());
-        m.update(&epoch.to_le_bytes());
-        m.update(&seen.to_le_bytes());
-        m.update(&[u8::from(reply)]);
-        m
-    }
-
-    pub(super) fn hello(&self, p: usize, reply: bool) -> Vec<u8> {
-        let peer = &self.peers[p];
-        let c = &self.config;
-        let full = self
-            .mac_state(
-                &c.cluster,
-                &c.node,
-                &peer.name,
-                c.incarnation,
-                c.epoch,
-                peer.remote_incarnation,
-                reply,
-            )
-            .finalize()
-            .into_bytes();
-        let mac: [u8; MAC_BYTES] = full[..MAC_BYTES]
-            .try_into()
-            .expect("HMAC-SHA256 has 32 bytes");
-        Body::Hello {
-            cluster: &c.cluster,
-            from: &c.node,
+    fn ids<'a>(&'a self, peer: &'a Peer) -> Ids<'a> {
+        Ids {
+            cluster: &self.config.cluster,
+            from: &self.config.node,
             to: &peer.name,
-            epoch: c.epoch,
-            seen: peer.remote_incarnation,
-            reply,
-            mac,
+            digest: self.config.topology_digest,
+            epoch: self.config.epoch,
         }
-        .encode(c.incarnation)
     }
 
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn handle_hello(
+    fn tagged(&self, message: &Handshake<'_>) -> Vec<u8> {
+        let mut bytes = message.encode_untagged();
+        let tag = handshake_tag(&self.config.secret, &bytes);
+        bytes.extend_from_slice(&tag);
+        bytes
+    }
+
+    /// A handshake packet for peer `p` when one is due: HELLO while it has no session,
+    /// CONFIRM again while its session is unconfirmed.
+    pub(super) fn poll_handshake(
+        &mut self,
+        p: usize,
+        now: Instant,
+    ) -> Option<(SocketAddr, Vec<u8>)> {
+        let interval = self.config.hello_interval;
+        let peer = &self.peers[p];
+        let bytes = match &peer.session {
+            None if now >= peer.hello_due => {
+                let nonce_i = match &peer.initiation {
+                    Some(i) => i.nonce_i,
+                    None => self.rng.random(),
+                };
+                let hello = Handshake::Hello {
+                    ids: self.ids(peer),
+                    nonce_i,
+                };
+                let bytes = self.tagged(&hello);
+                let peer = &mut self.peers[p];
+                peer.initiation = Some(Initiation { nonce_i });
+                peer.hello_due = now + interval;
+                bytes
+            }
+            Some(s) if !s.confirmed && now >= s.confirm_due => {
+                let (nonce_i, nonce_r) = s.nonces;
+                let confirm = Handshake::Confirm {
+                    ids: self.ids(peer),
+                    nonce_i,
+                    nonce_r,
+                };
+                let bytes = self.tagged(&confirm);
+                let s = self.peers[p].session.as_mut().expect("matched above");
+                s.confirm_due = now + interval;
+                bytes
+            }
+            _ => return None,
+        };
+        let to = self.peers[p].addr;
+        Some(self.account(p, to, bytes))
+    }
+
+    /// Forgets expired challenges and unconfirmed sessions of peer `p`.
+    pub(super) fn expire_handshakes(&mut self, p: usize, now: Instant) {
+        let peer = &mut self.peers[p];
+        peer.pending
+            .retain(|c| now.saturating_duration_since(c.at) < CHALLENGE_TTL);
+        if let Some(s) = &peer.session
+            && !s.confirmed
+            && now.saturating_duration_since(s.established) > CONFIRM_TIMEOUT
+        {
+            tracing::debug!(peer = %peer.name, "session not confirmed; starting over");
+            self.sessions.remove(&s.secrets.id);
+            peer.session = None;
+            peer.hello_due = now;
+        }
+    }
+
+    /// One handshake packet: who it claims to be from, its proof, then its step.
+    pub(super) fn handle_handshake(
         &mut self,
         now: Instant,
         from: SocketAddr,
-        incarnation: u64,
-        cluster: &str,
-        name: &str,
-        to: &str,
-        epoch: u64,
-        seen: u64,
-        reply: bool,
-        mac: &[u8; MAC_BYTES],
+        message: &Handshake<'_>,
+        tagged: &[u8],
+        tag: &[u8; TAG_BYTES],
     ) {
-        let proven = self
-            .mac_state(cluster, name, to, incarnation, epoch, seen, reply)
-            .verify_truncated_left(mac)
-            .is_ok();
-        let Some(p) = self.peer_index(name) else {
-            self.strangers += 1;
+        let ids = message.ids();
+        let known = ids.cluster == self.config.cluster && ids.to == self.config.node;
+        let p = self.peer_index(ids.from).filter(|_| known);
+        let Some(p) = p.filter(|_| handshake_tag_ok(&self.config.secret, tagged, tag)) else {
+            self.stats.strangers += 1;
+            let name = ids.from.to_string();
+            self.noise.note(
+                now,
+                "handshake refused (unknown cluster, name or proof)",
+                || format!("from {from} claiming `{name}`"),
+            );
             return;
         };
-        if cluster != self.config.cluster || to != self.config.node || incarnation == 0 || !proven {
-            self.strangers += 1;
-            tracing::debug!(%from, name, "hello refused (cluster, name or proof)");
+        match *message {
+            Handshake::Hello { nonce_i, .. } => self.on_hello(now, p, from, nonce_i),
+            Handshake::Challenge {
+                ref ids,
+                nonce_i,
+                nonce_r,
+            } => self.on_challenge(now, p, from, ids, nonce_i, nonce_r),
+            Handshake::Confirm {
+                ref ids,
+                nonce_i,
+                nonce_r,
+            } => self.on_confirm(now, p, from, ids, nonce_i, nonce_r),
+        }
+    }
+
+    fn on_hello(&mut self, now: Instant, p: usize, from: SocketAddr, nonce_i: [u8; NONCE_BYTES]) {
+        let peer = &self.peers[p];
+        if peer.session.is_none() && peer.initiation.is_some() && self.config.node < peer.name {
+            // Both initiating: the peer answers ours.
             return;
         }
-        if self.peers[p].addr != from {
-            self.by_addr.remove(&self.peers[p].addr);
-            self.peers[p].addr = from;
-            self.by_addr.insert(from, p);
+        let known_addr = from == peer.addr;
+        let reuse = peer
+            .pending
+            .iter()
+            .find(|c| c.addr == from && c.nonce_i == nonce_i)
+            .map(|c| c.nonce_r);
+        if reuse.is_none() && !known_addr && !self.take_challenge_token(now) {
+            self.stats.rate_limited += 1;
+            return;
         }
-        let old = self.peers[p].remote_incarnation;
-        if old != incarnation {
-            if old != 0 {
-                let lost = self.peers[p].send.outstanding();
-                self.events.push_back(Event::PeerRestarted {
-                    peer: name.to_string(),
-                    lost_messages: lost,
-                });
-                self.reset_peer(p, now);
-            }
-            self.peers[p].remote_incarnation = incarnation;
-        }
-        let my = self.config.incarnation;
+        let nonce_r = reuse.unwrap_or_else(|| self.rng.random());
+        let challenge = Handshake::Challenge {
+            ids: self.ids(&self.peers[p]),
+            nonce_i,
+            nonce_r,
+        };
+        let bytes = self.tagged(&challenge);
         let peer = &mut self.peers[p];
+        if reuse.is_none() {
+            if peer.pending.len() >= MAX_PENDING {
+                // Forget the oldest, but never the one for the peer's own address.
+                let own = peer.addr;
+                let victim = (0..peer.pending.len())
+                    .filter(|&i| peer.pending[i].addr != own)
+                    .min_by_key(|&i| peer.pending[i].at)
+                    .unwrap_or(0);
+                peer.pending.remove(victim);
+            }
+            peer.pending.push(PendingChallenge {
+                addr: from,
+                nonce_i,
+                nonce_r,
+                at: now,
+            });
+        }
+        self.control.push_back(Control::Raw(from, bytes));
+    }
+
+    fn take_challenge_token(&mut self, now: Instant) -> bool {
+        let rate = self.config.challenges_per_s.max(1.0);
+        let dt = now
+            .saturating_duration_since(self.challenge_refill)
+            .as_secs_f64();
+        self.challenge_refill = now;
+        self.challenge_tokens = (self.challenge_tokens + dt * rate).min(rate);
+        if self.challenge_tokens >= 1.0 {
+            self.challenge_tokens -= 1.0;
+            true
+        } else {
+            false
+        }
+    }
+
+    fn on_challenge(
+        &mut self,
+        now: Instant,
+        p: usize,
+        from: SocketAddr,
+        ids: &Ids<'_>,
+        nonce_i: [u8; NONCE_BYTES],
+        nonce_r: [u8; NONCE_BYTES],
+    ) {
+        let current = self.peers[p]
+            .initiation
+            .as_ref()
+            .is_some_and(|i| i.nonce_i == nonce_i);
+        if !current || self.peers[p].session.is_some() {
+            self.stats.stale_handshakes += 1;
+            return;
+        }
+        // Answer even on a mismatch, so that the responder learns of it too.
+        let confirm = Handshake::Confirm {
+            ids: self.ids(&self.peers[p]),
+            nonce_i,
+            nonce_r,
+        };
+        let bytes = self.tagged(&confirm);
+        self.control.push_back(Control::Raw(from, bytes));
+        if self.refuse_mismatch(p, ids) {
+            return;
+        }
+        self.peers[p].initiation = None;
+        let secrets = self.derive(p, Role::Initiator, &nonce_i, &nonce_r);
+        self.install(
+            now,
+            p,
+            from,
+            ids.epoch,
+            Role::Initiator,
+            secrets,
+            (nonce_i, nonce_r),
+        );
+    }
+
+    fn on_confirm(
+        &mut self,
+        now: Instant,
+        p: usize,
+        from: SocketAddr,
+        ids: &Ids<'_>,
+        nonce_i: [u8; NONCE_BYTES],
+        nonce_r: [u8; NONCE_BYTES],
+    ) {
+        let peer = &mut self.peers[p];
+        let Some(i) = peer
+            .pending
+            .iter()
+            .position(|c| c.addr == from && c.nonce_i == nonce_i && c.nonce_r == nonce_r)
+        else {
+            // A CONFIRM resent for the session we already hold is harmless; any other is stale.
+            let resent = peer
+                .session
+                .as_ref()
+                .is_some_and(|s| s.nonces == (nonce_i, nonce_r));
+            if !resent {
+                self.stats.stale_handshakes += 1;
+            }
+            return;
+        };
+        peer.pending.remove(i);
+        if self.refuse_mismatch(p, ids) {
+            return;
+        }
+        let secrets = self.derive(p, Role::Responder, &nonce_i, &nonce_r);
+        self.install(
+            now,
+            p,
+            from,
+            ids.epoch,
+            Role::Responder,
+            secrets,
+            (nonce_i, nonce_r),
+        );
+    }
+
+    /// Reports (once) and refuses a proven peer whose topology differs.
+    fn refuse_mismatch(&mut self, p: usize, ids: &Ids<'_>) -> bool {
+        if ids.digest == self.config.topology_digest {
+            return false;
+        }
+        let peer = &mut self.peers[p];
+        if !peer.mismatch {
+            peer.mismatch = true;
+            tracing::error!(peer = %peer.name, "peer runs a different topology; refusing it");
+            self.events.push_back(Event::TopologyMismatch {
+                peer: peer.name.clone(),
+            });
+        }
+        true
+    }
+
+    fn derive(
+        &self,
+        p: usize,
+        role: Role,
+        nonce_i: &[u8; NONCE_BYTES],
+        nonce_r: &[u8; NONCE_BYTES],
+    ) -> SessionSecrets {
+        let (me, them) = (self.config.node.as_str(), self.peers[p].name.as_str());
+        let (initiator, responder) = match role {
+            Role::Initiator => (me, them),
+            Role::Responder => (them, me),
+        };
+        let inputs = SessionInputs {
+            secret: &self.config.secret,
+            cluster: &self.config.cluster,
+            initiator,
+            responder,
+            digest: &self.config.topology_digest,
+            nonce_i,
+            nonce_r,
+        };
+        SessionSecrets::derive(&inputs, role, self.config.confidential)
+    }
+
+    /// Installs a new session with peer `p`, bound to `addr`; one that replaces a session
+    /// the peer was ever up in is a restart, and both sides' streams start afresh.
+    #[allow(clippy::too_many_arguments)]
+    fn install(
+        &mut self,
+        now: Instant,
+        p: usize,
+        addr: SocketAddr,
+        epoch: u64,
+        role: Role,
+        secrets: SessionSecrets,
+        nonces: ([u8; NONCE_BYTES], [u8; NONCE_BYTES]),
+    ) {
+        if let Some(old) = self.peers[p].session.take() {
+            self.sessions.remove(&old.secrets.id);
+        }
+        if self.peers[p].ever_up {
+            let peer = &mut self.peers[p];
+            let lost = peer.send.outstanding();
+            peer.stats.restarts += 1;
+            peer.stats.lost_messages += lost;
+            tracing::warn!(peer = %peer.name, lost, "peer restarted: streams reset");
+            self.events.push_back(Event::PeerRestarted {
+                peer: peer.name.clone(),
+                lost_messages: lost,
+            });
+            self.reset_peer(p, now);
+        }
+        self.sessions.insert(secrets.id, p);
+        let confirmed = role == Role::Responder;
+        let peer = &mut self.peers[p];
+        peer.session = Some(Session {
+            secrets,
+            replay: ReplayWindow::default(),
+            confirmed,
+            nonces,
+            established: now,
+            confirm_due: now + self.config.hello_interval,
+        });
+        peer.send.restart_numbers();
+        peer.stats.handshakes += 1;
+        peer.addr = addr;
+        peer.path = None;
         peer.remote_epoch = epoch;
         peer.last_heard = now;
         peer.gone = false;
-        if !reply || seen != my {
-            peer.reply_hello = true;
-        }
-        if seen == my && !peer.up {
+        peer.initiation = None;
+        peer.ping_due = now;
+        if confirmed {
             peer.up = true;
             peer.ever_up = true;
-            peer.ping_due = now;
             peer.recv.credit_dirty = true;
             self.events.push_back(Event::PeerUp {
-                peer: name.to_string(),
+                peer: peer.name.clone(),
                 epoch,
             });
         }
@@ -137,6 +403,7 @@ impl Endpoint {
         peer.send.reset(&self.config, now);
         peer.recv = RecvState::default();
         peer.up = false;
+        peer.stall_reported = false;
         for (&edge, e) in self.send_edges.iter_mut().filter(|(_, e)| e.peer == p) {
             e.reset();
             self.events.push_back(Event::Credit {

@@ -2,21 +2,31 @@
 //! moves datagrams ([`Endpoint::handle_datagram`], [`Endpoint::poll_transmit`]) and wakes it
 //! at [`Endpoint::poll_timeout`]. One endpoint serves one node socket and all its peers.
 //!
-//! - **Peers** handshake with HELLO packets carrying the cluster id, both node names, the
-//!   sender's incarnation (random per process start) and a truncated HMAC-SHA256 under the
-//!   topology's shared secret. A peer is *up* when each side has seen the other's
-//!   incarnation. Later packets must carry the peer's incarnation: anything else (strangers,
-//!   stale incarnations, bad MACs) is ignored and counted, never delivered. A HELLO with a
-//!   new incarnation means the peer restarted: its edge streams reset and the messages that
-//!   were outstanding are reported lost. PING/PONG heartbeats measure the round trip; a peer
-//!   silent for `peer_timeout` is reported lost, and reported up again when heard.
+//! - **Handshake** (three messages, see [`handshake`]): the initiator's HELLO carries a fresh
+//!   nonce; the responder's CHALLENGE echoes it with a fresh nonce of its own; the
+//!   initiator's CONFIRM echoes that. Each carries the cluster id, both names, the sender's
+//!   topology digest and clock epoch, and an HMAC under the shared secret over all of it, so
+//!   each side has proof that the other knows the secret *now*: a recorded HELLO, CHALLENGE
+//!   or CONFIRM from this or an earlier run completes nothing. Session keys come from the
+//!   secret and both nonces (HKDF); the session is bound to the address the peer proved
+//!   itself from. A node without a session initiates; a new session that replaces an old one
+//!   is a peer restart: both sides reset their edge streams and the messages that were
+//!   outstanding are reported lost. Nodes whose topologies differ refuse each other
+//!   ([`Event::TopologyMismatch`]).
+//! - **Session packets** carry the session id and a packet number, and are sealed with
+//!   ChaCha20-Poly1305 (integrity, and confidentiality when configured); a replay window
+//!   refuses numbers seen before. An authentic packet from another address is not obeyed:
+//!   the address is challenged and the link moves only when it answers.
+//!   PING/PONG heartbeats measure the round trip; a peer silent for `peer_timeout` is
+//!   reported lost, and reported up again when heard.
 //! - **Messages** of an edge are split into chunks that fit one datagram (laminar never
 //!   fragments), each DATA packet gets a packet number, and the receiver acknowledges packet
-//!   numbers with up to 64 ranges. Packets are declared lost three packet numbers behind the
-//!   largest acknowledged one, or after the retransmission timeout (`srtt + 4·rttvar`,
-//!   doubling on expiry); their chunks are sent again in new packets. At most
-//!   `window_packets` are unacknowledged per peer, and sending is paced to
-//!   `pacing_bytes_per_s` when set.
+//!   numbers with up to 64 ranges, never a number it did not receive. Packets are declared
+//!   lost three packet numbers behind the largest acknowledged one, or after the
+//!   retransmission timeout (`srtt + 4·rttvar`, doubling on expiry); their chunks are sent
+//!   again in new packets. At most `window_packets` are unacknowledged per peer, and sending
+//!   is paced to `pacing_bytes_per_s` when set. Data that makes no progress for
+//!   `stall_timeout` while the peer answers heartbeats is reported ([`Event::Stalled`]).
 //! - **Reassembly** is bounded: a message longer than `max_message_bytes` is refused, all
 //!   partial messages of a peer together never hold more than `max_reassembly_bytes`, and a
 //!   sequence number beyond the edge's credit is a protocol violation. Complete messages are
@@ -26,6 +36,7 @@
 //!   every heartbeat), and the sending side may only have sent that many messages.
 
 mod handshake;
+mod noise;
 mod recv;
 mod send;
 
@@ -33,7 +44,13 @@ use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
-use crate::wire::{self, Body};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha20Rng;
+
+use crate::crypto::{ReplayWindow, SessionSecrets};
+use crate::wire::{self, Body, DIGEST_BYTES, NONCE_BYTES, SESSION_HEADER_BYTES};
+use handshake::{Initiation, PendingChallenge};
+use noise::Noise;
 use recv::{RecvEdge, RecvState};
 use send::{SendEdge, SendState};
 
@@ -44,10 +61,14 @@ pub struct EndpointConfig {
     pub node: String,
     /// Cluster id; peers of another cluster are strangers.
     pub cluster: String,
-    /// Shared secret proving membership (HMAC key).
+    /// Shared secret proving membership (the handshake's HMAC key and the session keys' input).
     pub secret: Vec<u8>,
-    /// This process's incarnation: random, non-zero, new at every start.
-    pub incarnation: u64,
+    /// Digest of this node's topology; peers with another digest are refused.
+    pub topology_digest: [u8; DIGEST_BYTES],
+    /// Whether session packets are encrypted (they are always authenticated).
+    pub confidential: bool,
+    /// Seed of the handshake nonces and path tokens: random, new at every start.
+    pub nonce_seed: [u8; 32],
     /// Opaque value given to peers in the handshake (the runtime sends its clock epoch).
     pub epoch: u64,
     /// Largest packet handed to laminar (laminar adds 5 bytes of header to the datagram).
@@ -68,22 +89,29 @@ pub struct EndpointConfig {
     pub heartbeat_interval: Duration,
     /// A peer silent this long is reported lost.
     pub peer_timeout: Duration,
+    /// Data unacknowledged this long while the peer answers heartbeats is reported stalled.
+    pub stall_timeout: Duration,
     /// Interval between handshake attempts.
     pub hello_interval: Duration,
     /// Lower bound of the retransmission timeout.
     pub min_rto: Duration,
     /// Upper bound of the retransmission timeout.
     pub max_rto: Duration,
+    /// Handshake answers per second to addresses other than a peer's known one, at most.
+    pub challenges_per_s: f64,
 }
 
 impl EndpointConfig {
-    /// Defaults for node `node` of cluster `cluster` with `secret`.
-    pub fn new(node: &str, cluster: &str, secret: &[u8], incarnation: u64) -> Self {
+    /// Defaults for node `node` of cluster `cluster` with `secret`; the nonce seed is drawn
+    /// from the operating system's randomness.
+    pub fn new(node: &str, cluster: &str, secret: &[u8]) -> Self {
         EndpointConfig {
             node: node.to_string(),
             cluster: cluster.to_string(),
             secret: secret.to_vec(),
-            incarnation: incarnation.max(1),
+            topology_digest: [0; DIGEST_BYTES],
+            confidential: true,
+            nonce_seed: rand::random(),
             epoch: 0,
             max_packet_bytes: 1200,
             max_message_bytes: 64 << 20,
@@ -94,9 +122,11 @@ impl EndpointConfig {
             ack_every: 16,
             heartbeat_interval: Duration::from_millis(100),
             peer_timeout: Duration::from_secs(2),
+            stall_timeout: Duration::from_secs(15),
             hello_interval: Duration::from_millis(50),
             min_rto: Duration::from_millis(5),
             max_rto: Duration::from_secs(1),
+            challenges_per_s: 50.0,
         }
     }
 
@@ -137,12 +167,24 @@ pub enum Event {
         /// Peer name.
         peer: String,
     },
-    /// A peer came back with a new incarnation: edge streams were reset.
+    /// A peer proved a new session (it restarted): edge streams were reset on both sides.
     PeerRestarted {
         /// Peer name.
         peer: String,
         /// Messages sent to it that were not acknowledged and are gone.
         lost_messages: u64,
+    },
+    /// A peer that knows the secret runs a different topology: the link is refused.
+    TopologyMismatch {
+        /// Peer name.
+        peer: String,
+    },
+    /// Data to a peer that answers heartbeats made no progress for `stall_timeout`.
+    Stalled {
+        /// Peer name.
+        peer: String,
+        /// Milliseconds without an acknowledgement of new data.
+        waited_ms: u64,
     },
     /// A complete message, in order on its edge.
     Message {
@@ -203,8 +245,35 @@ pub struct PeerStats {
     pub wire_bytes_received: u64,
     /// Smoothed round-trip time, seconds (0 until measured).
     pub srtt_s: f64,
-    /// Packets refused (malformed, beyond credit, over the reassembly bound).
+    /// Authentic DATA refused (beyond credit, over the reassembly bound, unknown edge).
     pub refused: u64,
+    /// Packets of its session whose number was seen before (replays, network duplicates).
+    pub replayed: u64,
+    /// Packets naming its session that failed authentication (forgeries, corruption).
+    pub forged: u64,
+    /// Sessions completed with it.
+    pub handshakes: u64,
+    /// Times it restarted (a new session replaced a live one).
+    pub restarts: u64,
+    /// Messages sent to it that were lost with a restart.
+    pub lost_messages: u64,
+    /// Times its address moved after answering a path challenge.
+    pub moves: u64,
+}
+
+/// Counters of packets that belong to no peer.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct EndpointStats {
+    /// Handshake packets from unknown names, other clusters, or without proof of the secret.
+    pub strangers: u64,
+    /// Datagrams that did not decode.
+    pub malformed: u64,
+    /// Session packets of no current session (strangers, or a peer's previous session).
+    pub unknown_session: u64,
+    /// Handshake packets that were valid but stale: a recorded HELLO, CHALLENGE or CONFIRM.
+    pub stale_handshakes: u64,
+    /// Handshake answers withheld by the rate limit.
+    pub rate_limited: u64,
 }
 
 /// Per-edge wire counters.
@@ -218,37 +287,75 @@ pub struct EdgeWireStats {
     pub retransmissions: u64,
 }
 
+/// A live session with a peer.
+pub(crate) struct Session {
+    secrets: SessionSecrets,
+    replay: ReplayWindow,
+    /// The initiator's proof was answered by an authentic packet (always true for a responder).
+    confirmed: bool,
+    /// The nonces, to send CONFIRM again until the responder is heard.
+    nonces: ([u8; NONCE_BYTES], [u8; NONCE_BYTES]),
+    established: Instant,
+    confirm_due: Instant,
+}
+
+/// Validation of a new address an authentic packet came from.
+struct PathProbe {
+    addr: SocketAddr,
+    token: u64,
+    sent: Instant,
+}
+
 pub(crate) struct Peer {
     pub(crate) name: String,
+    /// Where packets go: the configured address until a session binds the proven one.
     pub(crate) addr: SocketAddr,
-    remote_incarnation: u64,
+    session: Option<Session>,
+    initiation: Option<Initiation>,
+    pending: Vec<PendingChallenge>,
     remote_epoch: u64,
-    /// We have seen them and they have seen us.
+    /// A session is confirmed and the peer is not lost.
     up: bool,
     ever_up: bool,
     /// The peer said goodbye: only a new handshake brings it back.
     gone: bool,
-    reply_hello: bool,
+    /// A topology mismatch was reported (once).
+    mismatch: bool,
+    /// A stall was reported since the last progress (once).
+    stall_reported: bool,
     hello_due: Instant,
     last_heard: Instant,
     ping_due: Instant,
+    path: Option<PathProbe>,
     pub(crate) send: SendState,
     pub(crate) recv: RecvState,
     pub(crate) stats: PeerStats,
+}
+
+/// What waits to be sent outside the data flow.
+enum Control {
+    /// A tagged handshake packet, to an address.
+    Raw(SocketAddr, Vec<u8>),
+    /// A session body for a peer, sealed when sent (to `to`, or the peer's address).
+    Body(usize, Option<SocketAddr>, Body<'static>),
 }
 
 /// One node's protocol state machine (see the module documentation).
 pub struct Endpoint {
     config: EndpointConfig,
     start: Instant,
+    rng: ChaCha20Rng,
     peers: Vec<Peer>,
-    by_addr: HashMap<SocketAddr, usize>,
+    sessions: HashMap<u64, usize>,
     send_edges: HashMap<u32, SendEdge>,
     recv_edges: HashMap<u32, RecvEdge>,
     events: VecDeque<Event>,
-    control: VecDeque<(usize, Vec<u8>)>,
-    strangers: u64,
-    malformed: u64,
+    control: VecDeque<Control>,
+    stats: EndpointStats,
+    noise: Noise,
+    challenge_tokens: f64,
+    challenge_refill: Instant,
+    scratch: Vec<u8>,
     closing: bool,
 }
 
@@ -256,16 +363,20 @@ impl Endpoint {
     /// A new endpoint; `now` starts its clock.
     pub fn new(config: EndpointConfig, now: Instant) -> Self {
         Endpoint {
+            rng: ChaCha20Rng::from_seed(config.nonce_seed),
+            challenge_tokens: config.challenges_per_s.max(1.0),
             config,
             start: now,
             peers: Vec::new(),
-            by_addr: HashMap::new(),
+            sessions: HashMap::new(),
             send_edges: HashMap::new(),
             recv_edges: HashMap::new(),
             events: VecDeque::new(),
             control: VecDeque::new(),
-            strangers: 0,
-            malformed: 0,
+            stats: EndpointStats::default(),
+            noise: Noise::new(now),
+            challenge_refill: now,
+            scratch: Vec::new(),
             closing: false,
         }
     }
@@ -275,27 +386,31 @@ impl Endpoint {
         &self.config
     }
 
-    /// Declares a peer this node talks to; the handshake starts at the next poll.
+    /// Declares a peer this node talks to (or moves a declared one before it has a session);
+    /// the handshake starts at the next poll.
     pub fn add_peer(&mut self, name: &str, addr: SocketAddr, now: Instant) {
         if let Some(i) = self.peer_index(name) {
-            self.by_addr.remove(&self.peers[i].addr);
-            self.peers[i].addr = addr;
-            self.by_addr.insert(addr, i);
+            if self.peers[i].session.is_none() {
+                self.peers[i].addr = addr;
+            }
             return;
         }
-        self.by_addr.insert(addr, self.peers.len());
         self.peers.push(Peer {
             name: name.to_string(),
             addr,
-            remote_incarnation: 0,
+            session: None,
+            initiation: None,
+            pending: Vec::new(),
             remote_epoch: 0,
             up: false,
             ever_up: false,
             gone: false,
-            reply_hello: false,
+            mismatch: false,
+            stall_reported: false,
             hello_due: now,
             last_heard: now,
             ping_due: now,
+            path: None,
             send: SendState::new(&self.config, now),
             recv: RecvState::default(),
             stats: PeerStats::default(),
@@ -336,10 +451,10 @@ impl Endpoint {
         self.peer_index(peer).is_some_and(|i| self.peers[i].up)
     }
 
-    /// The handshake value `peer` sent (its clock epoch), once known.
+    /// The handshake value `peer` sent (its clock epoch), once a session exists.
     pub fn peer_epoch(&self, peer: &str) -> Option<u64> {
         let p = &self.peers[self.peer_index(peer)?];
-        (p.remote_incarnation != 0).then_some(p.remote_epoch)
+        p.session.as_ref().map(|_| p.remote_epoch)
     }
 
     /// Counters of the link to `peer`.
@@ -372,14 +487,19 @@ impl Endpoint {
             .copied()
     }
 
-    /// Packets from unknown senders, stale incarnations or with bad proofs, ignored.
+    /// Counters of packets that belong to no peer.
+    pub fn stats(&self) -> EndpointStats {
+        self.stats
+    }
+
+    /// Handshake packets from strangers or without proof, ignored.
     pub fn strangers(&self) -> u64 {
-        self.strangers
+        self.stats.strangers
     }
 
     /// Datagrams that did not decode.
     pub fn malformed(&self) -> u64 {
-        self.malformed
+        self.stats.malformed
     }
 
     /// Bytes held by partial messages from `peer` (bounded by `max_reassembly_bytes`).
@@ -422,12 +542,13 @@ impl Endpoint {
         }
     }
 
-    /// Says goodbye to every peer (sent at the next polls).
+    /// Says goodbye to every peer with a session (sent at the next polls).
     pub fn close(&mut self) {
         self.closing = true;
         for i in 0..self.peers.len() {
-            let bye = Body::Bye.encode(self.config.incarnation);
-            self.control.push_back((i, bye));
+            if self.peers[i].session.is_some() {
+                self.control.push_back(Control::Body(i, None, Body::Bye));
+            }
         }
     }
 
@@ -442,73 +563,172 @@ impl Endpoint {
 
     /// Feeds one received datagram.
     pub fn handle_datagram(&mut self, now: Instant, from: SocketAddr, datagram: &[u8]) {
-        let packet = match wire::decode(datagram) {
-            Ok(p) => p,
+        match wire::decode(datagram) {
             Err(e) => {
-                self.malformed += 1;
-                tracing::debug!(%from, error = %e, "malformed datagram");
+                self.stats.malformed += 1;
+                self.noise
+                    .note(now, "malformed datagram", || format!("from {from}: {e}"));
+            }
+            Ok(wire::Packet::Handshake {
+                message,
+                tagged,
+                tag,
+            }) => self.handle_handshake(now, from, &message, tagged, tag),
+            Ok(wire::Packet::Session(packet)) => {
+                self.handle_session(now, from, &packet, datagram.len())
+            }
+        }
+    }
+
+    /// A session packet: find its session, refuse replays, check its tag, then obey it.
+    fn handle_session(
+        &mut self,
+        now: Instant,
+        from: SocketAddr,
+        packet: &wire::SessionPacket<'_>,
+        size: usize,
+    ) {
+        let Some(&p) = self.sessions.get(&packet.session) else {
+            self.stats.unknown_session += 1;
+            self.noise.note(now, "packet of no current session", || {
+                format!("from {from}")
+            });
+            return;
+        };
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let peer = &mut self.peers[p];
+        let session = peer.session.as_mut().expect("indexed sessions exist");
+        if !session.replay.is_new(packet.pn) {
+            peer.stats.replayed += 1;
+            self.scratch = scratch;
+            return;
+        }
+        let body = session
+            .secrets
+            .recv
+            .open(
+                packet.pn,
+                packet.header,
+                packet.body,
+                packet.tag,
+                &mut scratch,
+            )
+            .map(|plain| wire::Body::decode(packet.kind, plain));
+        let body = match body {
+            None => {
+                peer.stats.forged += 1;
+                let name = peer.name.clone();
+                self.noise.note(now, "packet failed authentication", || {
+                    format!("claiming peer {name}'s session, from {from}")
+                });
+                self.scratch = scratch;
                 return;
             }
+            Some(Err(e)) => {
+                // Authentic but undecodable: a peer speaking another dialect.
+                session.replay.mark(packet.pn);
+                self.stats.malformed += 1;
+                self.noise
+                    .note(now, "malformed body", || format!("from {from}: {e}"));
+                self.scratch = scratch;
+                return;
+            }
+            Some(Ok(body)) => body,
         };
-        if let Body::Hello {
-            cluster,
-            from: name,
-            to,
-            epoch,
-            seen,
-            reply,
-            mac,
-        } = &packet.body
-        {
-            self.handle_hello(
-                now,
-                from,
-                packet.incarnation,
-                cluster,
-                name,
-                to,
-                *epoch,
-                *seen,
-                *reply,
-                mac,
-            );
+        session.replay.mark(packet.pn);
+        if from != peer.addr && !self.path_check(now, p, from, &body) {
+            self.scratch = scratch;
             return;
         }
-        let Some(&p) = self.by_addr.get(&from) else {
-            self.strangers += 1;
-            return;
-        };
-        if packet.incarnation != self.peers[p].remote_incarnation || packet.incarnation == 0 {
-            self.strangers += 1;
-            return;
+        self.obey(now, p, packet.pn, body, size);
+        self.scratch = scratch;
+    }
+
+    /// An authentic packet from an address other than the peer's: only a path response
+    /// moves the link; anything else is dropped and the new address challenged. Returns
+    /// whether to obey the packet.
+    fn path_check(&mut self, now: Instant, p: usize, from: SocketAddr, body: &Body<'_>) -> bool {
+        let peer = &mut self.peers[p];
+        match body {
+            Body::PathChallenge { token } => {
+                // Answer where it came from; that proves nothing about us moving.
+                let reply = Body::PathResponse { token: *token };
+                self.control.push_back(Control::Body(p, Some(from), reply));
+                false
+            }
+            Body::PathResponse { token }
+                if peer
+                    .path
+                    .as_ref()
+                    .is_some_and(|probe| probe.addr == from && probe.token == *token) =>
+            {
+                tracing::info!(peer = %peer.name, old = %peer.addr, new = %from, "peer moved");
+                peer.addr = from;
+                peer.path = None;
+                peer.stats.moves += 1;
+                false
+            }
+            _ => {
+                let due = peer.path.as_ref().is_none_or(|probe| {
+                    probe.addr != from || now >= probe.sent + self.config.hello_interval
+                });
+                if due {
+                    let token = self.rng.random();
+                    peer.path = Some(PathProbe {
+                        addr: from,
+                        token,
+                        sent: now,
+                    });
+                    let probe = Body::PathChallenge { token };
+                    self.control.push_back(Control::Body(p, Some(from), probe));
+                }
+                false
+            }
         }
+    }
+
+    /// Acts on an authentic, fresh packet of peer `p`'s session.
+    fn obey(&mut self, now: Instant, p: usize, pn: u64, body: Body<'_>, size: usize) {
         let peer = &mut self.peers[p];
         peer.last_heard = now;
+        if let Some(s) = peer.session.as_mut()
+            && !s.confirmed
+        {
+            s.confirmed = true;
+        }
         if peer.gone {
             // It said goodbye: stragglers are ignored; a new handshake revives it.
             return;
         }
         peer.stats.packets_received += 1;
-        peer.stats.wire_bytes_received += datagram.len() as u64;
-        if !peer.up && peer.ever_up && !matches!(packet.body, Body::Bye) {
+        peer.stats.wire_bytes_received += size as u64;
+        if !peer.up && !matches!(body, Body::Bye) {
             peer.up = true;
+            peer.ever_up = true;
+            peer.recv.credit_dirty = true;
             let ev = Event::PeerUp {
                 peer: peer.name.clone(),
                 epoch: peer.remote_epoch,
             };
             self.events.push_back(ev);
         }
-        match packet.body {
+        match body {
             Body::Data {
-                pn,
                 edge,
                 seq,
                 len,
                 chunk,
                 payload,
-            } => {
-                recv::on_data(self, p, now, pn, edge, seq, len, chunk, payload);
+            } => recv::on_data(self, p, now, pn, edge, seq, len, chunk, payload),
+            other => {
+                self.peers[p].recv.record(pn);
+                self.obey_control(now, p, other);
             }
+        }
+    }
+
+    fn obey_control(&mut self, now: Instant, p: usize, body: Body<'_>) {
+        match body {
             Body::Ack { ranges } => send::on_ack(self, p, now, &ranges),
             Body::Credit { grants } => {
                 for (edge, granted) in grants {
@@ -522,76 +742,107 @@ impl Endpoint {
                 }
             }
             Body::Ping { t_us } => {
-                let pong = Body::Pong { t_us }.encode(self.config.incarnation);
-                self.control.push_back((p, pong));
+                self.control
+                    .push_back(Control::Body(p, None, Body::Pong { t_us }));
             }
             Body::Pong { t_us } => {
                 let rtt = Duration::from_micros(self.now_us(now).saturating_sub(t_us));
-                self.peers[p].send.rtt_sample(rtt, &self.config);
-                self.peers[p].stats.srtt_s = self.peers[p].send.srtt().as_secs_f64();
+                let peer = &mut self.peers[p];
+                peer.send.rtt_sample(rtt, &self.config);
+                peer.stats.srtt_s = peer.send.srtt().as_secs_f64();
             }
             Body::Bye => {
-                self.peers[p].gone = true;
-                self.peers[p].up = false;
+                let peer = &mut self.peers[p];
+                peer.gone = true;
+                peer.up = false;
                 self.events.push_back(Event::PeerLeft {
-                    peer: self.peers[p].name.clone(),
+                    peer: peer.name.clone(),
                 });
             }
-            Body::Hello { .. } => unreachable!("handled above"),
+            Body::PathChallenge { token } => {
+                let reply = Body::PathResponse { token };
+                self.control.push_back(Control::Body(p, None, reply));
+            }
+            Body::PathResponse { .. } | Body::Data { .. } => {}
         }
     }
 
-    /// Runs timers due at `now`: loss detection, heartbeats, peer timeouts, handshakes.
+    /// Runs timers due at `now`: loss detection, stalls, heartbeats, peer timeouts.
     pub fn handle_timeout(&mut self, now: Instant) {
         for p in 0..self.peers.len() {
             send::detect_losses(self, p, now);
+            let config = &self.config;
             let peer = &mut self.peers[p];
-            if peer.up && now.saturating_duration_since(peer.last_heard) > self.config.peer_timeout
-            {
+            if peer.up && now.saturating_duration_since(peer.last_heard) > config.peer_timeout {
                 peer.up = false;
-                tracing::warn!(peer = %peer.name, "peer silent for {:?}: lost", self.config.peer_timeout);
+                tracing::warn!(peer = %peer.name, "peer silent for {:?}: lost", config.peer_timeout);
                 self.events.push_back(Event::PeerLost {
                     peer: peer.name.clone(),
                 });
             }
+            if let Some(waited) = peer.send.stalled_for(now)
+                && peer.up
+                && waited > config.stall_timeout
+                && !peer.stall_reported
+            {
+                peer.stall_reported = true;
+                tracing::error!(peer = %peer.name, "no data acknowledged for {waited:?} while the peer answers");
+                self.events.push_back(Event::Stalled {
+                    peer: peer.name.clone(),
+                    waited_ms: waited.as_millis() as u64,
+                });
+            }
+            self.expire_handshakes(p, now);
         }
+        self.noise.flush(now);
+    }
+
+    /// Seals a session body for peer `p` (`None` without a session).
+    fn seal(&mut self, p: usize, body: &Body<'_>) -> Option<Vec<u8>> {
+        let peer = &mut self.peers[p];
+        let session = peer.session.as_ref()?;
+        let pn = peer.send.take_pn();
+        let bytes = body.encode(session.secrets.id, pn);
+        Some(session.secrets.send.seal(pn, bytes, SESSION_HEADER_BYTES))
     }
 
     /// Next datagram to send, if any may be sent at `now`.
     pub fn poll_transmit(&mut self, now: Instant) -> Option<(SocketAddr, Vec<u8>)> {
-        if let Some((p, bytes)) = self.control.pop_front() {
-            return Some(self.account(p, bytes));
+        while let Some(c) = self.control.pop_front() {
+            match c {
+                Control::Raw(to, bytes) => return Some((to, bytes)),
+                Control::Body(p, to, body) => {
+                    if let Some(bytes) = self.seal(p, &body) {
+                        let to = to.unwrap_or(self.peers[p].addr);
+                        return Some(self.account(p, to, bytes));
+                    }
+                }
+            }
         }
         if self.closing {
             return None;
         }
         for p in 0..self.peers.len() {
-            let peer = &self.peers[p];
-            if peer.reply_hello || (!peer.up && now >= peer.hello_due) {
-                let reply = peer.reply_hello;
-                let hello = self.hello(p, reply);
-                let peer = &mut self.peers[p];
-                peer.reply_hello = false;
-                if !reply {
-                    peer.hello_due = now + self.config.hello_interval;
-                }
-                return Some(self.account(p, hello));
+            if let Some(out) = self.poll_handshake(p, now) {
+                return Some(out);
+            }
+            if self.peers[p].session.as_ref().is_none_or(|s| !s.confirmed) {
+                continue;
             }
             if let Some(ack) = recv::poll_ack(self, p, now) {
-                return Some(self.account(p, ack));
+                return self.seal_to_peer(p, &ack);
             }
             let peer = &mut self.peers[p];
-            if peer.remote_incarnation != 0 && peer.ever_up && now >= peer.ping_due {
+            if now >= peer.ping_due {
                 peer.ping_due = now + self.config.heartbeat_interval;
                 peer.recv.credit_dirty = true;
                 let ping = Body::Ping {
                     t_us: self.now_us(now),
-                }
-                .encode(self.config.incarnation);
-                return Some(self.account(p, ping));
+                };
+                return self.seal_to_peer(p, &ping);
             }
             if let Some(credit) = recv::poll_credit(self, p) {
-                return Some(self.account(p, credit));
+                return self.seal_to_peer(p, &credit);
             }
         }
         // Data last, round robin over peers.
@@ -599,10 +850,17 @@ impl Endpoint {
         for k in 0..n {
             let p = (self.data_cursor() + k) % n;
             if let Some(d) = send::poll_data(self, p, now) {
-                return Some(self.account(p, d));
+                let to = self.peers[p].addr;
+                return Some(self.account(p, to, d));
             }
         }
         None
+    }
+
+    fn seal_to_peer(&mut self, p: usize, body: &Body<'_>) -> Option<(SocketAddr, Vec<u8>)> {
+        let bytes = self.seal(p, body)?;
+        let to = self.peers[p].addr;
+        Some(self.account(p, to, bytes))
     }
 
     fn data_cursor(&self) -> usize {
@@ -613,30 +871,38 @@ impl Endpoint {
             .sum::<usize>()
     }
 
-    fn account(&mut self, p: usize, bytes: Vec<u8>) -> (SocketAddr, Vec<u8>) {
+    fn account(&mut self, p: usize, to: SocketAddr, bytes: Vec<u8>) -> (SocketAddr, Vec<u8>) {
         let peer = &mut self.peers[p];
         peer.stats.packets_sent += 1;
         peer.stats.wire_bytes_sent += bytes.len() as u64;
-        (peer.addr, bytes)
+        (to, bytes)
     }
 
     /// When the endpoint next needs [`Endpoint::handle_timeout`] or [`Endpoint::poll_transmit`].
     pub fn poll_timeout(&self) -> Option<Instant> {
         let mut t: Option<Instant> = None;
         let mut at = |x: Instant| t = Some(t.map_or(x, |y| y.min(x)));
+        at(self.noise.next_flush());
         for peer in &self.peers {
-            if !peer.up {
-                at(peer.hello_due);
-            } else {
-                at(peer.last_heard + self.config.peer_timeout);
-            }
-            if peer.ever_up && peer.remote_incarnation != 0 {
-                at(peer.ping_due);
+            match &peer.session {
+                None => at(peer.hello_due),
+                Some(s) if !s.confirmed => at(s.confirm_due),
+                Some(_) => {
+                    at(peer.ping_due);
+                    if peer.up {
+                        at(peer.last_heard + self.config.peer_timeout);
+                    }
+                }
             }
             if let Some(x) = peer.recv.ack_due {
                 at(x);
             }
             if let Some(x) = peer.send.next_timer(&self.config) {
+                at(x);
+            }
+            if let Some(x) = peer.send.stall_deadline(&self.config)
+                && !peer.stall_reported
+            {
                 at(x);
             }
         }

@@ -98,6 +98,11 @@ pub(crate) struct RecvState {
 }
 
 impl RecvState {
+    /// Records an authentic packet that is not acknowledged for itself (not DATA).
+    pub(crate) fn record(&mut self, pn: u64) {
+        self.received.record(pn);
+    }
+
     pub(crate) fn reassembly_bytes(&self) -> usize {
         self.reassembly_bytes
     }
@@ -121,6 +126,7 @@ pub(crate) fn on_data(
         recv_edges,
         config,
         events,
+        noise,
         ..
     } = ep;
     let peer = &mut peers[p];
@@ -198,13 +204,16 @@ pub(crate) fn on_data(
         }
         Err(why) => {
             peer.stats.refused += 1;
-            tracing::debug!(peer = %peer.name, edge, seq, why, "DATA refused");
+            let name = peer.name.clone();
+            noise.note(now, "authentic DATA refused", || {
+                format!("from peer {name}: {why} (edge {edge}, sequence {seq})")
+            });
         }
     }
 }
 
 /// An ACK for peer `p` when one is due.
-pub(crate) fn poll_ack(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec<u8>> {
+pub(crate) fn poll_ack(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Body<'static>> {
     let config = &ep.config;
     let s = &mut ep.peers[p].recv;
     if s.unacked == 0 || (s.unacked < config.ack_every && s.ack_due.is_none_or(|d| now < d)) {
@@ -213,11 +222,11 @@ pub(crate) fn poll_ack(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec<
     s.unacked = 0;
     s.ack_due = None;
     let ranges = s.received.ack_ranges();
-    Some(Body::Ack { ranges }.encode(config.incarnation))
+    Some(Body::Ack { ranges })
 }
 
 /// A CREDIT packet for peer `p` when grants changed or are due again.
-pub(crate) fn poll_credit(ep: &mut Endpoint, p: usize) -> Option<Vec<u8>> {
+pub(crate) fn poll_credit(ep: &mut Endpoint, p: usize) -> Option<Body<'static>> {
     if !ep.peers[p].recv.credit_dirty || !ep.peers[p].up {
         return None;
     }
@@ -232,7 +241,7 @@ pub(crate) fn poll_credit(ep: &mut Endpoint, p: usize) -> Option<Vec<u8>> {
         return None;
     }
     grants.sort_unstable();
-    Some(Body::Credit { grants }.encode(ep.config.incarnation))
+    Some(Body::Credit { grants })
 }
 
 #[cfg(test)]

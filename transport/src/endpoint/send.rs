@@ -10,8 +10,8 @@
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::time::{Duration, Instant};
 
-use super::{EdgeWireStats, Endpoint, EndpointConfig, Event};
-use crate::wire::{self, DATA_OVERHEAD};
+use super::{EdgeWireStats, Endpoint, EndpointConfig, Event, Peer};
+use crate::wire::{Body, DATA_OVERHEAD, SESSION_HEADER_BYTES};
 
 /// A sending edge: its credit and counters.
 pub(crate) struct SendEdge {
@@ -71,8 +71,14 @@ pub(crate) struct SendState {
     latest_rtt: Duration,
     rttvar: Duration,
     backoff: u32,
-    /// Last time an acknowledgement made progress (or sending started from idle).
+    /// Last time an acknowledgement made progress (or sending started from idle); the
+    /// probe timeout counts from here.
     last_progress: Instant,
+    /// Last time new data was acknowledged (or data was queued while none was outstanding);
+    /// the stall timeout counts from here.
+    data_progress: Instant,
+    /// Nothing was outstanding since the last progress: the next send starts the clock.
+    data_idle: bool,
     tokens: f64,
     refilled: Instant,
 }
@@ -92,6 +98,8 @@ impl SendState {
             rttvar: Duration::ZERO,
             backoff: 0,
             last_progress: now,
+            data_progress: now,
+            data_idle: true,
             tokens: burst(config),
             refilled: now,
         }
@@ -118,9 +126,38 @@ impl SendState {
 
     /// Drops everything outstanding (the peer restarted).
     pub(crate) fn reset(&mut self, config: &EndpointConfig, now: Instant) {
-        let next_pn = self.next_pn;
         *self = SendState::new(config, now);
-        self.next_pn = next_pn;
+    }
+
+    /// A new session numbers its packets from 1 again; chunks in flight in the old session
+    /// go out again in the new one.
+    pub(crate) fn restart_numbers(&mut self) {
+        self.next_pn = 1;
+        self.largest_acked = 0;
+        let in_flight = std::mem::take(&mut self.in_flight);
+        for sent in in_flight.into_values().rev() {
+            self.pending
+                .push_front((sent.edge, sent.seq, sent.chunk, true));
+        }
+    }
+
+    /// The next packet number of the session (every packet kind takes one).
+    pub(crate) fn take_pn(&mut self) -> u64 {
+        let pn = self.next_pn;
+        self.next_pn += 1;
+        pn
+    }
+
+    /// How long outstanding data has gone without an acknowledgement of new data.
+    pub(crate) fn stalled_for(&self, now: Instant) -> Option<Duration> {
+        (!self.msgs.is_empty() && !self.data_idle)
+            .then(|| now.saturating_duration_since(self.data_progress))
+    }
+
+    /// When outstanding data will count as stalled.
+    pub(crate) fn stall_deadline(&self, config: &EndpointConfig) -> Option<Instant> {
+        (!self.msgs.is_empty() && !self.data_idle)
+            .then(|| self.data_progress + config.stall_timeout + Duration::from_millis(1))
     }
 
     pub(crate) fn srtt(&self) -> Duration {
@@ -202,7 +239,7 @@ fn burst(config: &EndpointConfig) -> f64 {
     }
 }
 
-/// The next DATA packet for peer `p`, if the window and pacing allow one.
+/// The next DATA packet for peer `p`, sealed, if the window and pacing allow one.
 pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec<u8>> {
     let Endpoint {
         peers,
@@ -210,14 +247,17 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
         config,
         ..
     } = ep;
-    let peer = &mut peers[p];
-    if !peer.up
-        || peer.send.in_flight.len() >= config.window_packets
-        || peer.send.pending.is_empty()
-    {
+    let Peer {
+        send: s,
+        session,
+        stats,
+        up,
+        ..
+    } = &mut peers[p];
+    let session = session.as_ref()?;
+    if !*up || s.in_flight.len() >= config.window_packets || s.pending.is_empty() {
         return None;
     }
-    let s = &mut peer.send;
     s.refill(config, now);
     let cb = config.chunk_bytes();
     while let Some((edge, seq, chunk, retransmit)) = s.pending.pop_front() {
@@ -238,16 +278,23 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
         if s.in_flight.is_empty() {
             s.last_progress = now;
         }
+        if s.data_idle {
+            s.data_idle = false;
+            s.data_progress = now;
+        }
         let pn = s.next_pn;
         s.next_pn += 1;
-        let bytes = wire::encode_data(
-            config.incarnation,
-            pn,
+        let body = Body::Data {
             edge,
             seq,
-            msg.data.len() as u32,
+            len: msg.data.len() as u32,
             chunk,
             payload,
+        };
+        let bytes = session.secrets.send.seal(
+            pn,
+            body.encode(session.secrets.id, pn),
+            SESSION_HEADER_BYTES,
         );
         s.in_flight.insert(
             pn,
@@ -259,7 +306,7 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
                 retransmit,
             },
         );
-        peer.stats.data_packets_sent += 1;
+        stats.data_packets_sent += 1;
         if let Some(e) = send_edges.get_mut(&edge) {
             e.stats.wire_bytes += bytes.len() as u64;
             if retransmit {
@@ -267,7 +314,7 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
             }
         }
         if retransmit {
-            peer.stats.retransmissions += 1;
+            stats.retransmissions += 1;
         }
         return Some(bytes);
     }
@@ -308,6 +355,11 @@ pub(crate) fn on_ack(ep: &mut Endpoint, p: usize, now: Instant, ranges: &[(u64, 
         }
     }
     if let Some((pn, at, retransmit)) = newest {
+        s.data_progress = now;
+        peer.stall_reported = false;
+        if s.msgs.is_empty() {
+            s.data_idle = true;
+        }
         s.largest_acked = s.largest_acked.max(pn);
         if !retransmit {
             s.rtt_sample(now.saturating_duration_since(at), config);

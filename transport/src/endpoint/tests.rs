@@ -35,7 +35,8 @@ fn endpoint(
     secret: &[u8],
     now: Instant,
 ) -> Endpoint {
-    let mut c = EndpointConfig::new(name, "test-cluster", secret, incarnation);
+    let mut c = EndpointConfig::new(name, "test-cluster", secret);
+    c.nonce_seed = [incarnation as u8; 32];
     c.epoch = incarnation * 10;
     c.peer_timeout = Duration::from_millis(500);
     let mut e = Endpoint::new(c, now);
@@ -45,9 +46,14 @@ fn endpoint(
 
 impl Sim {
     fn new(profile: LinkProfile, seed: u64) -> Sim {
+        Sim::with_nonces(profile, seed, 11, 22)
+    }
+
+    /// A sim whose endpoints draw their nonces from seeds `na` and `nb` (another "run").
+    fn with_nonces(profile: LinkProfile, seed: u64, na: u64, nb: u64) -> Sim {
         let now = Instant::now();
-        let mut a = endpoint("a", "b", B, 11, b"s3cret", now);
-        let mut b = endpoint("b", "a", A, 22, b"s3cret", now);
+        let mut a = endpoint("a", "b", B, na, b"s3cret", now);
+        let mut b = endpoint("b", "a", A, nb, b"s3cret", now);
         a.open_edge(7, "b", EdgeDirection::Send, 4).unwrap();
         b.open_edge(7, "a", EdgeDirection::Receive, 4).unwrap();
         Sim {
@@ -189,6 +195,7 @@ fn a_wrong_secret_never_comes_up_and_is_counted() {
     assert!(!s.run_until(Duration::from_millis(500), |s| s.a.is_up("b")
         || s.b.is_up("a")));
     assert!(s.a.strangers() > 0 && s.b.strangers() > 0);
+    assert!(s.a_events.is_empty() && s.b_events.is_empty());
 }
 
 #[test]
@@ -309,46 +316,91 @@ fn a_restarted_peer_is_detected_and_its_edges_resume() {
     assert_eq!(got, vec![(0, 4), (1, 5)], "streams restart at sequence 0");
 }
 
+/// A DATA packet sealed with a's session keys, as only a could make it.
+fn authentic_data(
+    a: &mut Endpoint,
+    edge: u32,
+    seq: u64,
+    len: u32,
+    chunk: u32,
+    payload: &[u8],
+) -> Vec<u8> {
+    let body = Body::Data {
+        edge,
+        seq,
+        len,
+        chunk,
+        payload,
+    };
+    a.seal(0, &body).expect("a has a session")
+}
+
 #[test]
-fn forged_and_malformed_data_is_refused_without_big_allocations() {
+fn authentic_but_invalid_data_is_refused_without_big_allocations() {
     let mut s = Sim::new(LinkProfile::default(), 1);
-    assert!(s.run_until(Duration::from_secs(1), |s| s.b.is_up("a")));
-    let inc = 11; // a's incarnation: the packets look like they come from a
+    assert!(s.run_until(Duration::from_secs(1), |s| s.b.is_up("a") && s.a.is_up("b")));
     let forged = [
-        crate::wire::encode_data(inc, 1000, 7, 0, u32::MAX, 0, &[0; 10]), // over the size bound
-        crate::wire::encode_data(inc, 1001, 7, 0, 100, 5, &[0; 10]),      // chunk out of range
-        crate::wire::encode_data(inc, 1002, 7, 99, 10, 0, &[0; 10]),      // beyond credit
-        crate::wire::encode_data(inc, 1003, 99, 0, 10, 0, &[0; 10]),      // unknown edge
-        crate::wire::encode_data(inc, 1004, 7, 0, 10, 0, &[0; 3]),        // wrong chunk length
+        authentic_data(&mut s.a, 7, 0, u32::MAX, 0, &[0; 10]), // over the size bound
+        authentic_data(&mut s.a, 7, 0, 100, 5, &[0; 10]),      // chunk out of range
+        authentic_data(&mut s.a, 7, 99, 10, 0, &[0; 10]),      // beyond credit
+        authentic_data(&mut s.a, 99, 0, 10, 0, &[0; 10]),      // unknown edge
+        authentic_data(&mut s.a, 7, 0, 10, 0, &[0; 3]),        // wrong chunk length
     ];
     let now = s.now;
     for f in &forged {
         s.b.handle_datagram(now, addr(A), f);
     }
     assert_eq!(s.b.peer_stats("a").unwrap().refused, 5);
-    s.b.handle_datagram(
-        now,
-        addr(9),
-        &crate::wire::encode_data(inc, 1, 7, 0, 1, 0, &[1]),
-    );
-    assert_eq!(
-        s.b.strangers(),
-        1,
-        "a packet from an unknown address is a stranger's"
-    );
-    s.b.handle_datagram(
-        now,
-        addr(A),
-        &crate::wire::encode_data(5, 1, 7, 0, 1, 0, &[1]),
-    );
-    assert_eq!(
-        s.b.strangers(),
-        2,
-        "a packet with a stale incarnation is refused"
-    );
     s.b.handle_datagram(now, addr(A), b"garbage");
     assert_eq!(s.b.malformed(), 1);
     assert!(s.delivered().is_empty());
+}
+
+#[test]
+fn forged_replayed_and_misdirected_packets_are_counted_and_never_obeyed() {
+    let mut s = Sim::new(LinkProfile::default(), 1);
+    assert!(s.run_until(Duration::from_secs(1), |s| s.b.is_up("a") && s.a.is_up("b")));
+    let now = s.now;
+    let genuine = authentic_data(&mut s.a, 7, 0, 1, 0, &[42]);
+    // An attacker who saw the session id and packet number forges a packet around them.
+    let mut forged = genuine.clone();
+    let n = forged.len();
+    forged[n - crate::wire::TAG_BYTES - 1] ^= 0xFF;
+    s.b.handle_datagram(now, addr(A), &forged);
+    assert_eq!(s.b.peer_stats("a").unwrap().forged, 1);
+    // The genuine packet, sent from another address first, is not obeyed: b challenges it.
+    s.b.handle_datagram(now, addr(9), &genuine);
+    assert!(
+        s.delivered().is_empty(),
+        "obeyed a packet from an unproven address"
+    );
+    let challenge = s.b.poll_transmit(now).expect("a path challenge");
+    assert_eq!(challenge.0, addr(9));
+    // Replayed from the right address, it is refused: its number was seen.
+    s.b.handle_datagram(now, addr(A), &genuine);
+    assert_eq!(s.b.peer_stats("a").unwrap().replayed, 1);
+    assert!(s.delivered().is_empty());
+    // Huge forged packet numbers without the key fill no ack state.
+    for pn in 0..100u64 {
+        let body = Body::Data {
+            edge: 7,
+            seq: 0,
+            len: 1,
+            chunk: 0,
+            payload: &[1],
+        };
+        let mut d = body.encode(
+            s.b.peers[0].session.as_ref().unwrap().secrets.id,
+            u64::MAX - pn,
+        );
+        d.extend_from_slice(&[0; crate::wire::TAG_BYTES]);
+        s.b.handle_datagram(now, addr(A), &d);
+    }
+    assert_eq!(s.b.peer_stats("a").unwrap().forged, 101);
+    assert!(
+        s.transfer(&[vec![1], vec![2]], Duration::from_secs(2)),
+        "the link still works"
+    );
 }
 
 #[test]
@@ -391,9 +443,9 @@ proptest! {
         s.b = Endpoint::new(c, now);
         s.b.add_peer("a", addr(A), now);
         s.b.open_edge(7, "a", EdgeDirection::Receive, 4).unwrap();
-        prop_assert!(s.run_until(Duration::from_secs(1), |s| s.b.is_up("a")));
-        for (i, (edge, seq, len, chunk, payload)) in packets.into_iter().enumerate() {
-            let d = crate::wire::encode_data(11, 10_000 + i as u64, edge, seq, len, chunk, &payload);
+        prop_assert!(s.run_until(Duration::from_secs(1), |s| s.b.is_up("a") && s.a.is_up("b")));
+        for (edge, seq, len, chunk, payload) in packets {
+            let d = authentic_data(&mut s.a, edge, seq, len, chunk, &payload);
             s.b.handle_datagram(now, addr(A), &d);
             prop_assert!(s.b.reassembly_bytes("a") <= 3 << 20);
         }
@@ -453,4 +505,108 @@ fn bulk_messages_cross_30_percent_loss() {
 #[test]
 fn bulk_messages_cross_50_percent_loss() {
     bulk_through_loss(0.5, 8);
+}
+
+/// Every handshake packet a sends while the sim runs.
+fn record_handshakes(s: &mut Sim, limit: Duration) -> Vec<Vec<u8>> {
+    let mut out = Vec::new();
+    let end = s.now + limit;
+    while s.now < end {
+        let now = s.now;
+        s.a.handle_timeout(now);
+        s.b.handle_timeout(now);
+        while let Some((_, d)) = s.a.poll_transmit(now) {
+            if (1..=3).contains(&d[3]) {
+                out.push(d.clone());
+            }
+            s.ab.send(now, d);
+        }
+        while let Some((_, d)) = s.b.poll_transmit(now) {
+            s.ba.send(now, d);
+        }
+        while let Some(d) = s.ab.poll(now) {
+            s.b.handle_datagram(now, addr(A), &d);
+        }
+        while let Some(d) = s.ba.poll(now) {
+            s.a.handle_datagram(now, addr(B), &d);
+        }
+        s.now += Duration::from_millis(1);
+    }
+    out
+}
+
+#[test]
+fn recorded_handshakes_from_an_earlier_run_or_this_one_change_nothing() {
+    // An earlier run: record every handshake packet a sent.
+    let mut earlier = Sim::with_nonces(LinkProfile::default(), 3, 5, 6);
+    let old = record_handshakes(&mut earlier, Duration::from_millis(200));
+    assert!(old.len() >= 2, "a HELLO and a CONFIRM were sent");
+    // This run, up and carrying messages.
+    let mut s = Sim::new(LinkProfile::default(), 4);
+    let current = record_handshakes(&mut s, Duration::from_millis(200));
+    assert!(s.transfer(&[vec![1], vec![2]], Duration::from_secs(1)));
+    let before = s.b.peer_stats("a").unwrap();
+    for (i, d) in old.iter().chain(&current).enumerate() {
+        let now = s.now;
+        // From the peer's own address and from an attacker's.
+        s.b.handle_datagram(now, addr(A), d);
+        s.b.handle_datagram(now, addr(100 + i as u16), d);
+    }
+    s.run_until(Duration::from_millis(300), |_| false);
+    let after = s.b.peer_stats("a").unwrap();
+    assert_eq!(after.handshakes, before.handshakes, "no new session");
+    assert_eq!(after.restarts, 0);
+    assert!(s.b.stats().stale_handshakes > 0);
+    assert!(
+        !s.a_events.iter().chain(&s.b_events).any(|e| matches!(
+            e,
+            Event::PeerRestarted { .. } | Event::PeerLost { .. } | Event::PeerLeft { .. }
+        )),
+        "{:?}",
+        s.b_events
+    );
+    s.b_events.clear();
+    assert!(
+        s.transfer(&[vec![3], vec![4]], Duration::from_secs(1)),
+        "the link still delivers"
+    );
+}
+
+#[test]
+fn peers_with_different_topologies_refuse_each_other_and_say_why() {
+    let mut s = Sim::new(LinkProfile::default(), 1);
+    let now = s.now;
+    let mut c = s.b.config().clone();
+    c.topology_digest = [9; DIGEST_BYTES];
+    s.b = Endpoint::new(c, now);
+    s.b.add_peer("a", addr(A), now);
+    s.run_until(Duration::from_millis(500), |_| false);
+    assert!(!s.a.is_up("b") && !s.b.is_up("a"));
+    for events in [&s.a_events, &s.b_events] {
+        let n = events
+            .iter()
+            .filter(|e| matches!(e, Event::TopologyMismatch { .. }))
+            .count();
+        assert_eq!(n, 1, "reported once: {events:?}");
+    }
+}
+
+#[test]
+fn a_peer_that_stops_acknowledging_while_answering_heartbeats_is_reported_stalled() {
+    let mut s = Sim::new(LinkProfile::default(), 1);
+    let now = s.now;
+    let mut c = s.a.config().clone();
+    c.stall_timeout = Duration::from_millis(300);
+    s.a = Endpoint::new(c, now);
+    s.a.add_peer("b", addr(B), now);
+    // b has no such edge: every DATA packet is refused, heartbeats still flow.
+    s.a.open_edge(8, "b", EdgeDirection::Send, 4).unwrap();
+    assert!(s.run_until(Duration::from_secs(1), |s| s.a.is_up("b")));
+    s.a.send(8, vec![1; 10]).unwrap();
+    assert!(s.run_until(Duration::from_secs(2), |s| {
+        s.a_events
+            .iter()
+            .any(|e| matches!(e, Event::Stalled { .. }))
+    }));
+    assert!(s.a.is_up("b"));
 }
