@@ -204,6 +204,68 @@ to = "sink"
 }
 
 #[test]
+fn a_receiver_whose_upstream_crashes_for_good_fails_and_names_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_ports(2);
+    let topo = dir.path().join("crash.toml");
+    std::fs::write(
+        &topo,
+        format!(
+            r#"techniques = ["probe"]
+cluster = "crash-test"
+secret = "test secret"
+[transport]
+peer_timeout_ms = 500
+rejoin_timeout_s = 1.5
+[[node]]
+name = "cloud"
+address = "127.0.0.1:{}"
+[[node]]
+name = "home"
+address = "127.0.0.1:{}"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "cloud"
+params = {{ rate_hz = 100.0 }}
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "home"
+[[edge]]
+from = "source"
+to = "sink"
+"#,
+            ports[0], ports[1]
+        ),
+    )
+    .unwrap();
+    let mut cloud = node(&topo, "cloud", dir.path(), &["--duration", "60"]);
+    let home = node(&topo, "home", dir.path(), &["--duration", "60"]);
+    std::thread::sleep(Duration::from_millis(1500));
+    cloud.kill().unwrap();
+    cloud.wait().unwrap();
+    let killed = Instant::now();
+    let out = finish(home, Duration::from_secs(30));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(5), "{err}");
+    assert!(
+        err.contains("peer `cloud` was lost and has not come back"),
+        "{err}"
+    );
+    assert!(
+        killed.elapsed() < Duration::from_secs(10),
+        "failed {:?} after the crash",
+        killed.elapsed()
+    );
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("home/metrics.json")).unwrap())
+            .unwrap();
+    assert_eq!(m["status"], "failed");
+    assert_eq!(m["transport"][0]["peers"][0]["state"], "lost", "{m}");
+}
+
+#[test]
 fn a_photon_client_that_rejoins_gets_the_current_set() {
     // The static Cornell box: the batcher traces its one batch once and never again. A client
     // node killed and restarted still gets the current set, from the batcher's re-send.

@@ -313,3 +313,36 @@ fn a_benchmark_topology_is_planned_like_a_file() {
     let again = Plan::from_str("<again>", &spec.to_toml(), &reg).unwrap();
     assert_eq!(again.instances.len(), 4);
 }
+
+const CUT: &str = "[[stage]]\nname = \"a\"\nkind = \"probe_source\"\nnode = \"cloud\"\n[[stage]]\nname = \"b\"\nkind = \"probe_sink\"\nnode = \"client\"\n[[edge]]\nfrom = \"a\"\nto = \"b\"\n";
+
+#[test]
+fn cut_edges_without_a_secret_are_refused_unless_insecure() {
+    let d = diagnostics(&format!("{GOOD_HEAD}{CUT}"));
+    expect(&d, 1, "secret", "shared secret");
+    let r = registry();
+    assert!(Plan::from_str("ok.toml", &format!("insecure = true\n{GOOD_HEAD}{CUT}"), &r).is_ok());
+    assert!(Plan::from_str("ok.toml", &format!("secret = \"x\"\n{GOOD_HEAD}{CUT}"), &r).is_ok());
+    // Without a cut edge nothing crosses the network: no secret needed.
+    let local = CUT.replace("node = \"client\"", "node = \"cloud\"");
+    assert!(Plan::from_str("ok.toml", &format!("{GOOD_HEAD}{local}"), &r).is_ok());
+}
+
+#[test]
+fn pacing_below_a_bit_per_second_is_refused() {
+    let d = diagnostics(&format!("[transport]\npacing_mbps = 1e-300\n{GOOD_HEAD}"));
+    expect(&d, 2, "transport.pacing_mbps", "must be");
+}
+
+#[test]
+fn every_node_must_agree_on_the_digest_and_any_change_alters_it() {
+    let r = registry();
+    let base = format!("secret = \"x\"\n{GOOD_HEAD}{CUT}");
+    let digest = |t: &str| Plan::from_str("d.toml", t, &r).unwrap().digest();
+    assert_eq!(digest(&base), digest(&base));
+    assert_ne!(digest(&base), digest(&format!("{base}capacity = 9\n")));
+    assert_ne!(digest(&base), digest(&base.replace("7301", "7302")));
+    assert_ne!(digest(&base), digest(&format!("seed = 4\n{base}")));
+    // Secrets are not part of it (they prove membership; a wrong one is a stranger).
+    assert_eq!(digest(&base), digest(&base.replace("\"x\"", "\"y\"")));
+}

@@ -421,6 +421,11 @@ impl NodeNet {
             .or_else(|| self.receivers.get(&id).map(|(p, _)| p.as_str()))
     }
 
+    /// Fault injection: makes the transport's I/O thread panic.
+    pub(crate) fn inject_panic(&self) {
+        let _ = self.commander.try_command(Command::Panic);
+    }
+
     /// Wakes the sender proxies (e.g. when the run starts draining).
     pub(crate) fn poke(&self) {
         for (_, s) in self.senders.values() {

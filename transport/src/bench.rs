@@ -36,6 +36,8 @@ pub struct BenchOptions {
     pub time_limit: Duration,
     /// Also measure a plain UDP blast of the same bytes.
     pub udp_baseline: bool,
+    /// Encrypt packets (they are authenticated either way).
+    pub encrypt: bool,
 }
 
 impl Default for BenchOptions {
@@ -51,6 +53,7 @@ impl Default for BenchOptions {
             seed: 1,
             time_limit: Duration::from_secs(120),
             udp_baseline: true,
+            encrypt: true,
         }
     }
 }
@@ -112,6 +115,7 @@ fn start(name: &str, incarnation: u64, opts: &BenchOptions) -> std::io::Result<D
     let mut c = EndpointConfig::new(name, "bench", b"bench");
     c.max_packet_bytes = opts.packet_bytes;
     c.window_packets = opts.window_packets;
+    c.confidential = opts.encrypt;
     c.max_message_bytes = c.max_message_bytes.max(opts.size);
     let mut d = DriverConfig::new(c, SocketAddr::from(([127, 0, 0, 1], 0)));
     d.seed = opts.seed ^ incarnation;

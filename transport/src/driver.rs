@@ -109,6 +109,8 @@ pub enum Command {
     Close,
     /// Stop the thread at once, without goodbyes: peers see a crash (fault injection).
     Abort,
+    /// Panic in the I/O thread (fault injection: how a node handles losing its network).
+    Panic,
 }
 
 /// A snapshot of the driver's counters.
@@ -285,7 +287,11 @@ impl Driver {
         let name = format!("transport-{}", config.endpoint.node);
         let failure: Arc<Mutex<Option<String>>> = Arc::default();
         let thread_failure = failure.clone();
+        // Held until the failure is written: the event channel closes only after that, so a
+        // receiver that sees it closed can read why.
+        let keep_open = event_tx.clone();
         let thread = std::thread::Builder::new().name(name).spawn(move || {
+            let _keep_open = keep_open;
             let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || {
                 let shared = IoShared {
                     stats: thread_stats,
@@ -499,6 +505,7 @@ impl Io {
                 self.closing = Some(now);
             }
             Command::Abort => self.aborted = true,
+            Command::Panic => panic!("fault injected by Command::Panic"),
         }
     }
 

@@ -1,10 +1,13 @@
 //! Node-to-node links for cut edges, over laminar.
 //!
-//! - [`wire`]: the packet format (versioned, checksummed, decoded without panics).
-//! - [`endpoint`]: the sans-IO protocol core: handshake with a shared secret, chunking below
-//!   laminar's fragment limit, bounded reassembly, per-edge ordering, selective acks and
-//!   retransmission in a send window, pacing, credits that carry an edge's capacity across
-//!   the link, heartbeats and peer loss/restart detection. Every call takes `now`.
+//! - [`wire`]: the packet format (versioned, tagged, decoded without panics).
+//! - [`crypto`]: handshake tags, session keys, packet protection and the replay window (what
+//!   they protect against is in the crate's README).
+//! - [`endpoint`]: the sans-IO protocol core: an authenticated handshake, sealed session
+//!   packets, chunking below laminar's fragment limit, bounded reassembly, per-edge ordering,
+//!   selective acks and retransmission in a send window, pacing, credits that carry an
+//!   edge's capacity across the link, heartbeats, peer loss/restart and stall detection.
+//!   Every call takes `now`.
 //! - [`emulator`]: a seeded, sans-IO link emulator (latency, jitter, bandwidth, loss,
 //!   duplication, reordering) applied per direction per pair of nodes.
 //! - [`driver`]: the I/O thread: one per node socket, driving laminar's `manual_poll` with

@@ -182,3 +182,156 @@ async fn a_killed_peer_is_reported_lost_and_a_restarted_one_rejoins() {
         }
     );
 }
+
+/// A relay standing between a and b, as a sniffer on the path would: it forwards every
+/// datagram and records those that a sends.
+struct Relay {
+    addr: SocketAddr,
+    recorded: std::sync::Arc<std::sync::Mutex<Vec<Vec<u8>>>>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Relay {
+    /// Relays between `a` and `b` (their real addresses), for at most 60 s.
+    fn start(a: SocketAddr, b: SocketAddr) -> Relay {
+        use std::sync::atomic::Ordering;
+        let sock = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        sock.set_read_timeout(Some(Duration::from_millis(20)))
+            .unwrap();
+        let addr = sock.local_addr().unwrap();
+        let recorded = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (rec, halt) = (recorded.clone(), stop.clone());
+        let thread = std::thread::spawn(move || {
+            let started = std::time::Instant::now();
+            let mut buf = vec![0u8; 65536];
+            while !halt.load(Ordering::SeqCst) && started.elapsed() < Duration::from_secs(60) {
+                let Ok((n, from)) = sock.recv_from(&mut buf) else {
+                    continue;
+                };
+                let to = if from == a { b } else { a };
+                if from == a {
+                    rec.lock().unwrap().push(buf[..n].to_vec());
+                }
+                let _ = sock.send_to(&buf[..n], to);
+            }
+        });
+        Relay {
+            addr,
+            recorded,
+            stop,
+            thread: Some(thread),
+        }
+    }
+
+    fn recorded(&self) -> Vec<Vec<u8>> {
+        self.recorded.lock().unwrap().clone()
+    }
+}
+
+impl Drop for Relay {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// a and b talking through a relay; returns both drivers and the relay.
+async fn relayed_pair(seed: u64) -> (DriverHandle, DriverHandle, Relay) {
+    let mut a = start("a", seed);
+    let mut b = start("b", seed + 1);
+    let relay = Relay::start(a.local_addr(), b.local_addr());
+    for (d, peer) in [(&a, "b"), (&b, "a")] {
+        d.command(Command::AddPeer {
+            name: peer.into(),
+            addr: relay.addr,
+            link: LinkProfile::default(),
+        })
+        .await
+        .unwrap();
+    }
+    for (d, peer, direction) in [
+        (&a, "b", EdgeDirection::Send),
+        (&b, "a", EdgeDirection::Receive),
+    ] {
+        d.command(Command::OpenEdge {
+            edge: 1,
+            peer: peer.into(),
+            direction,
+            capacity: 8,
+        })
+        .await
+        .unwrap();
+    }
+    wait_for(&mut a, |e| matches!(e, Event::PeerUp { .. })).await;
+    wait_for(&mut b, |e| matches!(e, Event::PeerUp { .. })).await;
+    (a, b, relay)
+}
+
+async fn send_and_receive(a: &DriverHandle, b: &mut DriverHandle, bytes: &[u8]) {
+    a.command(Command::Send {
+        edge: 1,
+        bytes: bytes.to_vec(),
+    })
+    .await
+    .unwrap();
+    let got = wait_for(b, |e| matches!(e, Event::Message { .. })).await;
+    assert!(matches!(got, Event::Message { bytes: ref m, .. } if m == bytes));
+    b.command(Command::Release { edge: 1, n: 1 }).await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn recorded_and_forged_packets_sent_over_loopback_change_nothing() {
+    // An earlier run, recorded on the path.
+    let (mut a1, mut b1, relay1) = relayed_pair(40).await;
+    send_and_receive(&a1, &mut b1, b"earlier").await;
+    let earlier = relay1.recorded();
+    a1.close();
+    b1.close();
+    drop(relay1);
+    // This run, recorded too.
+    let (a, mut b, relay) = relayed_pair(50).await;
+    send_and_receive(&a, &mut b, b"first").await;
+    let current = relay.recorded();
+    // The attacker replays everything from both runs, and forges each packet of this run
+    // with a huge packet number (it knows the session id and the framing, not the key).
+    let attacker = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    let mut sent = 0;
+    for d in earlier.iter().chain(&current) {
+        let _ = attacker.send_to(d, b.local_addr());
+        sent += 1;
+        // laminar's 5 bytes, then ours: 4 of header, 8 of session id, 8 of packet number.
+        if d.len() > 25 && d[8] >= 10 {
+            let mut forged = d.clone();
+            forged[17..25].copy_from_slice(&(u64::MAX - sent).to_le_bytes());
+            let _ = attacker.send_to(&forged, b.local_addr());
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    // Nothing restarted, nothing extra was delivered, and the link still works.
+    send_and_receive(&a, &mut b, b"second").await;
+    let mut unexpected = Vec::new();
+    while let Ok(e) = tokio::time::timeout(Duration::from_millis(100), b.next_event()).await {
+        match e {
+            Some(Event::Credit { .. }) | None => {}
+            Some(other) => unexpected.push(other),
+        }
+    }
+    assert!(unexpected.is_empty(), "{unexpected:?}");
+    let stats = b.stats();
+    let (_, peer) = &stats.peers[0];
+    assert_eq!((peer.handshakes, peer.restarts), (1, 0), "{peer:?}");
+    assert!(peer.forged > 0, "forgeries counted: {peer:?}");
+    assert!(
+        stats.endpoint.stale_handshakes + stats.endpoint.unknown_session > 0,
+        "{:?}",
+        stats.endpoint
+    );
+    eprintln!(
+        "replayed {sent} recorded datagrams; b counted {peer:?} {:?}",
+        stats.endpoint
+    );
+}

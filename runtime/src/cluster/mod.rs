@@ -395,6 +395,17 @@ impl Cluster {
         Ok(cluster)
     }
 
+    /// Fault injection for tests of failure handling: makes node `node`'s transport thread
+    /// panic. Returns whether this process runs that node's transport.
+    #[doc(hidden)]
+    pub fn inject_transport_panic(&self, node: &str) -> bool {
+        self.nets
+            .iter()
+            .find(|n| n.node == node)
+            .map(|n| n.inject_panic())
+            .is_some()
+    }
+
     /// The run-wide scene clock.
     pub fn clock(&self) -> SceneClock {
         self.clock

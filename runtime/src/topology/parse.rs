@@ -220,11 +220,11 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
         s.encrypt = v.into_inner();
     }
     if let Some(v) = t.float(w, "pacing_mbps") {
-        if *v.get_ref() <= 0.0 {
+        if !(1e-6..=1e6).contains(v.get_ref()) {
             w.err(
                 &v.span(),
                 &t.key("pacing_mbps"),
-                "must be > 0 (leave it out for no pacing)",
+                "must be in [0.000001, 1000000] Mbit/s (leave it out for no pacing)",
             );
         }
         s.pacing_mbps = Some(v.into_inner());

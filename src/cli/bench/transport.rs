@@ -44,6 +44,9 @@ pub struct Args {
     /// messages so that the round trips move at most 64 MiB each way, at least 5].
     #[arg(long)]
     rtt_rounds: Option<usize>,
+    /// Authenticate packets without encrypting them (what `encrypt = false` does).
+    #[arg(long)]
+    no_encrypt: bool,
     /// Skip the plain UDP blast baseline.
     #[arg(long)]
     no_baseline: bool,
@@ -108,6 +111,7 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
         window_packets: args.window.max(1),
         seed: args.seed,
         udp_baseline: !args.no_baseline,
+        encrypt: !args.no_encrypt,
         time_limit: std::time::Duration::from_secs_f64(args.time_limit_s),
     })
 }

@@ -220,7 +220,11 @@ impl SendState {
         let pace = match (config.pacing_bytes_per_s, self.pending.is_empty()) {
             (Some(rate), false) if self.tokens < config.max_packet_bytes as f64 => {
                 let need = config.max_packet_bytes as f64 - self.tokens;
-                Some(self.refilled + Duration::from_secs_f64(need / rate))
+                // Capped so that no rate, however small, overflows the clock.
+                let wait = Duration::try_from_secs_f64(need / rate)
+                    .unwrap_or(Duration::MAX)
+                    .min(Duration::from_secs(3600));
+                Some(self.refilled + wait)
             }
             _ => None,
         };

@@ -1,0 +1,194 @@
+//! What a run does when its network fails: each failure is either harmless and counted, or
+//! a named failure of the run — never a silent stall that exits 0.
+
+use std::time::{Duration, Instant};
+
+use cloudlight::runtime::{Cluster, EndReason, Plan, RunError, RunOptions};
+
+fn free_ports(n: usize) -> Vec<u16> {
+    let sockets: Vec<_> = (0..n)
+        .map(|_| std::net::UdpSocket::bind("127.0.0.1:0").unwrap())
+        .collect();
+    sockets
+        .iter()
+        .map(|s| s.local_addr().unwrap().port())
+        .collect()
+}
+
+fn plan(text: &str) -> Plan {
+    Plan::from_str("test.toml", text, &cloudlight::actors::registry())
+        .unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// Two nodes and two probe pipelines; `edges` lists the edges in the file's order.
+fn two_pipelines(ports: &[u16], edges: &[(&str, &str)]) -> String {
+    let mut t = format!(
+        r#"techniques = ["probe"]
+cluster = "mismatch-test"
+secret = "s"
+duration_s = 5.0
+[transport]
+connect_timeout_s = 20
+[[node]]
+name = "a"
+address = "127.0.0.1:{}"
+[[node]]
+name = "b"
+address = "127.0.0.1:{}"
+[[stage]]
+name = "s1"
+kind = "probe_source"
+node = "a"
+params = {{ rate_hz = 50.0 }}
+[[stage]]
+name = "s2"
+kind = "probe_source"
+node = "a"
+params = {{ rate_hz = 50.0 }}
+[[stage]]
+name = "k1"
+kind = "probe_sink"
+node = "b"
+[[stage]]
+name = "k2"
+kind = "probe_sink"
+node = "b"
+"#,
+        ports[0], ports[1]
+    );
+    for (from, to) in edges {
+        t.push_str(&format!("[[edge]]\nfrom = \"{from}\"\nto = \"{to}\"\n"));
+    }
+    t
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nodes_with_different_topologies_refuse_each_other_and_say_so() {
+    // The same stages, edges declared in another order: edge ids differ, so every message
+    // would land on the wrong edge. Both nodes must refuse, quickly and by name.
+    let ports = free_ports(2);
+    let a = plan(&two_pipelines(&ports, &[("s1", "k1"), ("s2", "k2")]));
+    let b = plan(&two_pipelines(&ports, &[("s2", "k2"), ("s1", "k1")]));
+    let registry = cloudlight::actors::registry();
+    let options = |node: &str| RunOptions {
+        only_node: Some(node.into()),
+        ..RunOptions::default()
+    };
+    let started = Instant::now();
+    let (ra, rb) = tokio::join!(
+        cloudlight::runtime::run(&a, &registry, options("a"), std::future::pending()),
+        cloudlight::runtime::run(&b, &registry, options("b"), std::future::pending()),
+    );
+    for r in [ra, rb] {
+        match r {
+            Err(RunError::Link(why)) => assert!(why.contains("different topology"), "{why}"),
+            Err(e) => panic!("expected a topology mismatch, got: {e}"),
+            Ok(r) => panic!("a mismatched cluster ran: {:?}", r.end),
+        }
+    }
+    assert!(
+        started.elapsed() < Duration::from_secs(10),
+        "refused after {:?}, not at the connect timeout",
+        started.elapsed()
+    );
+}
+
+fn two_nodes(body: &str) -> String {
+    format!(
+        r#"techniques = ["probe"]
+cluster = "failure-test"
+secret = "s"
+[transport]
+peer_timeout_ms = 500
+[[node]]
+name = "a"
+address = "127.0.0.1:0"
+[[node]]
+name = "b"
+address = "127.0.0.1:0"
+{body}"#
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_message_over_the_transport_limit_is_dropped_counted_and_returns_its_credit() {
+    // 65 MiB messages on a cut `block` edge of capacity 2: if a dropped message kept its
+    // credit, the source would block for good after two.
+    let p = plan(&two_nodes(
+        r#"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "a"
+params = { payload_bytes = 68157440, count = 5 }
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "b"
+[[edge]]
+from = "source"
+to = "sink"
+capacity = 2
+policy = "block"
+"#,
+    ));
+    let registry = cloudlight::actors::registry();
+    let report = tokio::time::timeout(
+        Duration::from_secs(60),
+        cloudlight::runtime::run(&p, &registry, RunOptions::default(), std::future::pending()),
+    )
+    .await
+    .expect("the run ends by itself")
+    .expect("dropping is not a failure");
+    assert_eq!(report.end, EndReason::Finished);
+    let edge = report
+        .metrics
+        .edges
+        .iter()
+        .find(|e| e.name == "source.out -> sink.in")
+        .unwrap();
+    assert_eq!(edge.dropped, 5, "{edge:?}");
+    assert_eq!(edge.wire.as_ref().unwrap().oversize, 5);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_panicking_transport_thread_fails_the_run_by_name() {
+    let p = plan(&two_nodes(
+        r#"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "a"
+params = { rate_hz = 100.0 }
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "b"
+[[edge]]
+from = "source"
+to = "sink"
+"#,
+    ));
+    let registry = cloudlight::actors::registry();
+    let options = RunOptions {
+        duration: Some(Duration::from_secs(30)),
+        ..RunOptions::default()
+    };
+    let cluster = Cluster::start(&p, &registry, options).await.unwrap();
+    assert!(cluster.inject_transport_panic("b"));
+    let started = Instant::now();
+    let r = tokio::time::timeout(Duration::from_secs(20), cluster.run(std::future::pending()))
+        .await
+        .expect("the run ends by itself");
+    match r {
+        Err(RunError::NetworkFailed { error, report }) => {
+            assert!(
+                error.contains("node `b`") && error.contains("panicked"),
+                "{error}"
+            );
+            assert_eq!(report.metrics.failure.as_deref(), Some(error.as_str()));
+        }
+        other => panic!("expected a network failure, got {:?}", other.map(|r| r.end)),
+    }
+    assert!(started.elapsed() < Duration::from_secs(5));
+}
