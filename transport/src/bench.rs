@@ -185,16 +185,17 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
     let mut a = start("a", 1, &opts).map_err(io)?;
     let mut b = start("b", 2, &opts).map_err(io)?;
     let closed = |_| "transport driver stopped".to_string();
-    a.command(Command::AddPeer {
-        name: "b".into(),
-        addr: b.local_addr(),
+    // b first: a starts its handshake as soon as it knows b, and b should know a by then.
+    b.command(Command::AddPeer {
+        name: "a".into(),
+        addr: a.local_addr(),
         link: opts.link,
     })
     .await
     .map_err(closed)?;
-    b.command(Command::AddPeer {
-        name: "a".into(),
-        addr: a.local_addr(),
+    a.command(Command::AddPeer {
+        name: "b".into(),
+        addr: b.local_addr(),
         link: opts.link,
     })
     .await

@@ -1,12 +1,19 @@
 //! The transport's cryptography, from well-kept RustCrypto crates: handshake tags
 //! (HMAC-SHA256 under the cluster's shared secret, truncated to 16 bytes), session keys
 //! (HKDF-SHA256 from the secret and both sides' fresh nonces), packet protection
-//! (ChaCha20-Poly1305 keyed per direction, nonce = packet number) and the replay window.
+//! (AES-256-GCM keyed per direction, nonce = packet number) and the replay window.
+//!
+//! AES-256-GCM rather than ChaCha20-Poly1305: on this project's machines (x86-64 with AES-NI
+//! and carry-less multiply, which `aes-gcm` detects at run time) it seals a 1,200-byte packet
+//! in about 1.1 µs against 3.6 µs (`cargo run --release -p cloudlight-transport --example
+//! aead_speed`); on a CPU without AES instructions it falls back to a slower constant-time
+//! implementation.
 //!
 //! What it protects against, and what not, is written in the crate's README.
 
-use chacha20poly1305::aead::{AeadInOut, KeyInit};
-use chacha20poly1305::{ChaCha20Poly1305, Key, Nonce, Tag};
+use aes_gcm::Aes256Gcm;
+use aes_gcm::aead::{AeadInOut, KeyInit};
+use aes_gcm::aead::{Key, Nonce, Tag};
 use hmac::Mac;
 
 use crate::wire::{DIGEST_BYTES, NONCE_BYTES, TAG_BYTES};
@@ -109,11 +116,11 @@ impl SessionSecrets {
 
 /// One direction's packet protection.
 pub struct PacketKey {
-    cipher: ChaCha20Poly1305,
+    cipher: Aes256Gcm,
     confidential: bool,
 }
 
-fn nonce(pn: u64) -> Nonce {
+fn nonce(pn: u64) -> Nonce<Aes256Gcm> {
     let mut n = [0u8; 12];
     n[4..].copy_from_slice(&pn.to_le_bytes());
     n.into()
@@ -122,7 +129,7 @@ fn nonce(pn: u64) -> Nonce {
 impl PacketKey {
     fn new(key: [u8; 32], confidential: bool) -> Self {
         PacketKey {
-            cipher: ChaCha20Poly1305::new(&Key::from(key)),
+            cipher: Aes256Gcm::new(&Key::<Aes256Gcm>::from(key)),
             confidential,
         }
     }
@@ -138,22 +145,24 @@ impl PacketKey {
             self.cipher
                 .encrypt_inout_detached(&nonce(pn), &packet, (&mut [][..]).into())
         }
-        .expect("packets are far below ChaCha20-Poly1305's length limit");
+        .expect("packets are far below AES-GCM's length limit");
         packet.extend_from_slice(&tag);
         packet
     }
 
     /// Checks a session packet's tag and returns its plain body (decrypted into `scratch`
-    /// on a confidential link); `None` when the packet is not authentic.
+    /// on a confidential link); `None` when the packet is not authentic. `sealed` is the
+    /// packet without its tag: `header_len` bytes of header, then the body.
     pub fn open<'a>(
         &self,
         pn: u64,
-        header: &[u8],
-        body: &'a [u8],
+        sealed: &'a [u8],
+        header_len: usize,
         tag: &[u8; TAG_BYTES],
         scratch: &'a mut Vec<u8>,
     ) -> Option<&'a [u8]> {
-        let tag = Tag::from(*tag);
+        let tag = Tag::<Aes256Gcm>::from(*tag);
+        let (header, body) = sealed.split_at(header_len.min(sealed.len()));
         if self.confidential {
             scratch.clear();
             scratch.extend_from_slice(body);
@@ -162,12 +171,9 @@ impl PacketKey {
                 .ok()?;
             Some(scratch.as_slice())
         } else {
-            // Integrity only: header and body are both associated data.
-            scratch.clear();
-            scratch.extend_from_slice(header);
-            scratch.extend_from_slice(body);
+            // Integrity only: header and body together are the associated data.
             self.cipher
-                .decrypt_inout_detached(&nonce(pn), scratch, (&mut [][..]).into(), &tag)
+                .decrypt_inout_detached(&nonce(pn), sealed, (&mut [][..]).into(), &tag)
                 .ok()?;
             Some(body)
         }
@@ -263,28 +269,35 @@ mod tests {
             let packet = a.send.seal(5, b"headerBODY".to_vec(), 6);
             assert_eq!(&packet[..6], b"header");
             assert_eq!(confidential, &packet[6..10] != b"BODY");
-            let (head, rest) = packet.split_at(6);
-            let (body, tag) = rest.split_at(4);
+            let (sealed, tag) = packet.split_at(10);
             let tag: &[u8; 16] = tag.try_into().unwrap();
             let mut scratch = Vec::new();
+            let open = |key: &PacketKey, pn: u64, bytes: &[u8], scratch: &mut Vec<u8>| {
+                key.open(pn, bytes, 6, tag, scratch).map(|b| b.to_vec())
+            };
             assert_eq!(
-                b.recv.open(5, head, body, tag, &mut scratch),
+                open(&b.recv, 5, sealed, &mut scratch).as_deref(),
                 Some(&b"BODY"[..])
             );
             assert!(
-                b.recv.open(6, head, body, tag, &mut scratch).is_none(),
+                open(&b.recv, 6, sealed, &mut scratch).is_none(),
                 "pn is bound"
             );
             assert!(
-                a.recv.open(5, head, body, tag, &mut scratch).is_none(),
+                open(&a.recv, 5, sealed, &mut scratch).is_none(),
                 "direction is bound"
             );
-            let mut flipped = body.to_vec();
-            flipped[0] ^= 1;
-            assert!(b.recv.open(5, head, &flipped, tag, &mut scratch).is_none());
+            for i in [1, 7] {
+                let mut flipped = sealed.to_vec();
+                flipped[i] ^= 1;
+                assert!(
+                    open(&b.recv, 5, &flipped, &mut scratch).is_none(),
+                    "byte {i} is bound"
+                );
+            }
             let other = SessionSecrets::derive(&inputs(b"t", &d), Role::Responder, confidential);
             assert!(
-                other.recv.open(5, head, body, tag, &mut scratch).is_none(),
+                open(&other.recv, 5, sealed, &mut scratch).is_none(),
                 "secret is bound"
             );
         }

@@ -7,7 +7,7 @@
 //! ```
 //! All integers are little-endian. Handshake packets (HELLO, CHALLENGE, CONFIRM) carry a
 //! truncated HMAC-SHA256 under the cluster's shared secret over every byte before it; session
-//! packets carry a ChaCha20-Poly1305 tag under the session's key (see [`crate::crypto`]).
+//! packets carry an AES-256-GCM tag under the session's key (see [`crate::crypto`]).
 //! Decoding borrows from the datagram (no allocation), checks every length against the bytes
 //! present, and never panics: any malformed input is a [`WireError`]. Tags are checked by the
 //! endpoint, which holds the keys.
@@ -375,10 +375,9 @@ pub struct SessionPacket<'a> {
     pub session: u64,
     /// Packet number.
     pub pn: u64,
-    /// Header bytes (authenticated, never encrypted).
-    pub header: &'a [u8],
-    /// Body bytes (encrypted on a confidential link).
-    pub body: &'a [u8],
+    /// Header and body: everything the tag covers ([`SESSION_HEADER_BYTES`] of header,
+    /// never encrypted, then the body, encrypted on a confidential link).
+    pub sealed: &'a [u8],
     /// The AEAD tag.
     pub tag: &'a [u8; TAG_BYTES],
 }
@@ -471,13 +470,11 @@ pub fn decode(datagram: &[u8]) -> Result<Packet<'_>, WireError> {
             }
             let session = r.u64()?;
             let pn = r.u64()?;
-            let (header, body) = content.split_at(SESSION_HEADER_BYTES);
             return Ok(Packet::Session(SessionPacket {
                 kind,
                 session,
                 pn,
-                header,
-                body,
+                sealed: content,
                 tag,
             }));
         }
@@ -503,7 +500,10 @@ mod tests {
             panic!("a session packet")
         };
         assert_eq!((p.session, p.pn, p.kind), (42, 7, body.kind()));
-        assert_eq!(Body::decode(p.kind, p.body).unwrap(), body);
+        assert_eq!(
+            Body::decode(p.kind, &p.sealed[SESSION_HEADER_BYTES..]).unwrap(),
+            body
+        );
     }
 
     fn ids() -> Ids<'static> {
@@ -597,7 +597,7 @@ mod tests {
         #[test]
         fn random_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..512)) {
             if let Ok(Packet::Session(p)) = decode(&bytes) {
-                let _ = Body::decode(p.kind, p.body);
+                let _ = Body::decode(p.kind, &p.sealed[SESSION_HEADER_BYTES..]);
             }
         }
 
@@ -607,7 +607,7 @@ mod tests {
             header(&mut out, kind);
             out.extend_from_slice(&body);
             if let Ok(Packet::Session(p)) = decode(&out) {
-                let _ = Body::decode(p.kind, p.body);
+                let _ = Body::decode(p.kind, &p.sealed[SESSION_HEADER_BYTES..]);
             }
             let _ = Body::decode(kind, &body);
         }
