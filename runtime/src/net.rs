@@ -348,12 +348,7 @@ impl NodeNet {
             .into_iter()
             .map(|peer| {
                 let b = self.board.get(&peer);
-                let p = stats
-                    .peers
-                    .iter()
-                    .find(|(n, _)| *n == peer)
-                    .map(|(_, p)| *p)
-                    .unwrap_or_default();
+                let p = stats.peer(&peer);
                 let state = if b.mismatch {
                     "mismatch"
                 } else if b.up {

@@ -132,6 +132,17 @@ pub struct DriverStats {
     pub endpoint: crate::endpoint::EndpointStats,
 }
 
+impl DriverStats {
+    /// Counters of the link to `peer` (all zero if it is not declared).
+    pub fn peer(&self, peer: &str) -> PeerStats {
+        self.peers
+            .iter()
+            .find(|(n, _)| n == peer)
+            .map(|(_, p)| *p)
+            .unwrap_or_default()
+    }
+}
+
 /// The driver is gone (closed or its thread failed).
 #[derive(Debug, Clone, thiserror::Error)]
 #[error("the transport driver has stopped")]

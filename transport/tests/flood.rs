@@ -3,17 +3,12 @@
 //! counted, and the link to its real peer keeps working. Alone in its test binary so that
 //! the resident-memory reading is this test's.
 
-use std::net::{SocketAddr, UdpSocket};
+use std::net::UdpSocket;
 use std::time::{Duration, Instant};
 
-use cloudlight_transport::{
-    Command, Driver, DriverConfig, DriverHandle, EdgeDirection, EndpointConfig, Event, LinkProfile,
-};
+mod common;
 
-fn start(name: &str) -> DriverHandle {
-    let c = EndpointConfig::new(name, "flood-test", b"secret");
-    Driver::start(DriverConfig::new(c, SocketAddr::from(([127, 0, 0, 1], 0)))).unwrap()
-}
+use cloudlight_transport::{Command, Event, LinkProfile};
 
 fn rss_bytes() -> u64 {
     let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
@@ -38,44 +33,12 @@ fn laminar_reliable_ordered(i: u32) -> Vec<u8> {
     d
 }
 
-async fn wait_up(d: &mut DriverHandle) {
-    tokio::time::timeout(Duration::from_secs(5), async {
-        while !matches!(d.next_event().await, Some(Event::PeerUp { .. })) {}
-    })
-    .await
-    .expect("up within 5 s");
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stranger_flood_is_counted_and_holds_no_memory() {
-    let mut a = start("a");
-    let mut b = start("b");
-    for (d, name, peer) in [(&a, "b", &b), (&b, "a", &a)] {
-        d.command(Command::AddPeer {
-            name: name.into(),
-            addr: peer.local_addr(),
-            link: LinkProfile::default(),
-        })
-        .await
-        .unwrap();
-    }
-    a.command(Command::OpenEdge {
-        edge: 1,
-        peer: "b".into(),
-        direction: EdgeDirection::Send,
-        capacity: 4,
-    })
-    .await
-    .unwrap();
-    b.command(Command::OpenEdge {
-        edge: 1,
-        peer: "a".into(),
-        direction: EdgeDirection::Receive,
-        capacity: 4,
-    })
-    .await
-    .unwrap();
-    wait_up(&mut b).await;
+    let a = common::start("a", "flood-test", 1);
+    let mut b = common::start("b", "flood-test", 2);
+    common::connect(&a, &b, LinkProfile::default(), 4).await;
+    common::wait_for(&mut b, |e| matches!(e, Event::PeerUp { .. })).await;
     let before = rss_bytes();
     let attacker = UdpSocket::bind("127.0.0.1:0").unwrap();
     let target = b.local_addr();

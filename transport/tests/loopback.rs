@@ -3,49 +3,16 @@
 use std::net::SocketAddr;
 use std::time::Duration;
 
+mod common;
+
+use common::{connect, connect_via, wait_for};
+
 use cloudlight_transport::{
     Command, Driver, DriverConfig, DriverHandle, EdgeDirection, EndpointConfig, Event, LinkProfile,
 };
 
 fn start(name: &str, seed: u64) -> DriverHandle {
-    let mut c = EndpointConfig::new(name, "loopback-test", b"secret");
-    c.peer_timeout = Duration::from_millis(600);
-    let mut d = DriverConfig::new(c, SocketAddr::from(([127, 0, 0, 1], 0)));
-    d.seed = seed;
-    Driver::start(d).unwrap()
-}
-
-async fn connect(a: &DriverHandle, b: &DriverHandle, link: LinkProfile, capacity: u64) {
-    a.command(Command::AddPeer {
-        name: "b".into(),
-        addr: b.local_addr(),
-        link,
-    })
-    .await
-    .unwrap();
-    b.command(Command::AddPeer {
-        name: "a".into(),
-        addr: a.local_addr(),
-        link,
-    })
-    .await
-    .unwrap();
-    a.command(Command::OpenEdge {
-        edge: 1,
-        peer: "b".into(),
-        direction: EdgeDirection::Send,
-        capacity,
-    })
-    .await
-    .unwrap();
-    b.command(Command::OpenEdge {
-        edge: 1,
-        peer: "a".into(),
-        direction: EdgeDirection::Receive,
-        capacity,
-    })
-    .await
-    .unwrap();
+    common::start(name, "loopback-test", seed)
 }
 
 fn pattern(len: usize, salt: u8) -> Vec<u8> {
@@ -112,20 +79,6 @@ async fn messages_of_every_size_cross_a_lossy_emulated_link_intact_and_in_order(
     a.close();
     b.close();
     while a.next_event().await.is_some() {}
-}
-
-async fn wait_for(a: &mut DriverHandle, want: fn(&Event) -> bool) -> Event {
-    let fut = async {
-        loop {
-            let e = a.next_event().await.expect("driver alive");
-            if want(&e) {
-                return e;
-            }
-        }
-    };
-    tokio::time::timeout(Duration::from_secs(5), fut)
-        .await
-        .expect("event within 5 s")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -244,28 +197,13 @@ async fn relayed_pair(seed: u64) -> (DriverHandle, DriverHandle, Relay) {
     let mut a = start("a", seed);
     let mut b = start("b", seed + 1);
     let relay = Relay::start(a.local_addr(), b.local_addr());
-    for (d, peer) in [(&a, "b"), (&b, "a")] {
-        d.command(Command::AddPeer {
-            name: peer.into(),
-            addr: relay.addr,
-            link: LinkProfile::default(),
-        })
-        .await
-        .unwrap();
-    }
-    for (d, peer, direction) in [
-        (&a, "b", EdgeDirection::Send),
-        (&b, "a", EdgeDirection::Receive),
-    ] {
-        d.command(Command::OpenEdge {
-            edge: 1,
-            peer: peer.into(),
-            direction,
-            capacity: 8,
-        })
-        .await
-        .unwrap();
-    }
+    connect_via(
+        (&a, relay.addr),
+        (&b, relay.addr),
+        LinkProfile::default(),
+        8,
+    )
+    .await;
     wait_for(&mut a, |e| matches!(e, Event::PeerUp { .. })).await;
     wait_for(&mut b, |e| matches!(e, Event::PeerUp { .. })).await;
     (a, b, relay)

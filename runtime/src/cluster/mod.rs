@@ -428,12 +428,7 @@ impl Cluster {
                     let (_, stats) = net_stats.iter().find(|(n, _)| n == node)?;
                     let peer = net.peer_of(*id)?.to_string();
                     let w = stats.edges.get(id).copied().unwrap_or_default();
-                    let p = stats
-                        .peers
-                        .iter()
-                        .find(|(n, _)| *n == peer)
-                        .map(|(_, p)| *p)
-                        .unwrap_or_default();
+                    let p = stats.peer(&peer);
                     let extra = net.cut_counters(*id);
                     let oversize = extra.oversize;
                     Some(WireSnapshot {
