@@ -7,8 +7,8 @@
 //! that when both sides are initiating, only the one with the greater name answers, so that
 //! one handshake completes. The initiator installs the session on a CHALLENGE that echoes its
 //! current nonce (the responder proved itself *now*) and sends CONFIRM until it hears an
-//! authentic packet of the session, starting over if none comes within a second; the
-//! responder installs on a CONFIRM that echoes a challenge it issued and still holds (each
+//! authentic packet of the session, starting over if none comes within twice the peer
+//! timeout; the responder installs on a CONFIRM that echoes a challenge it issued and still holds (each
 //! challenge completes at most once). Recorded packets from this or an earlier run therefore
 //! install nothing: their nonces are not current.
 
@@ -27,8 +27,11 @@ use crate::wire::{Handshake, Ids, NONCE_BYTES, TAG_BYTES};
 const MAX_PENDING: usize = 4;
 /// How long an issued challenge may be confirmed.
 const CHALLENGE_TTL: Duration = Duration::from_secs(10);
-/// How long an initiator waits for its session to be confirmed before starting over.
-const CONFIRM_TIMEOUT: Duration = Duration::from_secs(1);
+/// How long an initiator waits for its session to be confirmed before starting over: twice
+/// the peer timeout (at least two seconds), so that a slow link confirms before it expires.
+fn confirm_timeout(peer_timeout: Duration) -> Duration {
+    (peer_timeout * 2).max(Duration::from_secs(2))
+}
 
 /// A HELLO this node sent and awaits an answer to.
 pub(crate) struct Initiation {
@@ -111,7 +114,8 @@ impl Endpoint {
             .retain(|c| now.saturating_duration_since(c.at) < CHALLENGE_TTL);
         if let Some(s) = &peer.session
             && !s.confirmed
-            && now.saturating_duration_since(s.established) > CONFIRM_TIMEOUT
+            && now.saturating_duration_since(s.established)
+                > confirm_timeout(self.config.peer_timeout)
         {
             tracing::debug!(peer = %peer.name, "session not confirmed; starting over");
             self.sessions.remove(&s.secrets.id);

@@ -610,3 +610,33 @@ fn a_peer_that_stops_acknowledging_while_answering_heartbeats_is_reported_stalle
     }));
     assert!(s.a.is_up("b"));
 }
+
+#[test]
+fn a_link_with_a_second_of_latency_each_way_comes_up_and_delivers() {
+    let profile = LinkProfile {
+        latency_ms: 1000.0,
+        loss: 0.05,
+        ..Default::default()
+    };
+    let mut s = Sim::new(profile, 9);
+    let now = s.now;
+    for (ep, peer, port, edge_dir) in [
+        ("a", "b", B, EdgeDirection::Send),
+        ("b", "a", A, EdgeDirection::Receive),
+    ] {
+        let mut c = if ep == "a" {
+            s.a.config().clone()
+        } else {
+            s.b.config().clone()
+        };
+        c.peer_timeout = Duration::from_secs(5);
+        let mut e = Endpoint::new(c, now);
+        e.add_peer(peer, addr(port), now);
+        e.open_edge(7, peer, edge_dir, 4).unwrap();
+        if ep == "a" { s.a = e } else { s.b = e }
+    }
+    let ok = s.transfer(&[vec![1; 3000], vec![2]], Duration::from_secs(60));
+    assert!(ok, "a: {:?}\nb: {:?}", s.a_events, s.b_events);
+    let sessions = s.a.peer_stats("b").unwrap().handshakes;
+    assert_eq!(sessions, 1, "one handshake, not one per confirm timeout");
+}
