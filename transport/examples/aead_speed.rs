@@ -15,7 +15,8 @@ fn run<C: AeadInOut + KeyInit>(name: &str, encrypt: bool) {
         let mut nonce = aes_gcm::aead::Nonce::<C>::default();
         nonce[..8].copy_from_slice(&i.to_le_bytes());
         let tag = if encrypt {
-            c.encrypt_inout_detached(&nonce, &buf[..20].to_vec(), (&mut buf[20..]).into())
+            let (header, body) = buf.split_at_mut(20);
+            c.encrypt_inout_detached(&nonce, header, body.into())
         } else {
             c.encrypt_inout_detached(&nonce, &buf, (&mut [][..]).into())
         }
