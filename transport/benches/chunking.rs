@@ -10,8 +10,9 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 
 fn pair(packet_bytes: usize) -> (Endpoint, Endpoint, Instant) {
     let now = Instant::now();
-    let mk = |name: &str, peer: &str, port: u16, inc: u64| {
-        let mut c = EndpointConfig::new(name, "bench", b"secret", inc);
+    let mk = |name: &str, peer: &str, port: u16, seed: u8| {
+        let mut c = EndpointConfig::new(name, "bench", b"secret");
+        c.nonce_seed = [seed; 32];
         c.max_packet_bytes = packet_bytes;
         let mut e = Endpoint::new(c, now);
         e.add_peer(peer, SocketAddr::from(([127, 0, 0, 1], port)), now);
