@@ -548,3 +548,31 @@ fn the_photon_example_topologies_run_with_the_batcher_anywhere() {
         }
     }
 }
+
+#[test]
+fn run_flags_that_cannot_be_durations_are_refused_before_anything_runs() {
+    for (flag, value) in [
+        ("--duration", "nan"),
+        ("--duration", "inf"),
+        ("--duration", "1e300"),
+        ("--duration", "-1"),
+        ("--metrics-interval", "inf"),
+        ("--metrics-interval", "nan"),
+        ("--metrics-interval", "0"),
+        ("--connect-timeout", "nan"),
+        ("--connect-timeout", "1e300"),
+    ] {
+        let out = cloudlight()
+            .arg("run")
+            .arg(example("probe-local.toml"))
+            .arg(format!("{flag}={value}"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{flag} {value}: {err}");
+        assert!(
+            err.contains(flag) && err.contains("out of range"),
+            "{flag} {value}: {err}"
+        );
+    }
+}

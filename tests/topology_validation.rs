@@ -106,7 +106,7 @@ fn zero_capacity() {
     let d = diagnostics(&format!(
         "{GOOD_HEAD}[[stage]]\nname = \"a\"\nkind = \"probe_source\"\nnode = \"cloud\"\n[[stage]]\nname = \"b\"\nkind = \"probe_sink\"\nnode = \"cloud\"\n[[edge]]\nfrom = \"a\"\nto = \"b\"\ncapacity = 0\n"
     ));
-    expect(&d, 19, "edge[0].capacity", "at least 1");
+    expect(&d, 19, "edge[0].capacity", "must be in [1,");
 }
 
 #[test]
@@ -123,7 +123,7 @@ fn zero_replicas() {
     let d = diagnostics(&format!(
         "{GOOD_HEAD}[[stage]]\nname = \"s\"\nkind = \"probe_sink\"\nnode = \"client\"\nreplicas = 0\n"
     ));
-    expect(&d, 12, "stage[0].replicas", "at least 1");
+    expect(&d, 12, "stage[0].replicas", "must be in [1,");
 }
 
 #[test]
@@ -218,7 +218,7 @@ latency_ms = -1
     expect(&d, 2, "speed", "unknown key");
     expect(&d, 5, "node[0].address", "not an IP:port");
     expect(&d, 9, "stage[0].node", "unknown node `moon`");
-    expect(&d, 14, "stage[1].replicas", "at least 1");
+    expect(&d, 14, "stage[1].replicas", "must be in [1,");
     expect(&d, 17, "link[0].latency_ms", ">= 0");
     assert!(d.len() >= 5);
     let shown = cloudlight::runtime::TopologyErrors(d).to_string();
@@ -345,4 +345,82 @@ fn every_node_must_agree_on_the_digest_and_any_change_alters_it() {
     assert_ne!(digest(&base), digest(&format!("seed = 4\n{base}")));
     // Secrets are not part of it (they prove membership; a wrong one is a stranger).
     assert_eq!(digest(&base), digest(&base.replace("\"x\"", "\"y\"")));
+}
+
+#[test]
+fn numbers_that_cannot_be_held_or_converted_are_refused_with_their_range() {
+    for (text, line, key) in [
+        ("duration_s = 1e300\n", 1, "duration_s"),
+        ("duration_s = -3\n", 1, "duration_s"),
+        ("time_scale = 1e300\n", 1, "time_scale"),
+        ("scene_start_s = 1e300\n", 1, "scene_start_s"),
+        (
+            "[transport]\npeer_timeout_ms = 1e300\n",
+            2,
+            "transport.peer_timeout_ms",
+        ),
+        (
+            "[transport]\nheartbeat_ms = 1e-300\n",
+            2,
+            "transport.heartbeat_ms",
+        ),
+        (
+            "[transport]\nconnect_timeout_s = 1e300\n",
+            2,
+            "transport.connect_timeout_s",
+        ),
+        (
+            "[transport]\nstall_timeout_s = 0\n",
+            2,
+            "transport.stall_timeout_s",
+        ),
+        (
+            "[defaults]\ncapacity = 9223372036854775807\n",
+            2,
+            "defaults.capacity",
+        ),
+    ] {
+        let d = diagnostics(&format!("{text}{GOOD_HEAD}"));
+        expect(&d, line, key, "out of range");
+    }
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"s\"\nkind = \"probe_sink\"\nnode = \"client\"\nreplicas = 1000000000\n"
+    ));
+    expect(&d, 12, "stage[0].replicas", "out of range");
+}
+
+#[test]
+fn node_names_longer_than_the_handshake_carries_are_refused() {
+    let long = "n".repeat(256);
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[node]]\nname = \"{long}\"\naddress = \"127.0.0.1:7302\"\n"
+    ));
+    expect(&d, 9, "node[2].name", "1 to 255");
+}
+
+#[test]
+fn many_replicas_plan_without_a_quadratic_check() {
+    // 10,000 replicas fan out from one source: 10,000 edges, each checked for duplicates.
+    let text = format!(
+        "secret = \"x\"\n{GOOD_HEAD}[[stage]]\nname = \"a\"\nkind = \"probe_source\"\nnode = \"cloud\"\n[[stage]]\nname = \"b\"\nkind = \"probe_sink\"\nnode = \"client\"\nreplicas = 10000\n[[edge]]\nfrom = \"a\"\nto = \"b\"\n"
+    );
+    let plan = Plan::from_str("many.toml", &text, &registry()).unwrap();
+    assert_eq!(plan.edges.len(), 10_000);
+}
+
+#[test]
+fn cycles_of_block_edges_are_refused_and_latest_cycles_allowed() {
+    let stages = "[[stage]]\nname = \"a\"\nkind = \"probe_relay\"\nnode = \"cloud\"\n[[stage]]\nname = \"b\"\nkind = \"probe_relay\"\nnode = \"cloud\"\n";
+    let cycle = |policy: &str| {
+        format!(
+            "{GOOD_HEAD}{stages}[[edge]]\nfrom = \"a\"\nto = \"b\"\npolicy = \"{policy}\"\n[[edge]]\nfrom = \"b\"\nto = \"a\"\npolicy = \"latest\"\n"
+        )
+    };
+    let d = diagnostics(&cycle("block"));
+    expect(&d, 16, "edge[0]", "cycle");
+    assert_eq!(d.len(), 1, "only the block edge is named: {d:?}");
+    assert!(Plan::from_str("ok.toml", &cycle("latest"), &registry()).is_ok());
+    let self_loop =
+        format!("{GOOD_HEAD}{stages}[[edge]]\nfrom = \"a\"\nto = \"a\"\npolicy = \"block\"\n");
+    expect(&diagnostics(&self_loop), 16, "edge[0]", "cycle");
 }

@@ -97,6 +97,25 @@ fn progress_bar(duration: Option<Duration>) -> ProgressBar {
     }
 }
 
+/// Each flag's range: finite, and convertible to a wall-clock duration and deadline.
+fn check_flags(args: &RunArgs) -> Result<(), String> {
+    let year = 365.0 * 86_400.0;
+    let check = |flag: &str, v: Option<f64>, low: f64, high: f64| match v {
+        Some(v) if !(v.is_finite() && v > low && v <= high) => Err(format!(
+            "--{flag} {v} is out of range: must be a number of seconds in ({low}, {high}]"
+        )),
+        _ => Ok(()),
+    };
+    check("duration", args.duration, 0.0, year)?;
+    check("connect-timeout", args.connect_timeout, 0.0, 86_400.0)?;
+    check(
+        "metrics-interval",
+        Some(args.metrics_interval),
+        0.01,
+        3_600.0,
+    )
+}
+
 fn default_out(stem: &str, only_node: Option<&str>) -> PathBuf {
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -121,6 +140,10 @@ fn execute(
     for w in &plan.warnings {
         eprintln!("warning: {w}");
     }
+    if let Err(e) = check_flags(&args) {
+        eprintln!("error: {e}");
+        return ExitCode::from(2);
+    }
     let duration = args
         .duration
         .or(plan.topology.duration_s)
@@ -135,7 +158,7 @@ fn execute(
         out_dir: Some(out.clone()),
         only_node,
         connect_timeout: args.connect_timeout.map(Duration::from_secs_f64),
-        metrics_interval: Duration::from_secs_f64(args.metrics_interval.max(0.1)),
+        metrics_interval: Duration::from_secs_f64(args.metrics_interval),
         on_progress: Some(Arc::new(move |snap| {
             let handled: u64 = snap.stages.iter().map(|s| s.handled).sum();
             let dropped: u64 = snap.edges.iter().map(|e| e.dropped).sum();

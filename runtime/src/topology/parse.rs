@@ -152,20 +152,32 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
     if let Some(s) = top.uint(&mut w, "seed") {
         topo.seed = s.into_inner();
     }
-    if let Some(d) = top.float(&mut w, "duration_s") {
-        if *d.get_ref() <= 0.0 {
-            w.err(&d.span(), "duration_s", "must be > 0");
-        }
-        topo.duration_s = Some(d.into_inner());
+    if let Some(d) = bounded(
+        &mut w,
+        &mut top,
+        "duration_s",
+        Bound::above(0.0, MAX_SECONDS),
+        "s",
+    ) {
+        topo.duration_s = Some(d);
     }
-    if let Some(s) = top.float(&mut w, "scene_start_s") {
-        topo.scene_start_s = s.into_inner();
+    if let Some(s) = bounded(
+        &mut w,
+        &mut top,
+        "scene_start_s",
+        Bound::closed(-MAX_SECONDS, MAX_SECONDS),
+        "s",
+    ) {
+        topo.scene_start_s = s;
     }
-    if let Some(s) = top.float(&mut w, "time_scale") {
-        if *s.get_ref() <= 0.0 {
-            w.err(&s.span(), "time_scale", "must be > 0");
-        }
-        topo.time_scale = s.into_inner();
+    if let Some(s) = bounded(
+        &mut w,
+        &mut top,
+        "time_scale",
+        Bound::above(0.0, 1e6),
+        "scene s per s",
+    ) {
+        topo.time_scale = s;
     }
     if let Some(mut d) = top.table(&mut w, "defaults") {
         topo.defaults = EdgeDefaults {
@@ -202,18 +214,40 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
         }
         s.window_packets = *v.get_ref() as usize;
     }
-    for (k, slot) in [
-        ("peer_timeout_ms", &mut s.peer_timeout_ms),
-        ("heartbeat_ms", &mut s.heartbeat_ms),
-        ("connect_timeout_s", &mut s.connect_timeout_s),
-        ("stall_timeout_s", &mut s.stall_timeout_s),
-        ("rejoin_timeout_s", &mut s.rejoin_timeout_s),
+    for (k, slot, range, unit) in [
+        (
+            "peer_timeout_ms",
+            &mut s.peer_timeout_ms,
+            Bound::closed(10.0, 3_600_000.0),
+            "ms",
+        ),
+        (
+            "heartbeat_ms",
+            &mut s.heartbeat_ms,
+            Bound::closed(1.0, 60_000.0),
+            "ms",
+        ),
+        (
+            "connect_timeout_s",
+            &mut s.connect_timeout_s,
+            Bound::above(0.0, 86_400.0),
+            "s",
+        ),
+        (
+            "stall_timeout_s",
+            &mut s.stall_timeout_s,
+            Bound::closed(0.01, 86_400.0),
+            "s",
+        ),
+        (
+            "rejoin_timeout_s",
+            &mut s.rejoin_timeout_s,
+            Bound::closed(0.0, 86_400.0),
+            "s",
+        ),
     ] {
-        if let Some(v) = t.float(w, k) {
-            if *v.get_ref() <= 0.0 {
-                w.err(&v.span(), &t.key(k), "must be > 0");
-            }
-            *slot = v.into_inner();
+        if let Some(v) = bounded(w, t, k, range, unit) {
+            *slot = v;
         }
     }
     if let Some(v) = t.boolean(w, "encrypt") {
@@ -232,10 +266,83 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
     s
 }
 
+/// Most seconds any duration in a topology may be (a year): far beyond any run, and always
+/// convertible to a wall-clock `Duration` and deadline.
+const MAX_SECONDS: f64 = 365.0 * 86_400.0;
+/// Largest edge capacity: each slot may hold a message, and a `block` edge's permits are
+/// counted in memory.
+pub(super) const MAX_CAPACITY: u64 = 1_000_000;
+/// Most replicas of one stage: every instance is an actor with its own state.
+pub(super) const MAX_REPLICAS: u64 = 10_000;
+
+/// An allowed range of a number: `low` itself is allowed unless `open_low`.
+#[derive(Clone, Copy)]
+struct Bound {
+    low: f64,
+    high: f64,
+    open_low: bool,
+}
+
+impl Bound {
+    fn closed(low: f64, high: f64) -> Self {
+        Bound {
+            low,
+            high,
+            open_low: false,
+        }
+    }
+    fn above(low: f64, high: f64) -> Self {
+        Bound {
+            low,
+            high,
+            open_low: true,
+        }
+    }
+    fn contains(&self, v: f64) -> bool {
+        v <= self.high && (v > self.low || (!self.open_low && v == self.low))
+    }
+    fn describe(&self, unit: &str) -> String {
+        let open = if self.open_low { "(" } else { "[" };
+        format!("{open}{}, {}] {unit}", self.low, self.high)
+    }
+}
+
+/// A number at key `k` that must lie in `range` (finite; NaN and infinities are refused by
+/// the reader); the error names the value and the range.
+fn bounded(
+    w: &mut Walker,
+    t: &mut Tbl<'_, '_>,
+    k: &'static str,
+    range: Bound,
+    unit: &str,
+) -> Option<f64> {
+    let v = t.float(w, k)?;
+    if !range.contains(*v.get_ref()) {
+        w.err(
+            &v.span(),
+            &t.key(k),
+            format!(
+                "{} is out of range: must be in {}",
+                v.get_ref(),
+                range.describe(unit)
+            ),
+        );
+        return None;
+    }
+    Some(v.into_inner())
+}
+
 fn capacity(w: &mut Walker, t: &mut Tbl<'_, '_>) -> Option<usize> {
     let c = t.uint(w, "capacity")?;
-    if *c.get_ref() == 0 {
-        w.err(&c.span(), &t.key("capacity"), "must be at least 1");
+    if !(1..=MAX_CAPACITY).contains(c.get_ref()) {
+        w.err(
+            &c.span(),
+            &t.key("capacity"),
+            format!(
+                "{} is out of range: must be in [1, {MAX_CAPACITY}]",
+                c.get_ref()
+            ),
+        );
         return None;
     }
     Some(*c.get_ref() as usize)
@@ -320,12 +427,15 @@ fn parse_stages(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
             continue;
         }
         if let Some(r) = &replicas
-            && *r.get_ref() == 0
+            && !(1..=MAX_REPLICAS).contains(r.get_ref())
         {
             w.err(
                 &r.span(),
                 &t.key("replicas"),
-                "replica count must be at least 1",
+                format!(
+                    "replica count {} is out of range: must be in [1, {MAX_REPLICAS}]",
+                    r.get_ref()
+                ),
             );
             continue;
         }

@@ -62,6 +62,56 @@ pub struct Plan {
     pub warnings: Vec<Diagnostic>,
 }
 
+/// For each edge, whether it lies on a cycle of the instance graph (both ends in one strongly
+/// connected component, a self-loop included); Kosaraju's algorithm, iterative.
+fn on_cycle(edges: &[EdgePlan], n: usize) -> Vec<bool> {
+    let mut out_adj = vec![Vec::new(); n];
+    let mut in_adj = vec![Vec::new(); n];
+    for e in edges {
+        out_adj[e.from].push(e.to);
+        in_adj[e.to].push(e.from);
+    }
+    // Finishing order of a depth-first search over the edges.
+    let mut order = Vec::with_capacity(n);
+    let mut seen = vec![false; n];
+    for root in 0..n {
+        if seen[root] {
+            continue;
+        }
+        seen[root] = true;
+        let mut stack = vec![(root, 0usize)];
+        while let Some((v, i)) = stack.pop() {
+            if let Some(&w) = out_adj[v].get(i) {
+                stack.push((v, i + 1));
+                if !seen[w] {
+                    seen[w] = true;
+                    stack.push((w, 0));
+                }
+            } else {
+                order.push(v);
+            }
+        }
+    }
+    // Components over the reversed edges, in reverse finishing order.
+    let mut comp = vec![usize::MAX; n];
+    for (c, &root) in order.iter().rev().enumerate() {
+        if comp[root] != usize::MAX {
+            continue;
+        }
+        comp[root] = c;
+        let mut stack = vec![root];
+        while let Some(v) = stack.pop() {
+            for &w in &in_adj[v] {
+                if comp[w] == usize::MAX {
+                    comp[w] = c;
+                    stack.push(w);
+                }
+            }
+        }
+    }
+    edges.iter().map(|e| comp[e.from] == comp[e.to]).collect()
+}
+
 fn instance_name(stage: &str, replica: usize, replicas: usize) -> String {
     if replicas == 1 {
         stage.to_string()
@@ -164,7 +214,9 @@ impl Plan {
         // Edges.
         let mut edges: Vec<EdgePlan> = Vec::new();
         let mut connected: HashSet<(String, &'static str)> = HashSet::new();
-        for e in &topology.edges {
+        let mut seen_edges: HashSet<(usize, &'static str, usize, &'static str)> = HashSet::new();
+        let mut decl_of: Vec<usize> = Vec::new();
+        for (decl, e) in topology.edges.iter().enumerate() {
             let (Some(from_stage), Some(to_stage)) =
                 (topology.stage(&e.from.stage), topology.stage(&e.to.stage))
             else {
@@ -246,9 +298,7 @@ impl Plan {
             for (i, j) in pairs {
                 let from = first_instance[&from_stage.name] + i;
                 let to = first_instance[&to_stage.name] + j;
-                if edges.iter().any(|x| {
-                    x.from == from && x.from_port == out.name && x.to == to && x.to_port == inp.name
-                }) {
+                if !seen_edges.insert((from, out.name, to, inp.name)) {
                     errors.push(map.diag(
                         &e.span,
                         &e.key,
@@ -257,6 +307,7 @@ impl Plan {
                     break;
                 }
                 connected.insert((instances[to].name.clone(), inp.name));
+                decl_of.push(decl);
                 edges.push(EdgePlan {
                     name: format!(
                         "{}.{} -> {}.{}",
@@ -270,6 +321,22 @@ impl Plan {
                     ty: out.ty,
                     cut: instances[from].node != instances[to].node,
                 });
+            }
+        }
+        let mut reported = HashSet::new();
+        let cyclic = on_cycle(&edges, instances.len());
+        for (k, e) in edges.iter().enumerate() {
+            let decl = &topology.edges[decl_of[k]];
+            if e.settings.policy == Policy::Block && cyclic[k] && reported.insert(decl_of[k]) {
+                errors.push(map.diag(
+                    &decl.span,
+                    &decl.key,
+                    format!(
+                        "{} -> {} is a `block` edge on a cycle: producers waiting on each other \
+                         around it can deadlock; make an edge of the cycle `latest`",
+                        decl.from, decl.to
+                    ),
+                ));
             }
         }
         for s in &topology.stages {

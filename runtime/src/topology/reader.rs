@@ -270,10 +270,23 @@ pub(super) fn plain(v: &DeValue<'_>) -> Option<toml::Value> {
     })
 }
 
+/// Longest name: node names travel in the handshake, which carries at most 255 bytes.
+pub(super) const MAX_NAME_BYTES: usize = 255;
+
 pub(super) fn valid_name(s: &str) -> bool {
     !s.is_empty()
+        && s.len() <= MAX_NAME_BYTES
         && s.chars()
             .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+/// A name cut to 40 characters for a message.
+fn shorten(s: &str) -> String {
+    if s.chars().count() <= 40 {
+        s.to_string()
+    } else {
+        format!("{}…", s.chars().take(40).collect::<String>())
+    }
 }
 
 pub(super) fn check_name(w: &mut Walker, name: &Spanned<String>, key: &str) {
@@ -282,8 +295,8 @@ pub(super) fn check_name(w: &mut Walker, name: &Spanned<String>, key: &str) {
             &name.span(),
             key,
             format!(
-                "`{}` is not a valid name (use letters, digits, `_` and `-`)",
-                name.get_ref()
+                "`{}` is not a valid name (1 to {MAX_NAME_BYTES} letters, digits, `_` and `-`)",
+                shorten(name.get_ref())
             ),
         );
     }
