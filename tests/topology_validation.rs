@@ -424,3 +424,49 @@ fn cycles_of_block_edges_are_refused_and_latest_cycles_allowed() {
         format!("{GOOD_HEAD}{stages}[[edge]]\nfrom = \"a\"\nto = \"a\"\npolicy = \"block\"\n");
     expect(&diagnostics(&self_loop), 16, "edge[0]", "cycle");
 }
+
+#[test]
+fn stage_parameters_out_of_range_are_refused_by_name() {
+    let stage = |kind: &str, params: &str| {
+        format!(
+            "{}[[stage]]\nname = \"s\"\nkind = \"{kind}\"\nnode = \"cloud\"\nparams = {{ {params} }}\n",
+            GOOD_HEAD.replace("[\"probe\"]", "[\"probe\", \"photons\"]")
+        )
+    };
+    for (kind, params, words) in [
+        ("probe_source", "rate_hz = 1e-300", "rate_hz"),
+        ("probe_source", "rate_hz = nan", "rate_hz"),
+        (
+            "probe_source",
+            "payload_bytes = 3000000000",
+            "payload_bytes",
+        ),
+        ("probe_relay", "work_ms = inf", "work_ms"),
+        ("probe_sink", "work_ms = -1.0", "work_ms"),
+        ("photon_batcher", "resend_s = 1e300", "resend_s"),
+        (
+            "photon_batcher",
+            "photons_per_watt = -1.0",
+            "photons_per_watt",
+        ),
+        (
+            "photon_batcher",
+            "photons_per_watt = nan",
+            "photons_per_watt",
+        ),
+        ("photon_batcher", "radius_m = -1.0", "radius_m"),
+        (
+            "photon_batcher",
+            "photons_per_disk = 0.0",
+            "photons_per_disk",
+        ),
+        ("photon_batcher", "photons = 1000000000000", "photons"),
+    ] {
+        let d = diagnostics(&stage(kind, params));
+        expect(&d, 8, "stage[0].params", words);
+        assert!(
+            d.iter().any(|x| x.message.contains("out of range")),
+            "{kind} {params}: {d:?}"
+        );
+    }
+}

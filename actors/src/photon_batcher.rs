@@ -461,6 +461,36 @@ pub const PHOTON_EDGE: EdgeSettings = EdgeSettings {
     policy: Policy::Latest,
 };
 
+/// Most photons per iteration: what one iteration's sets can hold in memory (about 50 bytes
+/// a stored photon, several bounces each) with room to spare on a 24 GiB machine.
+const MAX_PHOTONS: u64 = 10_000_000;
+
+impl cloudlight_runtime::CheckParams for BatcherParams {
+    fn check(&self) -> Result<(), String> {
+        use cloudlight_runtime::check_range;
+        if let Some(n) = self.photons {
+            check_range("photons", n as f64, 1.0, MAX_PHOTONS as f64, "photons")?;
+        }
+        if let Some(p) = self.photons_per_watt {
+            check_range("photons_per_watt", p, 1e-6, 1e9, "photons per watt")?;
+        }
+        check_range("batch_size", self.batch_size as f64, 1.0, 1e6, "photons")?;
+        check_range("bounces", self.bounces as f64, 0.0, 64.0, "bounces")?;
+        check_range(
+            "photons_per_disk",
+            self.photons_per_disk as f64,
+            0.01,
+            1e6,
+            "photons",
+        )?;
+        if let Some(r) = self.radius_m {
+            check_range("radius_m", r as f64, 1e-6, 1e4, "m")?;
+        }
+        check_range("interval_ms", self.interval_ms, 0.0, 3.6e6, "ms")?;
+        check_range("resend_s", self.resend_s, 0.0, 86_400.0, "s")
+    }
+}
+
 /// Registers `photon_batcher`.
 pub fn register(registry: &mut cloudlight_runtime::StageRegistry) {
     registry.register(
@@ -471,6 +501,6 @@ pub fn register(registry: &mut cloudlight_runtime::StageRegistry) {
             |s| Ok(Box::new(PhotonBatcher::new(s)?)),
         )
         .output::<PhotonMsg>("out")
-        .params::<BatcherParams>(),
+        .checked_params::<BatcherParams>(),
     );
 }

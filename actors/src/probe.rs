@@ -9,7 +9,8 @@ use std::time::{Duration, Instant};
 
 use cloudlight_runtime::clock::now_unix_ns;
 use cloudlight_runtime::{
-    EdgeSettings, Input, NextTick, Policy, Stage, StageCtx, StageKind, StageRegistry, StageSetup,
+    CheckParams, EdgeSettings, Input, NextTick, Policy, Stage, StageCtx, StageKind, StageRegistry,
+    StageSetup, check_range,
 };
 use hdrhistogram::Histogram;
 use serde::Deserialize;
@@ -200,6 +201,38 @@ fn histogram() -> Histogram<u64> {
     Histogram::new(3).expect("3 significant digits is valid")
 }
 
+/// Largest probe payload: the transport's message limit (a cut edge drops larger ones).
+const MAX_PAYLOAD_BYTES: usize = 64 << 20;
+/// Longest emulated service time per message, milliseconds.
+const MAX_WORK_MS: f64 = 60_000.0;
+
+impl CheckParams for SourceParams {
+    fn check(&self) -> Result<(), String> {
+        if let Some(r) = self.rate_hz {
+            check_range("rate_hz", r, 0.001, 1e6, "Hz")?;
+        }
+        if self.payload_bytes > MAX_PAYLOAD_BYTES {
+            return Err(format!(
+                "`payload_bytes` = {} is out of range: must be in [0, {MAX_PAYLOAD_BYTES}] bytes",
+                self.payload_bytes
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl CheckParams for RelayParams {
+    fn check(&self) -> Result<(), String> {
+        check_range("work_ms", self.work_ms, 0.0, MAX_WORK_MS, "ms")
+    }
+}
+
+impl CheckParams for SinkParams {
+    fn check(&self) -> Result<(), String> {
+        check_range("work_ms", self.work_ms, 0.0, MAX_WORK_MS, "ms")
+    }
+}
+
 /// Registers `probe_source`, `probe_relay` and `probe_sink`.
 pub fn register(registry: &mut StageRegistry) {
     registry.register(
@@ -209,9 +242,6 @@ pub fn register(registry: &mut StageRegistry) {
             "emits pattern-filled messages at `rate_hz` (or as fast as edges allow)",
             |s: &StageSetup| {
                 let params: SourceParams = s.params()?;
-                if params.rate_hz.is_some_and(|r| !(r > 0.0 && r.is_finite())) {
-                    anyhow::bail!("rate_hz must be a positive number");
-                }
                 Ok(Box::new(ProbeSource {
                     params,
                     sent: 0,
@@ -220,7 +250,7 @@ pub fn register(registry: &mut StageRegistry) {
             },
         )
         .output::<ProbeMsg>("out")
-        .params::<SourceParams>(),
+        .checked_params::<SourceParams>(),
     );
     registry.register(
         StageKind::new(
@@ -236,7 +266,7 @@ pub fn register(registry: &mut StageRegistry) {
         )
         .input::<ProbeMsg>("in", PROBE_EDGE)
         .output::<ProbeMsg>("out")
-        .params::<RelayParams>(),
+        .checked_params::<RelayParams>(),
     );
     registry.register(
         StageKind::new(
@@ -257,6 +287,6 @@ pub fn register(registry: &mut StageRegistry) {
             },
         )
         .input::<ProbeMsg>("in", PROBE_EDGE)
-        .params::<SinkParams>(),
+        .checked_params::<SinkParams>(),
     );
 }

@@ -25,6 +25,7 @@ pub use edge::{EdgeSettings, Policy};
 pub use message::{Message, MessageType, Stamped};
 pub use metrics::{MetricsSnapshot, PeerLinkSnapshot, RunStatus, TransportSnapshot};
 pub use stage::{
-    Input, InstanceInfo, NextTick, SendError, Stage, StageCtx, StageKind, StageRegistry, StageSetup,
+    CheckParams, Input, InstanceInfo, NextTick, SendError, Stage, StageCtx, StageKind,
+    StageRegistry, StageSetup, check_range,
 };
 pub use topology::{Diagnostic, Plan, Topology, TopologyErrors, TopologySpec};

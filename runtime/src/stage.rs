@@ -275,6 +275,37 @@ impl StageSetup {
     }
 }
 
+/// Parameters whose values need more checking than their types give: finite numbers,
+/// ranges, sizes a machine can hold.
+pub trait CheckParams {
+    /// Why the values cannot run, naming the parameter, its value and its range.
+    fn check(&self) -> Result<(), String>;
+}
+
+/// Checks that `value` of parameter `name` is finite and in `[low, high]` (`unit` for the
+/// message).
+pub fn check_range(name: &str, value: f64, low: f64, high: f64, unit: &str) -> Result<(), String> {
+    if value.is_finite() && (low..=high).contains(&value) {
+        Ok(())
+    } else {
+        Err(format!(
+            "`{name}` = {} is out of range: must be in [{}, {}] {unit}",
+            show_number(value),
+            show_number(low),
+            show_number(high)
+        ))
+    }
+}
+
+/// A number as a person would write it: plain when moderate, scientific when extreme.
+pub fn show_number(v: f64) -> String {
+    if v != 0.0 && v.is_finite() && !(1e-3..1e7).contains(&v.abs()) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
 fn parse_params<P: DeserializeOwned>(table: &toml::Table) -> Result<P, String> {
     toml::Value::Table(table.clone())
         .try_into()
@@ -358,6 +389,13 @@ impl StageKind {
     /// (use `#[serde(deny_unknown_fields)]` so that misspelt keys are errors).
     pub fn params<P: DeserializeOwned>(mut self) -> Self {
         self.check = Arc::new(|t| parse_params::<P>(t).map(|_| ()));
+        self
+    }
+
+    /// Like [`StageKind::params`], then [`CheckParams::check`]: values out of their ranges are
+    /// validation errors, found before anything runs.
+    pub fn checked_params<P: DeserializeOwned + CheckParams>(mut self) -> Self {
+        self.check = Arc::new(|t| parse_params::<P>(t).and_then(|p| p.check()));
         self
     }
 
