@@ -576,3 +576,28 @@ fn run_flags_that_cannot_be_durations_are_refused_before_anything_runs() {
         );
     }
 }
+
+#[test]
+fn reference_refuses_images_views_and_times_it_cannot_render() {
+    let dir = tempfile::tempdir().unwrap();
+    for args in [
+        vec!["--width", "65536", "--height", "65537"],
+        vec!["--width", "100000", "--height", "100000"],
+        vec!["--time", "nan"],
+        vec!["--camera", "0,1,3:0,1,3"],
+        vec!["--camera", "0,1,3:0,1,0:0"],
+        vec!["--camera", "0,1,3:0,1,0:180"],
+        vec!["--camera", "nan,1,3:0,1,0"],
+        vec!["--camera", "0,0,0:0,5,0"],
+    ] {
+        let out = cloudlight()
+            .args(["reference", "cornell", "--spp", "1", "--out"])
+            .arg(dir.path())
+            .args(&args)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains("error:"), "{args:?}: {err}");
+    }
+}

@@ -470,3 +470,13 @@ fn stage_parameters_out_of_range_are_refused_by_name() {
         );
     }
 }
+
+#[test]
+fn one_bad_node_address_is_one_error_not_a_cascade() {
+    let text = GOOD_HEAD.replace("127.0.0.1:7300", "localhost:7300");
+    let d = diagnostics(&format!(
+        "secret = \"x\"\n{text}{CUT}[[link]]\nbetween = [\"cloud\", \"client\"]\nlatency_ms = 5\n"
+    ));
+    assert_eq!(d.len(), 1, "{d:?}");
+    expect(&d, 5, "node[0].address", "not an IP:port");
+}

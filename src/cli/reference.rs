@@ -69,9 +69,24 @@ fn parse_camera(
     let fov: f32 = parts
         .get(2)
         .map_or(Ok(45.0), |f| f.parse().map_err(|_| err()))?;
+    let (position, target) = (vec3(point(parts[0])?), vec3(point(parts[1])?));
+    if !(position.is_finite() && target.is_finite()) {
+        return Err(format!("--camera `{spec}`: eye and target must be finite"));
+    }
+    let dir = target - position;
+    if dir.length() < 1e-6 || dir.normalize().cross(Vec3::Y).length() < 1e-4 {
+        return Err(format!(
+            "--camera `{spec}`: eye and target must differ, and the view must not be straight up or down"
+        ));
+    }
+    if !(fov.is_finite() && fov > 0.1 && fov < 179.0) {
+        return Err(format!(
+            "--camera `{spec}`: field of view {fov} is out of range: must be in (0.1, 179) degrees"
+        ));
+    }
     Ok(Camera {
-        position: vec3(point(parts[0])?),
-        target: vec3(point(parts[1])?),
+        position,
+        target,
         up: vec3([0.0, 1.0, 0.0]),
         fov_y_rad: fov.to_radians(),
     })
@@ -123,6 +138,33 @@ pub fn run(args: Args) -> ExitCode {
     use cloudlight::render::{
         BvhKind, ReferenceImages, ReferenceRenderer, RenderSettings, SceneBvh,
     };
+    if !args.time.is_finite() || args.time.abs() > 1e9 {
+        eprintln!(
+            "error: --time {} is out of range: must be a finite number of seconds within ±1e9",
+            args.time
+        );
+        return ExitCode::from(2);
+    }
+    // Four f32 images of 4 channels per pixel are held (full, direct, indirect, and the
+    // accumulation): 16,384² pixels is about 17 GB, so the product is bounded well below.
+    const MAX_SIDE: u32 = 16_384;
+    const MAX_PIXELS: u64 = 4096 * 4096;
+    let pixels = args.width as u64 * args.height as u64;
+    if args.width == 0
+        || args.height == 0
+        || args.width > MAX_SIDE
+        || args.height > MAX_SIDE
+        || pixels > MAX_PIXELS
+        || args.spp == 0
+        || args.spp > 1_000_000
+    {
+        eprintln!(
+            "error: --width {} --height {} --spp {} is out of range: width and height in [1, \
+             {MAX_SIDE}] with at most {MAX_PIXELS} pixels in all, spp in [1, 1000000]",
+            args.width, args.height, args.spp
+        );
+        return ExitCode::from(2);
+    }
     let scene = match super::load_scene(&args.scene) {
         Ok(s) => s,
         Err(code) => return code,
@@ -134,10 +176,6 @@ pub fn run(args: Args) -> ExitCode {
             return ExitCode::from(2);
         }
     };
-    if args.width == 0 || args.height == 0 || args.spp == 0 {
-        eprintln!("error: width, height and spp must be at least 1");
-        return ExitCode::from(2);
-    }
     if let Err(e) = std::fs::create_dir_all(&args.out) {
         eprintln!("error: cannot create {}: {e}", args.out.display());
         return ExitCode::FAILURE;

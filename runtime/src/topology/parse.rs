@@ -375,19 +375,29 @@ fn parse_nodes(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
             );
             continue;
         }
-        let Some(address) = address else { continue };
-        let Ok(addr) = address.get_ref().parse::<SocketAddr>() else {
-            w.err(
-                &address.span(),
-                &t.key("address"),
-                format!(
-                    "`{}` is not an IP:port address (e.g. 127.0.0.1:7100)",
-                    address.get_ref()
-                ),
-            );
-            continue;
+        // A node whose address is missing or bad is still declared (at an unspecified
+        // address), so that the stages, edges and links naming it report nothing more.
+        let unspecified = SocketAddr::from(([0, 0, 0, 0], 0));
+        let addr = match &address {
+            None => unspecified,
+            Some(a) => match a.get_ref().parse::<SocketAddr>() {
+                Ok(addr) => addr,
+                Err(_) => {
+                    w.err(
+                        &a.span(),
+                        &t.key("address"),
+                        format!(
+                            "`{}` is not an IP:port address (e.g. 127.0.0.1:7100)",
+                            a.get_ref()
+                        ),
+                    );
+                    unspecified
+                }
+            },
         };
-        if addr.port() != 0 {
+        if let Some(address) = &address
+            && addr.port() != 0
+        {
             if let Some((_, other)) = addresses.iter().find(|(a, _)| *a == addr) {
                 w.err(
                     &address.span(),
