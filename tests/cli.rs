@@ -601,3 +601,44 @@ fn reference_refuses_images_views_and_times_it_cannot_render() {
         assert!(err.contains("error:"), "{args:?}: {err}");
     }
 }
+
+#[test]
+fn validate_refuses_device_files_and_scenes_a_run_could_not_load() {
+    let dir = tempfile::tempdir().unwrap();
+    // A device as the topology: refused without reading it.
+    let out = cloudlight()
+        .args(["validate", "/dev/zero"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("not a regular file"), "{err}");
+    // A glTF whose buffer is a device.
+    let gltf = dir.path().join("zero.gltf");
+    std::fs::write(
+        &gltf,
+        r#"{"asset":{"version":"2.0"},"buffers":[{"uri":"/dev/zero","byteLength":1000000000000}]}"#,
+    )
+    .unwrap();
+    // An unknown scene name, and that glTF, as a topology's scene.
+    for (scene, words) in [
+        ("no-such-scene".to_string(), "no-such-scene"),
+        (gltf.display().to_string(), "not a regular file"),
+    ] {
+        let topo = dir.path().join("t.toml");
+        std::fs::write(
+            &topo,
+            format!(
+                "techniques = [\"probe\"]\nscene = \"{scene}\"\n[[node]]\nname = \"n\"\naddress = \"127.0.0.1:0\"\n"
+            ),
+        )
+        .unwrap();
+        let out = cloudlight().arg("validate").arg(&topo).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{scene}: {err}");
+        assert!(
+            err.contains(words) && err.contains("`scene`"),
+            "{scene}: {err}"
+        );
+    }
+}

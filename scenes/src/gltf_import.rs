@@ -89,7 +89,77 @@ fn texture(data: &gltf::image::Data) -> Option<Texture> {
     })
 }
 
+/// Largest glTF file, buffer or image file read (a 24 GiB machine holds a scene of this many
+/// bytes several times over, as vertices, BVH and textures).
+const MAX_FILE_BYTES: u64 = 2 << 30;
+
+/// A file the importer may read: a regular file (never a device such as `/dev/zero`) of at
+/// most [`MAX_FILE_BYTES`], and at least `declared` bytes when its size is declared.
+fn check_file(gltf: &Path, file: &Path, declared: Option<u64>) -> Result<(), SceneError> {
+    let meta = match std::fs::metadata(file) {
+        Ok(m) => m,
+        // Not found under its literal name (e.g. a percent-encoded URI): the importer resolves
+        // it and says what is missing.
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound && file != gltf => return Ok(()),
+        Err(e) => return Err(err(gltf, format!("cannot read {}: {e}", file.display()))),
+    };
+    if !meta.is_file() {
+        return Err(err(
+            gltf,
+            format!("{} is not a regular file", file.display()),
+        ));
+    }
+    if meta.len() > MAX_FILE_BYTES {
+        return Err(err(
+            gltf,
+            format!(
+                "{} has {} bytes, more than a scene file may have ({MAX_FILE_BYTES})",
+                file.display(),
+                meta.len()
+            ),
+        ));
+    }
+    if let Some(n) = declared
+        && meta.len() < n
+    {
+        return Err(err(
+            gltf,
+            format!(
+                "{} has {} bytes but the file declares {n}",
+                file.display(),
+                meta.len()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Checks the file and every external buffer and image it names before the importer reads
+/// them.
+fn check_sources(path: &Path) -> Result<(), SceneError> {
+    check_file(path, path, None)?;
+    let doc = gltf::Gltf::open(path).map_err(|e| err(path, e.to_string()))?;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let external = |uri: &str| (!uri.starts_with("data:")).then(|| dir.join(uri));
+    for b in doc.buffers() {
+        if let gltf::buffer::Source::Uri(uri) = b.source()
+            && let Some(file) = external(uri)
+        {
+            check_file(path, &file, Some(b.length() as u64))?;
+        }
+    }
+    for i in doc.images() {
+        if let gltf::image::Source::Uri { uri, .. } = i.source()
+            && let Some(file) = external(uri)
+        {
+            check_file(path, &file, None)?;
+        }
+    }
+    Ok(())
+}
+
 fn load_unguarded(path: &Path) -> Result<Scene, SceneError> {
+    check_sources(path)?;
     let (doc, buffers, images) = gltf::import(path).map_err(|e| match e {
         gltf::Error::Io(io) => err(
             path,

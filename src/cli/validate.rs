@@ -20,6 +20,11 @@ pub fn run(args: Args) -> ExitCode {
             for w in &plan.warnings {
                 eprintln!("warning: {w}");
             }
+            // The scene is what every stage loads first: check it as a run would.
+            if let Err(e) = cloudlight::scenes::load(&plan.topology.scene) {
+                eprintln!("{}: `scene`: {e}", args.topology.display());
+                return ExitCode::from(2);
+            }
             println!("valid");
             ExitCode::SUCCESS
         }

@@ -65,6 +65,32 @@ impl fmt::Display for TopologyErrors {
     }
 }
 
+/// Largest topology file read: far beyond any real one.
+const MAX_TOPOLOGY_BYTES: u64 = 16 << 20;
+
+/// Reads a topology file: a regular file of at most 16 MiB (never a device such as
+/// `/dev/zero`, which would be read until memory runs out).
+pub(crate) fn read_topology(path: &Path) -> Result<String, TopologyErrors> {
+    let file = path.display().to_string();
+    let meta = std::fs::metadata(path).map_err(|e| unreadable(&file, e))?;
+    if !meta.is_file() {
+        return Err(unreadable(
+            &file,
+            std::io::Error::other("not a regular file"),
+        ));
+    }
+    if meta.len() > MAX_TOPOLOGY_BYTES {
+        return Err(unreadable(
+            &file,
+            std::io::Error::other(format!(
+                "{} bytes, more than a topology file may be ({MAX_TOPOLOGY_BYTES})",
+                meta.len()
+            )),
+        ));
+    }
+    std::fs::read_to_string(path).map_err(|e| unreadable(&file, e))
+}
+
 pub(crate) fn unreadable(file: &str, e: std::io::Error) -> TopologyErrors {
     TopologyErrors(vec![Diagnostic {
         file: file.to_string(),
@@ -304,7 +330,7 @@ impl Topology {
     /// Reads and parses a topology file.
     pub fn load(path: &Path) -> Result<Topology, TopologyErrors> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|e| unreadable(&file, e))?;
+        let text = read_topology(path)?;
         Self::parse(&file, &text)
     }
 

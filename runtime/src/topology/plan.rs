@@ -124,7 +124,7 @@ impl Plan {
     /// Reads, parses and plans a topology file, reporting every problem of both phases.
     pub fn load(path: &Path, registry: &StageRegistry) -> Result<Plan, TopologyErrors> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|e| super::unreadable(&file, e))?;
+        let text = super::read_topology(path)?;
         Self::from_str(&file, &text, registry)
     }
 
