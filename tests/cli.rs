@@ -244,7 +244,11 @@ fn bench_transport_reports_an_intact_transfer_through_a_lossy_link() {
         .output()
         .unwrap();
     assert_eq!(bad.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&bad.stderr).contains("--loss must be in [0, 1]"));
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains("--loss") && err.contains("must be a number in [0, 1]"),
+        "{err}"
+    );
 }
 
 #[test]

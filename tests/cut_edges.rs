@@ -219,3 +219,33 @@ async fn nodes_of_another_secret_never_connect() {
     assert!(b.await.unwrap().is_err());
     assert_eq!(shared.emitted.load(Ordering::SeqCst), 0, "nothing ran");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nodes_may_be_addressed_by_host_name() {
+    let shared = Arc::new(Shared::default());
+    let reg = registry(&shared);
+    // `localhost` resolves from /etc/hosts: no query leaves the machine.
+    let text = two_nodes(
+        r#"
+[[stage]]
+name = "p"
+kind = "producer"
+node = "a"
+params = { count = 20 }
+[[stage]]
+name = "c"
+kind = "consumer"
+node = "b"
+[[edge]]
+from = "p"
+to = "c"
+"#,
+    )
+    .replace("127.0.0.1:0", "localhost:0");
+    let p = plan_text(&text, &reg);
+    assert_eq!(p.topology.nodes[0].host.as_deref(), Some("localhost"));
+    assert!(p.summary().contains("localhost:0"), "{}", p.summary());
+    let report = run_plan(&p, &reg, RunOptions::default()).await.unwrap();
+    assert_eq!(report.end, EndReason::Finished);
+    assert_eq!(values(&shared, "c"), (0..20).collect::<Vec<_>>());
+}

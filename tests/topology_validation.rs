@@ -114,7 +114,7 @@ fn negative_latency_and_loss_out_of_range() {
     let d = diagnostics(&format!(
         "{GOOD_HEAD}[[link]]\nbetween = [\"cloud\", \"client\"]\nlatency_ms = -5\nloss = 1.5\n"
     ));
-    expect(&d, 10, "link[0].latency_ms", ">= 0");
+    expect(&d, 10, "link[0].latency_ms", "must be in [0, 60000] ms");
     expect(&d, 11, "link[0].loss", "in [0, 1]");
 }
 
@@ -219,7 +219,7 @@ latency_ms = -1
     expect(&d, 5, "node[0].address", "not an IP:port");
     expect(&d, 9, "stage[0].node", "unknown node `moon`");
     expect(&d, 14, "stage[1].replicas", "must be in [1,");
-    expect(&d, 17, "link[0].latency_ms", ">= 0");
+    expect(&d, 17, "link[0].latency_ms", "must be in [0,");
     assert!(d.len() >= 5);
     let shown = cloudlight::runtime::TopologyErrors(d).to_string();
     assert!(
@@ -379,6 +379,11 @@ fn numbers_that_cannot_be_held_or_converted_are_refused_with_their_range() {
             2,
             "defaults.capacity",
         ),
+        (
+            "[transport]\npacing_mbps = 1e300\n",
+            2,
+            "transport.pacing_mbps",
+        ),
     ] {
         let d = diagnostics(&format!("{text}{GOOD_HEAD}"));
         expect(&d, line, key, "out of range");
@@ -387,6 +392,30 @@ fn numbers_that_cannot_be_held_or_converted_are_refused_with_their_range() {
         "{GOOD_HEAD}[[stage]]\nname = \"s\"\nkind = \"probe_sink\"\nnode = \"client\"\nreplicas = 1000000000\n"
     ));
     expect(&d, 12, "stage[0].replicas", "out of range");
+}
+
+#[test]
+fn link_delays_and_rates_the_emulator_cannot_hold_are_refused() {
+    for (value, key) in [
+        ("latency_ms = 1e300", "latency_ms"),
+        ("jitter_ms = 1e300", "jitter_ms"),
+        ("latency_ms = -0.5", "latency_ms"),
+        ("bandwidth_mbps = 1e-300", "bandwidth_mbps"),
+        ("bandwidth_mbps = 1e300", "bandwidth_mbps"),
+        ("duplicate = 2.0", "duplicate"),
+        ("reorder = nan", "reorder"),
+    ] {
+        let d = diagnostics(&format!(
+            "{GOOD_HEAD}[[link]]\nbetween = [\"cloud\", \"client\"]\n{value}\n"
+        ));
+        assert_eq!(d.len(), 1, "{value}: {d:?}");
+        let words = if value.contains("nan") {
+            ""
+        } else {
+            "out of range"
+        };
+        expect(&d, 10, &format!("link[0].{key}"), words);
+    }
 }
 
 #[test]
@@ -461,6 +490,11 @@ fn stage_parameters_out_of_range_are_refused_by_name() {
             "photons_per_disk",
         ),
         ("photon_batcher", "photons = 1000000000000", "photons"),
+        ("photon_reconstructor", "fps = 0.0", "fps"),
+        ("photon_reconstructor", "fps = inf", "fps"),
+        ("photon_reconstructor", "width = 100000", "width"),
+        ("photon_reconstructor", "shadow_size = 0", "shadow_size"),
+        ("photon_reconstructor", "write_every = 0", "write_every"),
     ] {
         let d = diagnostics(&stage(kind, params));
         expect(&d, 8, "stage[0].params", words);
@@ -473,10 +507,44 @@ fn stage_parameters_out_of_range_are_refused_by_name() {
 
 #[test]
 fn one_bad_node_address_is_one_error_not_a_cascade() {
-    let text = GOOD_HEAD.replace("127.0.0.1:7300", "localhost:7300");
+    let text = GOOD_HEAD.replace("127.0.0.1:7300", "local_host:7300");
     let d = diagnostics(&format!(
         "secret = \"x\"\n{text}{CUT}[[link]]\nbetween = [\"cloud\", \"client\"]\nlatency_ms = 5\n"
     ));
     assert_eq!(d.len(), 1, "{d:?}");
     expect(&d, 5, "node[0].address", "not an IP:port");
+}
+
+#[test]
+fn node_addresses_are_ip_or_host_names_with_ports() {
+    for (address, ok) in [
+        ("gi-node.lan:7300", true),
+        ("localhost:7300", true),
+        ("[::1]:7300", true),
+        ("localhost", false),
+        ("localhost:99999", false),
+        ("local_host:7300", false),
+        ("-bad.lan:7300", false),
+        ("127.0.0.300:7300", false),
+        ("a..b:7300", false),
+    ] {
+        let text = GOOD_HEAD.replace("127.0.0.1:7300", address);
+        match Plan::from_str("bad.toml", &text, &registry()) {
+            Ok(_) => assert!(ok, "{address} accepted"),
+            Err(e) => {
+                assert!(!ok, "{address}: {e}");
+                assert_eq!(e.0.len(), 1, "{address}: {e}");
+                expect(&e.0, 4, "node[0].address", "not an IP:port or host:port");
+            }
+        }
+    }
+}
+
+#[test]
+fn a_node_list_longer_than_the_replica_limit_is_refused() {
+    let nodes = vec!["\"cloud\""; 10_001].join(",");
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[stage]]\nname = \"s\"\nkind = \"probe_sink\"\nnodes = [{nodes}]\n"
+    ));
+    expect(&d, 8, "stage[0].nodes", "at most 10000");
 }

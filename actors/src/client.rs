@@ -25,8 +25,11 @@ use cloudlight_render::raster::{
 };
 use cloudlight_runtime::clock::now_unix_ns;
 use cloudlight_runtime::{
-    EdgeSettings, Input, Message, NextTick, Stage, StageCtx, StageKind, StageSetup, Stamped,
+    CheckParams, EdgeSettings, Input, Message, NextTick, Stage, StageCtx, StageKind, StageSetup,
+    Stamped, check_range, parse_params,
 };
+
+use crate::the_scene;
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use hdrhistogram::Histogram;
 use serde::de::DeserializeOwned;
@@ -116,24 +119,47 @@ impl Default for ClientParams {
     }
 }
 
-impl ClientParams {
+/// Largest client frame side, pixels (a 8192² RGBA frame and its G-buffer fit any adapter
+/// that runs here).
+pub const MAX_FRAME_PX: u32 = 8192;
+
+impl CheckParams for ClientParams {
     fn check(&self) -> Result<(), String> {
-        if self.width == 0 || self.height == 0 || self.width > 8192 || self.height > 8192 {
-            return Err("width and height must be in 1..=8192".into());
-        }
-        if !(self.fps > 0.0 && self.fps.is_finite() && self.fps <= 1000.0) {
-            return Err("fps must be a number in (0, 1000]".into());
-        }
-        if self.write_every == 0 {
-            return Err("write_every must be at least 1".into());
-        }
-        if !(1..=64).contains(&self.light_samples) {
-            return Err("light_samples must be in 1..=64".into());
-        }
-        if !(1..=8192).contains(&self.shadow_size) {
-            return Err("shadow_size must be in 1..=8192".into());
+        let px = MAX_FRAME_PX as f64;
+        check_range("width", self.width as f64, 1.0, px, "px")?;
+        check_range("height", self.height as f64, 1.0, px, "px")?;
+        // At least a frame an hour; at most what a display could show.
+        check_range("fps", self.fps, 1.0 / 3600.0, 1000.0, "frames/s")?;
+        check_range("write_every", self.write_every as f64, 1.0, 1e9, "frames")?;
+        check_range(
+            "light_samples",
+            self.light_samples as f64,
+            1.0,
+            64.0,
+            "per axis",
+        )?;
+        check_range("shadow_size", self.shadow_size as f64, 1.0, px, "texels")?;
+        if let Some(c) = self.camera {
+            check_range("camera", c as f64, 0.0, 1e6, "(index)")?;
         }
         Ok(())
+    }
+}
+
+impl ClientParams {
+    /// The camera path this client follows: `camera` when given (which the scene must have),
+    /// else the replica index, wrapping.
+    pub fn camera_index(&self, replica: usize, scene: &Scene) -> Result<usize, String> {
+        let cameras = scene.cameras.len().max(1);
+        match self.camera {
+            Some(c) if c >= cameras => Err(format!(
+                "`camera` = {c}, but the scene has {cameras} camera path{} (0 to {})",
+                if cameras == 1 { "" } else { "s" },
+                cameras - 1
+            )),
+            Some(c) => Ok(c),
+            None => Ok(replica % cameras),
+        }
     }
 }
 
@@ -157,7 +183,6 @@ impl<'de, P: DeserializeOwned> Deserialize<'de> for Params<P> {
         let client: ClientParams = toml::Value::Table(shell)
             .try_into()
             .map_err(D::Error::custom)?;
-        client.check().map_err(D::Error::custom)?;
         let technique: P = toml::Value::Table(table)
             .try_into()
             .map_err(|e: toml::de::Error| {
@@ -168,6 +193,13 @@ impl<'de, P: DeserializeOwned> Deserialize<'de> for Params<P> {
                 ))
             })?;
         Ok(Params { client, technique })
+    }
+}
+
+impl<P: CheckParams> CheckParams for Params<P> {
+    fn check(&self) -> Result<(), String> {
+        self.client.check()?;
+        self.technique.check()
     }
 }
 
@@ -185,7 +217,7 @@ pub trait ClientTechnique: Send + Sized + 'static {
     /// Messages on the client's `in` port.
     type Msg: Message;
     /// The technique's own parameters (`deny_unknown_fields`).
-    type Params: DeserializeOwned + Serialize + Clone + Default + Send + 'static;
+    type Params: DeserializeOwned + Serialize + CheckParams + Clone + Default + Send + 'static;
     /// The indirect pass.
     type Pass: IndirectPass + 'static;
     /// What changes the pass between frames (made on the async side, applied on the
@@ -368,9 +400,14 @@ fn lock<P>(gpu: &Mutex<Gpu<P>>) -> std::sync::MutexGuard<'_, Gpu<P>> {
 impl<T: ClientTechnique> ClientShell<T> {
     fn new(setup: &StageSetup) -> anyhow::Result<Self> {
         let params: Params<T::Params> = setup.params()?;
+        params
+            .check()
+            .map_err(|e| anyhow::anyhow!("{}: params: {e}", setup.info.name))?;
         let scene = Arc::new(cloudlight_scenes::load(&setup.scene)?);
-        let cameras = scene.cameras.len().max(1);
-        let camera = params.client.camera.unwrap_or(setup.info.replica) % cameras;
+        let camera = params
+            .client
+            .camera_index(setup.info.replica, &scene)
+            .map_err(anyhow::Error::msg)?;
         let technique = T::new(setup, &params.technique, &scene)?;
         let gpu = if params.client.render {
             let raster = shared_raster()?;
@@ -641,7 +678,11 @@ pub fn register<T: ClientTechnique>(
             Ok(Box::new(ClientShell::<T>::new(s)?))
         })
         .input::<T::Msg>("in", edge)
-        .params::<Params<T::Params>>(),
+        .checked_params::<Params<T::Params>>()
+        .scene_check(|table, scene| {
+            let params: Params<T::Params> = parse_params(table)?;
+            params.client.camera_index(0, the_scene(scene)?).map(|_| ())
+        }),
     );
 }
 
@@ -670,6 +711,12 @@ mod tests {
         knob: u32,
     }
 
+    impl CheckParams for Own {
+        fn check(&self) -> Result<(), String> {
+            Ok(())
+        }
+    }
+
     #[test]
     fn params_split_between_shell_and_technique_and_unknown_keys_are_errors() {
         let p: Params<Own> = toml::from_str("width = 64\nknob = 3\nfps = 2.0").unwrap();
@@ -687,9 +734,9 @@ mod tests {
             e.contains("widht") && e.contains("every client also takes"),
             "{e}"
         );
-        let e = toml::from_str::<Params<Own>>("fps = 0.0")
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("fps"), "{e}");
+        // Values are checked by `CheckParams` (what the stage kind runs), not by parsing.
+        let p: Params<Own> = toml::from_str("fps = 0.0").unwrap();
+        let e = p.check().unwrap_err();
+        assert!(e.contains("`fps` = 0 is out of range"), "{e}");
     }
 }

@@ -12,7 +12,15 @@ pub mod photon_reconstructor;
 pub mod probe;
 pub mod wire;
 
-use cloudlight_runtime::StageRegistry;
+use cloudlight_runtime::{AnyScene, StageRegistry};
+use cloudlight_scenes::Scene;
+
+/// The scene a stage kind's scene check is given (`validate` passes the loaded [`Scene`]).
+pub(crate) fn the_scene(scene: &AnyScene) -> Result<&Scene, String> {
+    scene
+        .downcast_ref::<Scene>()
+        .ok_or_else(|| "the scene check was given something other than a scene".to_string())
+}
 
 /// Every stage kind this build knows, for topology files to name.
 pub fn registry() -> StageRegistry {

@@ -16,7 +16,10 @@ use cloudlight_render::photon::{
     PackFormat, PackedBatch, PhotonSettings, PhotonStream, TracedBatch,
 };
 use cloudlight_render::{BvhKind, SceneBvh};
-use cloudlight_runtime::{EdgeSettings, NextTick, Policy, Stage, StageCtx, StageKind, StageSetup};
+use cloudlight_runtime::stage::show_number;
+use cloudlight_runtime::{
+    CheckParams, EdgeSettings, NextTick, Policy, Stage, StageCtx, StageKind, StageSetup,
+};
 use cloudlight_scenes::Scene;
 use hdrhistogram::Histogram;
 use serde::{Deserialize, Serialize};
@@ -214,35 +217,14 @@ fn lock(stream: &Mutex<PhotonStream>) -> std::sync::MutexGuard<'_, PhotonStream>
 impl PhotonBatcher {
     fn new(setup: &StageSetup) -> anyhow::Result<Self> {
         let params: BatcherParams = setup.params()?;
-        let format = PackFormat::parse(&params.format).ok_or_else(|| {
-            anyhow::anyhow!(
-                "format must be `compact12` or `wide20`, not `{}`",
-                params.format
-            )
-        })?;
-        if !(params.interval_ms.is_finite() && params.interval_ms >= 0.0) {
-            anyhow::bail!("interval_ms must be a non-negative number");
-        }
-        if params.batch_size == 0 || params.batch_size > cloudlight_render::photon::MAX_BATCH_SIZE {
-            anyhow::bail!(
-                "batch_size must be in 1..={}",
-                cloudlight_render::photon::MAX_BATCH_SIZE
-            );
-        }
+        params
+            .check()
+            .map_err(|e| anyhow::anyhow!("{}: params: {e}", setup.info.name))?;
+        let format = PackFormat::parse(&params.format).expect("checked");
         let scene = Arc::new(cloudlight_scenes::load(&setup.scene)?);
-        let mut settings = match (params.photons_per_watt, params.photons) {
-            (Some(ppw), _) => PhotonSettings {
-                photons_per_watt: ppw,
-                batch_size: params.batch_size,
-                ..Default::default()
-            },
-            (None, photons) => {
-                PhotonSettings::for_budget(&scene, photons.unwrap_or(10_000), params.batch_size)
-            }
-        };
-        settings.bounces = params.bounces;
-        settings.photons_per_disk = params.photons_per_disk;
-        settings.radius_m = params.radius_m;
+        let settings = params
+            .settings_for(&scene)
+            .map_err(|e| anyhow::anyhow!("{}: params: {e}", setup.info.name))?;
         let stream = PhotonStream::new(settings, format, params.retrace, setup.seed);
         Ok(PhotonBatcher {
             params,
@@ -464,17 +446,64 @@ pub const PHOTON_EDGE: EdgeSettings = EdgeSettings {
 /// Most photons per iteration: what one iteration's sets can hold in memory (about 50 bytes
 /// a stored photon, several bounces each) with room to spare on a 24 GiB machine.
 const MAX_PHOTONS: u64 = 10_000_000;
+/// Most photons per batch: one batch is one message (12–20 bytes a photon), well inside the
+/// transport's message limit.
+const MAX_BATCH_PHOTONS: u32 = 1_000_000;
+
+impl BatcherParams {
+    /// The photon tracer's settings for `scene`: the budget from `photons` or
+    /// `photons_per_watt` and the scene's lights, which must come to at most [`MAX_PHOTONS`]
+    /// per iteration.
+    pub fn settings_for(&self, scene: &cloudlight_scenes::Scene) -> Result<PhotonSettings, String> {
+        let mut settings = match (self.photons_per_watt, self.photons) {
+            (Some(ppw), _) => PhotonSettings {
+                photons_per_watt: ppw,
+                batch_size: self.batch_size,
+                ..Default::default()
+            },
+            (None, photons) => {
+                PhotonSettings::for_budget(scene, photons.unwrap_or(10_000), self.batch_size)
+            }
+        };
+        settings.bounces = self.bounces;
+        settings.photons_per_disk = self.photons_per_disk;
+        settings.radius_m = self.radius_m;
+        let lights = cloudlight_render::photon::photon_lights(scene, 0.0);
+        let per_iteration =
+            cloudlight_render::photon::BatchPlan::new(&lights, &settings).total_photons();
+        if per_iteration > MAX_PHOTONS {
+            return Err(format!(
+                "`photons_per_watt` = {} gives {per_iteration} photons per iteration for this scene's {:.3} W, more than {MAX_PHOTONS}",
+                show_number(settings.photons_per_watt),
+                lights.iter().map(|l| l.watts()).sum::<f64>(),
+            ));
+        }
+        Ok(settings)
+    }
+}
 
 impl cloudlight_runtime::CheckParams for BatcherParams {
     fn check(&self) -> Result<(), String> {
         use cloudlight_runtime::check_range;
+        if PackFormat::parse(&self.format).is_none() {
+            return Err(format!(
+                "`format` must be `compact12` or `wide20`, not `{}`",
+                self.format
+            ));
+        }
         if let Some(n) = self.photons {
             check_range("photons", n as f64, 1.0, MAX_PHOTONS as f64, "photons")?;
         }
         if let Some(p) = self.photons_per_watt {
             check_range("photons_per_watt", p, 1e-6, 1e9, "photons per watt")?;
         }
-        check_range("batch_size", self.batch_size as f64, 1.0, 1e6, "photons")?;
+        check_range(
+            "batch_size",
+            self.batch_size as f64,
+            1.0,
+            MAX_BATCH_PHOTONS as f64,
+            "photons",
+        )?;
         check_range("bounces", self.bounces as f64, 0.0, 64.0, "bounces")?;
         check_range(
             "photons_per_disk",
@@ -501,6 +530,10 @@ pub fn register(registry: &mut cloudlight_runtime::StageRegistry) {
             |s| Ok(Box::new(PhotonBatcher::new(s)?)),
         )
         .output::<PhotonMsg>("out")
-        .checked_params::<BatcherParams>(),
+        .checked_params::<BatcherParams>()
+        .scene_check(|table, scene| {
+            let params: BatcherParams = cloudlight_runtime::parse_params(table)?;
+            params.settings_for(crate::the_scene(scene)?).map(|_| ())
+        }),
     );
 }

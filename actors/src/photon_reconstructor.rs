@@ -42,6 +42,19 @@ impl Default for PhotonClientParams {
     }
 }
 
+impl cloudlight_runtime::CheckParams for PhotonClientParams {
+    fn check(&self) -> Result<(), String> {
+        if [1, 2, 4].contains(&self.downsample) {
+            Ok(())
+        } else {
+            Err(format!(
+                "`downsample` = {} must be 1, 2 or 4",
+                self.downsample
+            ))
+        }
+    }
+}
+
 /// The photon client's figures in its report.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct PhotonClientReport {
@@ -81,12 +94,9 @@ impl ClientTechnique for PhotonClient {
 
     fn new(
         _setup: &StageSetup,
-        params: &Self::Params,
+        _params: &Self::Params,
         _scene: &Arc<Scene>,
     ) -> anyhow::Result<Self> {
-        if ![1, 2, 4].contains(&params.downsample) {
-            anyhow::bail!("downsample must be 1, 2 or 4");
-        }
         Ok(PhotonClient {
             set: PhotonSet::new(),
             uploaded_version: None,

@@ -25,7 +25,7 @@ pub use edge::{EdgeSettings, Policy};
 pub use message::{Message, MessageType, Stamped};
 pub use metrics::{MetricsSnapshot, PeerLinkSnapshot, RunStatus, TransportSnapshot};
 pub use stage::{
-    CheckParams, Input, InstanceInfo, NextTick, SendError, Stage, StageCtx, StageKind,
-    StageRegistry, StageSetup, check_range,
+    AnyScene, CheckParams, Input, InstanceInfo, NextTick, SendError, Stage, StageCtx, StageKind,
+    StageRegistry, StageSetup, check_range, parse_params,
 };
 pub use topology::{Diagnostic, Plan, Topology, TopologyErrors, TopologySpec};

@@ -306,12 +306,18 @@ pub fn show_number(v: f64) -> String {
     }
 }
 
-fn parse_params<P: DeserializeOwned>(table: &toml::Table) -> Result<P, String> {
+/// A `params` table as `P`, the error as `toml` words it.
+pub fn parse_params<P: DeserializeOwned>(table: &toml::Table) -> Result<P, String> {
     toml::Value::Table(table.clone())
         .try_into()
         .map_err(|e: toml::de::Error| e.message().to_string())
 }
 
+/// The loaded scene as the runtime sees it: opaque (a stage kind downcasts it to the scene
+/// type it knows; the runtime never depends on the scene model).
+pub type AnyScene = dyn std::any::Any + Send + Sync;
+
+type SceneCheck = Arc<dyn Fn(&toml::Table, &AnyScene) -> Result<(), String> + Send + Sync>;
 type Builder = Arc<dyn Fn(&StageSetup) -> anyhow::Result<Box<dyn Stage>> + Send + Sync>;
 type ParamCheck = Arc<dyn Fn(&toml::Table) -> Result<(), String> + Send + Sync>;
 
@@ -330,6 +336,7 @@ pub struct StageKind {
     /// Output ports.
     pub outputs: Vec<PortSpec>,
     check: ParamCheck,
+    scene_check: Option<SceneCheck>,
     build: Builder,
 }
 
@@ -361,6 +368,7 @@ impl StageKind {
                 None => Ok(()),
                 Some(k) => Err(format!("unknown parameter `{k}` (this kind takes none)")),
             }),
+            scene_check: None,
             build: Arc::new(build),
         }
     }
@@ -399,9 +407,26 @@ impl StageKind {
         self
     }
 
+    /// Declares a check of the parameters against the loaded scene (e.g. a camera index the
+    /// scene must have, a photon budget the scene's lights derive), run by `validate`.
+    pub fn scene_check(
+        mut self,
+        check: impl Fn(&toml::Table, &AnyScene) -> Result<(), String> + Send + Sync + 'static,
+    ) -> Self {
+        self.scene_check = Some(Arc::new(check));
+        self
+    }
+
     /// Checks a `params` table.
     pub fn check_params(&self, params: &toml::Table) -> Result<(), String> {
         (self.check)(params)
+    }
+
+    /// Checks a `params` table against the scene (nothing when the kind declares no check).
+    pub fn check_scene(&self, params: &toml::Table, scene: &AnyScene) -> Result<(), String> {
+        self.scene_check
+            .as_ref()
+            .map_or(Ok(()), |c| c(params, scene))
     }
 
     /// Builds an instance.

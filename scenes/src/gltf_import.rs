@@ -65,15 +65,35 @@ fn srgb_to_linear(c: u8) -> f32 {
     }
 }
 
-fn texture(data: &gltf::image::Data) -> Option<Texture> {
+/// An image as a linear-RGB texture (none for formats without 8-bit channels); `total` counts
+/// the texels of every texture so far, each and all bounded.
+fn texture(
+    path: &Path,
+    data: &gltf::image::Data,
+    total: &mut u64,
+) -> Result<Option<Texture>, SceneError> {
     use gltf::image::Format;
     let channels = match data.format {
         Format::R8 => 1,
         Format::R8G8 => 2,
         Format::R8G8B8 => 3,
         Format::R8G8B8A8 => 4,
-        _ => return None,
+        _ => return Ok(None),
     };
+    let texels = data.width as u64 * data.height as u64;
+    *total += texels;
+    if texels > MAX_TEXTURE_TEXELS || *total > MAX_TOTAL_TEXELS {
+        return Err(err(
+            path,
+            format!(
+                "a {}×{} texture brings the textures to {} texels, more than {MAX_TEXTURE_TEXELS} for one or {MAX_TOTAL_TEXELS} for all",
+                data.width, data.height, total
+            ),
+        ));
+    }
+    if data.pixels.len() as u64 != texels * channels as u64 || texels == 0 {
+        return Ok(None);
+    }
     let texels = data
         .pixels
         .chunks_exact(channels)
@@ -82,11 +102,11 @@ fn texture(data: &gltf::image::Data) -> Option<Texture> {
             Vec3::new(g(0), g(1), g(2))
         })
         .collect::<Vec<_>>();
-    (texels.len() == (data.width * data.height) as usize && !texels.is_empty()).then_some(Texture {
+    Ok(Some(Texture {
         width: data.width,
         height: data.height,
         texels,
-    })
+    }))
 }
 
 /// Largest glTF file, buffer or image file read (a 24 GiB machine holds a scene of this many
@@ -177,12 +197,17 @@ fn load_unguarded(path: &Path) -> Result<Scene, SceneError> {
         lights: Vec::new(),
         cameras: Vec::new(),
     };
+    let mut texels = 0u64;
     for m in doc.materials() {
         let pbr = m.pbr_metallic_roughness();
         let [r, g, b, _] = pbr.base_color_factor();
-        let tex = pbr
+        let tex = match pbr
             .base_color_texture()
-            .and_then(|t| images.get(t.texture().source().index()).and_then(texture));
+            .and_then(|t| images.get(t.texture().source().index()))
+        {
+            Some(image) => texture(path, image, &mut texels)?,
+            None => None,
+        };
         let strength = m.emissive_strength().unwrap_or(1.0);
         scene.materials.push(Material {
             name: m.name().unwrap_or("unnamed").to_string(),
@@ -203,6 +228,7 @@ fn load_unguarded(path: &Path) -> Result<Scene, SceneError> {
     let mut stack: Vec<(gltf::Node, Mat4, usize)> =
         gltf_scene.nodes().map(|n| (n, Mat4::IDENTITY, 0)).collect();
     let mut visited = 0usize;
+    let mut budget = Budget::default();
     while let Some((node, parent, depth)) = stack.pop() {
         visited += 1;
         if depth > MAX_NODE_DEPTH || visited > MAX_NODE_VISITS {
@@ -232,59 +258,8 @@ fn load_unguarded(path: &Path) -> Result<Scene, SceneError> {
                         mesh.name().map_or(mesh.index().to_string(), String::from)
                     )
                 };
-                let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
-                let positions: Vec<Vec3> = reader
-                    .read_positions()
-                    .ok_or_else(|| err(path, format!("{} has no positions", where_())))?
-                    .map(Vec3::from)
-                    .collect();
-                if positions.iter().any(|p| !p.is_finite()) {
-                    return Err(err(
-                        path,
-                        format!("{} has non-finite vertex positions", where_()),
-                    ));
-                }
-                let n = positions.len();
-                let indices: Vec<u32> = match reader.read_indices() {
-                    Some(i) => i.into_u32().collect(),
-                    None => (0..n as u32).collect(),
-                };
-                if let Some(bad) = indices.iter().find(|&&i| i as usize >= n) {
-                    return Err(err(
-                        path,
-                        format!("{}: index {bad} is out of range ({n} vertices)", where_()),
-                    ));
-                }
-                let normals: Vec<Vec3> = reader
-                    .read_normals()
-                    .map(|r| r.map(Vec3::from).collect())
-                    .unwrap_or_default();
-                let uvs: Vec<Vec2> = reader
-                    .read_tex_coords(0)
-                    .map(|r| r.into_f32().map(Vec2::from).collect())
-                    .unwrap_or_default();
-                let lightmap_uvs: Vec<Vec2> = reader
-                    .read_tex_coords(1)
-                    .map(|r| r.into_f32().map(Vec2::from).collect())
-                    .unwrap_or_default();
-                let mut m = Mesh {
-                    positions,
-                    normals: if normals.len() == n {
-                        normals
-                    } else {
-                        Vec::new()
-                    },
-                    uvs: if uvs.len() == n { uvs } else { Vec::new() },
-                    lightmap_uvs: if lightmap_uvs.len() == n {
-                        lightmap_uvs
-                    } else {
-                        Vec::new()
-                    },
-                    indices: indices
-                        .chunks_exact(3)
-                        .map(|c| [c[0], c[1], c[2]])
-                        .collect(),
-                };
+                let mut m = read_primitive(path, &prim, &buffers, &where_)?;
+                budget.take(path, &m, &where_)?;
                 if m.normals.is_empty() {
                     m.normals = flat_normals(&m);
                 }
@@ -330,6 +305,133 @@ fn load_unguarded(path: &Path) -> Result<Scene, SceneError> {
         scene.cameras.push(default_camera(&scene));
     }
     Ok(scene)
+}
+
+/// Most elements (vertices, indices) one accessor may hold: a sparse accessor without a
+/// buffer declares its count freely, and 2³² − 1 of them would fill 48 GB.
+const MAX_ACCESSOR_ELEMENTS: usize = 64 << 20;
+/// Most triangles and vertices a file may give the scene in all (instancing multiplies
+/// them): about 10 GB with the BVH and the client's copies.
+const MAX_SCENE_TRIANGLES: usize = 64 << 20;
+/// Most texels of one texture, and of all textures together (12 bytes each as linear RGB).
+const MAX_TEXTURE_TEXELS: u64 = 8192 * 8192;
+const MAX_TOTAL_TEXELS: u64 = 4 * MAX_TEXTURE_TEXELS;
+
+/// What the file has given the scene so far, bounded.
+#[derive(Default)]
+struct Budget {
+    triangles: usize,
+    vertices: usize,
+}
+
+impl Budget {
+    fn take(
+        &mut self,
+        path: &Path,
+        m: &Mesh,
+        where_: &dyn Fn() -> String,
+    ) -> Result<(), SceneError> {
+        self.triangles += m.indices.len();
+        self.vertices += m.positions.len();
+        if self.triangles > MAX_SCENE_TRIANGLES || self.vertices > MAX_SCENE_TRIANGLES {
+            return Err(err(
+                path,
+                format!(
+                    "at {}, the scene has {} triangles and {} vertices, more than {MAX_SCENE_TRIANGLES} (are meshes instanced too often?)",
+                    where_(),
+                    self.triangles,
+                    self.vertices
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// An accessor's elements collected into a vector whose size is checked first.
+fn collect_bounded<T>(
+    path: &Path,
+    what: &str,
+    where_: &dyn Fn() -> String,
+    iter: impl ExactSizeIterator<Item = T>,
+) -> Result<Vec<T>, SceneError> {
+    let n = iter.len();
+    let too_many = || {
+        err(
+            path,
+            format!(
+                "{}: {what} has {n} elements, more than an accessor may have ({MAX_ACCESSOR_ELEMENTS})",
+                where_()
+            ),
+        )
+    };
+    if n > MAX_ACCESSOR_ELEMENTS {
+        return Err(too_many());
+    }
+    let mut v = Vec::new();
+    v.try_reserve_exact(n).map_err(|_| too_many())?;
+    v.extend(iter);
+    Ok(v)
+}
+
+/// One triangle primitive's mesh: positions (finite), indices (in range), normals and both
+/// UV sets when they match the positions (flat normals are made later when absent).
+fn read_primitive(
+    path: &Path,
+    prim: &gltf::Primitive<'_>,
+    buffers: &[gltf::buffer::Data],
+    where_: &dyn Fn() -> String,
+) -> Result<Mesh, SceneError> {
+    let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+    let positions = reader
+        .read_positions()
+        .ok_or_else(|| err(path, format!("{} has no positions", where_())))?;
+    let positions: Vec<Vec3> =
+        collect_bounded(path, "POSITION", where_, positions.map(Vec3::from))?;
+    if positions.iter().any(|p| !p.is_finite()) {
+        return Err(err(
+            path,
+            format!("{} has non-finite vertex positions", where_()),
+        ));
+    }
+    let n = positions.len();
+    let indices: Vec<u32> = match reader.read_indices() {
+        Some(i) => collect_bounded(path, "indices", where_, i.into_u32())?,
+        None => (0..n as u32).collect(),
+    };
+    if let Some(bad) = indices.iter().find(|&&i| i as usize >= n) {
+        return Err(err(
+            path,
+            format!("{}: index {bad} is out of range ({n} vertices)", where_()),
+        ));
+    }
+    let normals = match reader.read_normals() {
+        Some(r) => collect_bounded(path, "NORMAL", where_, r.map(Vec3::from))?,
+        None => Vec::new(),
+    };
+    let uvs = match reader.read_tex_coords(0) {
+        Some(r) => collect_bounded(path, "TEXCOORD_0", where_, r.into_f32().map(Vec2::from))?,
+        None => Vec::new(),
+    };
+    let lightmap_uvs = match reader.read_tex_coords(1) {
+        Some(r) => collect_bounded(path, "TEXCOORD_1", where_, r.into_f32().map(Vec2::from))?,
+        None => Vec::new(),
+    };
+    Ok(Mesh {
+        positions,
+        normals: matching(normals, n),
+        uvs: matching(uvs, n),
+        lightmap_uvs: matching(lightmap_uvs, n),
+        indices: indices
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect(),
+    })
+}
+
+/// A per-vertex attribute when it has one value per vertex, else none.
+fn matching<T>(v: Vec<T>, n: usize) -> Vec<T> {
+    if v.len() == n { v } else { Vec::new() }
 }
 
 fn flat_normals(m: &Mesh) -> Vec<Vec3> {

@@ -6,6 +6,7 @@
 
 pub use glam;
 
+pub mod check;
 pub mod city;
 pub mod cornell;
 pub mod gltf_import;
@@ -35,19 +36,35 @@ pub enum SceneError {
         /// What is wrong.
         message: String,
     },
+    /// The scene loaded but holds values no kernel can use (non-finite or far geometry,
+    /// degenerate cameras, negative light).
+    #[error("{scene}: {message}")]
+    Invalid {
+        /// The scene's name or file.
+        scene: String,
+        /// Every problem found.
+        message: String,
+    },
     /// `city:N` with a bad N.
     #[error("`{0}`: N must be a whole number from {min} to {max}", min = CITY_RANGE.0, max = CITY_RANGE.1)]
     CitySize(String),
 }
 
 /// A scene by name (`cornell`, `cornell-animated`, `city:N`) or path to a glTF 2.0 file
-/// (`.gltf` or `.glb`).
+/// (`.gltf` or `.glb`), checked ([`check::check`]): finite, within
+/// [`check::MAX_EXTENT_M`], with cameras that see.
 pub fn load(spec: &str) -> Result<Scene, SceneError> {
     let lower = spec.to_ascii_lowercase();
-    if lower.ends_with(".gltf") || lower.ends_with(".glb") {
-        return gltf_import::load(std::path::Path::new(spec));
-    }
-    builtin(spec)
+    let scene = if lower.ends_with(".gltf") || lower.ends_with(".glb") {
+        gltf_import::load(std::path::Path::new(spec))?
+    } else {
+        builtin(spec)?
+    };
+    check::check(&scene).map_err(|message| SceneError::Invalid {
+        scene: spec.to_string(),
+        message,
+    })?;
+    Ok(scene)
 }
 
 /// A built-in scene by name: `cornell`, `cornell-animated` or `city:N`.

@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 mod bench;
 mod kinds;
 mod plan;
+mod ranges;
 mod reference;
 mod run;
 mod validate;

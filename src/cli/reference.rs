@@ -6,6 +6,8 @@ use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
 
+use super::ranges;
+
 /// Options of `reference`.
 #[derive(clap::Args)]
 pub struct Args {
@@ -16,16 +18,17 @@ pub struct Args {
     #[arg(long, default_value = "0", allow_hyphen_values = true)]
     camera: String,
     /// Scene time, seconds.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true,
+          value_parser = ranges::closed(-ranges::MAX_SECONDS, ranges::MAX_SECONDS, "seconds"))]
     time: f64,
     /// Samples per pixel.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = ranges::count::<u32>(1, ranges::MAX_SPP))]
     spp: u32,
-    /// Image width, pixels.
-    #[arg(long, default_value_t = 512)]
+    /// Image width, pixels (width × height at most 4096²).
+    #[arg(long, default_value_t = 512, value_parser = ranges::count::<u32>(1, ranges::MAX_IMAGE_SIDE))]
     width: u32,
     /// Image height, pixels.
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = 512, value_parser = ranges::count::<u32>(1, ranges::MAX_IMAGE_SIDE))]
     height: u32,
     /// Seed of the random streams.
     #[arg(long, default_value_t = 1)]
@@ -70,26 +73,15 @@ fn parse_camera(
         .get(2)
         .map_or(Ok(45.0), |f| f.parse().map_err(|_| err()))?;
     let (position, target) = (vec3(point(parts[0])?), vec3(point(parts[1])?));
-    if !(position.is_finite() && target.is_finite()) {
-        return Err(format!("--camera `{spec}`: eye and target must be finite"));
-    }
-    let dir = target - position;
-    if dir.length() < 1e-6 || dir.normalize().cross(Vec3::Y).length() < 1e-4 {
-        return Err(format!(
-            "--camera `{spec}`: eye and target must differ, and the view must not be straight up or down"
-        ));
-    }
-    if !(fov.is_finite() && fov > 0.1 && fov < 179.0) {
-        return Err(format!(
-            "--camera `{spec}`: field of view {fov} is out of range: must be in (0.1, 179) degrees"
-        ));
-    }
-    Ok(Camera {
+    let camera = Camera {
         position,
         target,
         up: vec3([0.0, 1.0, 0.0]),
         fov_y_rad: fov.to_radians(),
-    })
+    };
+    cloudlight::scenes::check::check_camera(&camera)
+        .map_err(|e| format!("--camera `{spec}`: {e}"))?;
+    Ok(camera)
 }
 
 /// Renders `spp` samples per pixel in passes of 4, with a progress bar.
@@ -138,30 +130,15 @@ pub fn run(args: Args) -> ExitCode {
     use cloudlight::render::{
         BvhKind, ReferenceImages, ReferenceRenderer, RenderSettings, SceneBvh,
     };
-    if !args.time.is_finite() || args.time.abs() > 1e9 {
-        eprintln!(
-            "error: --time {} is out of range: must be a finite number of seconds within ±1e9",
-            args.time
-        );
-        return ExitCode::from(2);
-    }
     // Four f32 images of 4 channels per pixel are held (full, direct, indirect, and the
-    // accumulation): 16,384² pixels is about 17 GB, so the product is bounded well below.
-    const MAX_SIDE: u32 = 16_384;
+    // accumulation): 16,384² pixels is about 17 GB, so the product is bounded well below
+    // (each side is bounded by its flag's parser).
     const MAX_PIXELS: u64 = 4096 * 4096;
     let pixels = args.width as u64 * args.height as u64;
-    if args.width == 0
-        || args.height == 0
-        || args.width > MAX_SIDE
-        || args.height > MAX_SIDE
-        || pixels > MAX_PIXELS
-        || args.spp == 0
-        || args.spp > 1_000_000
-    {
+    if pixels > MAX_PIXELS {
         eprintln!(
-            "error: --width {} --height {} --spp {} is out of range: width and height in [1, \
-             {MAX_SIDE}] with at most {MAX_PIXELS} pixels in all, spp in [1, 1000000]",
-            args.width, args.height, args.spp
+            "error: --width {} --height {} is {pixels} pixels, more than {MAX_PIXELS} (4096²)",
+            args.width, args.height
         );
         return ExitCode::from(2);
     }

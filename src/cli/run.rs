@@ -11,22 +11,25 @@ use cloudlight::runtime::{Plan, RunError, RunOptions, RunReport, TopologyErrors}
 use cloudlight::{DEFAULT_TOPOLOGY, DEFAULT_TOPOLOGY_NAME};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use super::ranges;
+
 /// Options of `run` and `node`.
 #[derive(clap::Args)]
 pub struct RunArgs {
     /// Run length in seconds (overrides the file's `duration_s`; without either the run lasts
     /// until Ctrl-C or until the pipeline finishes by itself).
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = ranges::seconds())]
     duration: Option<f64>,
     /// Folder for metrics.json and other run outputs [default: runs/<topology>-<unix time>].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
     /// Seconds to wait at start for the peers this process's nodes need (overrides the
     /// topology's `[transport] connect_timeout_s`, default 60).
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = ranges::above(0.0, 86_400.0, "seconds"))]
     connect_timeout: Option<f64>,
     /// Seconds between metrics snapshots written during the run.
-    #[arg(long, value_name = "SECONDS", default_value_t = 2.0)]
+    #[arg(long, value_name = "SECONDS", default_value_t = 2.0,
+          value_parser = ranges::closed(0.01, 3_600.0, "seconds"))]
     metrics_interval: f64,
 }
 
@@ -98,24 +101,6 @@ fn progress_bar(duration: Option<Duration>) -> ProgressBar {
 }
 
 /// Each flag's range: finite, and convertible to a wall-clock duration and deadline.
-fn check_flags(args: &RunArgs) -> Result<(), String> {
-    let year = 365.0 * 86_400.0;
-    let check = |flag: &str, v: Option<f64>, low: f64, high: f64| match v {
-        Some(v) if !(v.is_finite() && v > low && v <= high) => Err(format!(
-            "--{flag} {v} is out of range: must be a number of seconds in ({low}, {high}]"
-        )),
-        _ => Ok(()),
-    };
-    check("duration", args.duration, 0.0, year)?;
-    check("connect-timeout", args.connect_timeout, 0.0, 86_400.0)?;
-    check(
-        "metrics-interval",
-        Some(args.metrics_interval),
-        0.01,
-        3_600.0,
-    )
-}
-
 fn default_out(stem: &str, only_node: Option<&str>) -> PathBuf {
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -139,10 +124,6 @@ fn execute(
     };
     for w in &plan.warnings {
         eprintln!("warning: {w}");
-    }
-    if let Err(e) = check_flags(&args) {
-        eprintln!("error: {e}");
-        return ExitCode::from(2);
     }
     let duration = args
         .duration

@@ -21,8 +21,15 @@ pub fn run(args: Args) -> ExitCode {
                 eprintln!("warning: {w}");
             }
             // The scene is what every stage loads first: check it as a run would.
-            if let Err(e) = cloudlight::scenes::load(&plan.topology.scene) {
-                eprintln!("{}: `scene`: {e}", args.topology.display());
+            let scene = match cloudlight::scenes::load(&plan.topology.scene) {
+                Ok(s) => s,
+                Err(e) => {
+                    eprintln!("{}: `scene`: {e}", args.topology.display());
+                    return ExitCode::from(2);
+                }
+            };
+            if let Err(errors) = plan.check_scene(&registry, &scene) {
+                eprintln!("{errors}");
                 return ExitCode::from(2);
             }
             println!("valid");

@@ -113,6 +113,9 @@ pub enum RunError {
         /// Why.
         error: String,
     },
+    /// A node's host name does not resolve.
+    #[error("{0}")]
+    Resolve(String),
     /// A peer address cannot be reached in a multi-process run.
     #[error(
         "node `{node}` needs peer `{peer}`, whose address {addr} has port 0: give fixed ports for multi-process runs"

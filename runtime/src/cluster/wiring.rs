@@ -86,9 +86,10 @@ pub(super) async fn wire_edges(
     let digest = plan.digest();
     for node in &net_nodes {
         let decl = t.node(node).expect("plan nodes are declared");
+        let addr = decl.resolve().map_err(RunError::Resolve)?;
         let net = NodeNet::bind(NetArgs {
             node,
-            addr: decl.address,
+            addr,
             cluster: &t.cluster,
             secret: &t.secret,
             epoch_unix_ns: epoch,
@@ -99,7 +100,7 @@ pub(super) async fn wire_edges(
         })
         .map_err(|e| RunError::Transport {
             node: node.clone(),
-            addr: decl.address,
+            addr,
             error: e.to_string(),
         })?;
         tracing::info!(%node, addr = %net.local_addr(), "transport bound");
@@ -120,7 +121,11 @@ pub(super) async fn wire_edges(
             let addr = match addr_of(there, &nets) {
                 Some(a) => a,
                 None => {
-                    let declared = t.node(there).expect("declared").address;
+                    let declared = t
+                        .node(there)
+                        .expect("declared")
+                        .resolve()
+                        .map_err(RunError::Resolve)?;
                     if declared.port() == 0 {
                         return Err(RunError::EphemeralPeer {
                             node: here.clone(),
@@ -163,8 +168,10 @@ pub(super) async fn wire_edges(
                     .map(move |p| (n.node.clone(), p))
             })
             .map(|(n, p): (String, String)| {
-                let addr =
-                    addr_of(&p, &nets).unwrap_or_else(|| t.node(&p).expect("declared").address);
+                let addr = addr_of(&p, &nets).map_or_else(
+                    || t.node(&p).expect("declared").declared(),
+                    |a| a.to_string(),
+                );
                 format!("{n} -> {p} @ {addr}")
             })
             .collect();

@@ -145,10 +145,43 @@ impl SourceMap {
 pub struct NodeDecl {
     /// Unique node name.
     pub name: String,
-    /// UDP address of the node's transport.
+    /// UDP address of the node's transport (for a host name: the unspecified address with
+    /// the declared port, until [`NodeDecl::resolve`]).
     pub address: SocketAddr,
+    /// The host name when the address was given as `host:port` (resolved at start).
+    pub host: Option<String>,
     /// Where it is declared.
     pub span: Range<usize>,
+}
+
+impl NodeDecl {
+    /// The node's socket address: the declared one, or its host name resolved now (an IPv4
+    /// address when it has one).
+    pub fn resolve(&self) -> Result<SocketAddr, String> {
+        use std::net::ToSocketAddrs;
+        let Some(host) = &self.host else {
+            return Ok(self.address);
+        };
+        let port = self.address.port();
+        let found: Vec<SocketAddr> = (host.as_str(), port)
+            .to_socket_addrs()
+            .map_err(|e| format!("node `{}`: cannot resolve `{host}:{port}`: {e}", self.name))?
+            .collect();
+        found
+            .iter()
+            .find(|a| a.is_ipv4())
+            .or(found.first())
+            .copied()
+            .ok_or_else(|| format!("node `{}`: `{host}` resolves to no address", self.name))
+    }
+
+    /// The address as declared (`host:port` or IP:port), for messages.
+    pub fn declared(&self) -> String {
+        match &self.host {
+            Some(h) => format!("{h}:{}", self.address.port()),
+            None => self.address.to_string(),
+        }
+    }
 }
 
 /// A stage declaration (expanded into `replicas` instances).

@@ -253,15 +253,14 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
     if let Some(v) = t.boolean(w, "encrypt") {
         s.encrypt = v.into_inner();
     }
-    if let Some(v) = t.float(w, "pacing_mbps") {
-        if !(1e-6..=1e6).contains(v.get_ref()) {
-            w.err(
-                &v.span(),
-                &t.key("pacing_mbps"),
-                "must be in [0.000001, 1000000] Mbit/s (leave it out for no pacing)",
-            );
-        }
-        s.pacing_mbps = Some(v.into_inner());
+    if let Some(v) = bounded(
+        w,
+        t,
+        "pacing_mbps",
+        MBPS_RANGE,
+        "Mbit/s (leave it out for no pacing)",
+    ) {
+        s.pacing_mbps = Some(v);
     }
     s
 }
@@ -272,6 +271,15 @@ const MAX_SECONDS: f64 = 365.0 * 86_400.0;
 /// Largest edge capacity: each slot may hold a message, and a `block` edge's permits are
 /// counted in memory.
 pub(super) const MAX_CAPACITY: u64 = 1_000_000;
+/// Longest one-way delay or jitter a link may emulate (a minute): any more is an outage,
+/// which the emulator models by loss.
+const MAX_LINK_DELAY_MS: f64 = 60_000.0;
+/// Rates in Mbit/s (link bandwidth, pacing): from 1 bit/s to 1 Tbit/s.
+const MBPS_RANGE: Bound = Bound {
+    low: 1e-6,
+    high: 1e6,
+    open_low: false,
+};
 /// Most replicas of one stage: every instance is an actor with its own state.
 pub(super) const MAX_REPLICAS: u64 = 10_000;
 
@@ -304,6 +312,8 @@ impl Bound {
     fn describe(&self, unit: &str) -> String {
         let open = if self.open_low { "(" } else { "[" };
         format!("{open}{}, {}] {unit}", self.low, self.high)
+            .trim_end()
+            .to_string()
     }
 }
 
@@ -360,7 +370,7 @@ fn policy(w: &mut Walker, t: &mut Tbl<'_, '_>) -> Option<Policy> {
 }
 
 fn parse_nodes(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
-    let mut addresses: Vec<(SocketAddr, String)> = Vec::new();
+    let mut addresses: Vec<(String, String)> = Vec::new();
     for (mut t, span) in top.tables(w, "node") {
         let name = t.req_string(w, "name");
         let address = t.req_string(w, "address");
@@ -378,41 +388,78 @@ fn parse_nodes(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
         // A node whose address is missing or bad is still declared (at an unspecified
         // address), so that the stages, edges and links naming it report nothing more.
         let unspecified = SocketAddr::from(([0, 0, 0, 0], 0));
-        let addr = match &address {
-            None => unspecified,
-            Some(a) => match a.get_ref().parse::<SocketAddr>() {
-                Ok(addr) => addr,
-                Err(_) => {
-                    w.err(
-                        &a.span(),
-                        &t.key("address"),
-                        format!(
-                            "`{}` is not an IP:port address (e.g. 127.0.0.1:7100)",
-                            a.get_ref()
-                        ),
-                    );
-                    unspecified
+        let (addr, host) = match &address {
+            None => (unspecified, None),
+            Some(a) => match node_address(a.get_ref()) {
+                Ok(parsed) => parsed,
+                Err(why) => {
+                    w.err(&a.span(), &t.key("address"), why);
+                    (unspecified, None)
                 }
             },
         };
         if let Some(address) = &address
             && addr.port() != 0
         {
-            if let Some((_, other)) = addresses.iter().find(|(a, _)| *a == addr) {
+            let key = match &host {
+                Some(h) => format!("{h}:{}", addr.port()),
+                None => addr.to_string(),
+            };
+            if let Some((_, other)) = addresses.iter().find(|(a, _)| *a == key) {
                 w.err(
                     &address.span(),
                     &t.key("address"),
-                    format!("address {addr} is already used by node `{other}`"),
+                    format!("address {key} is already used by node `{other}`"),
                 );
             }
-            addresses.push((addr, name.get_ref().clone()));
+            addresses.push((key, name.get_ref().clone()));
         }
         topo.nodes.push(NodeDecl {
             name: name.into_inner(),
             address: addr,
+            host,
             span,
         });
     }
+}
+
+/// `IP:port`, or `host:port` with a host name as DNS writes it (letters, digits, `-`, `.`;
+/// labels of at most 63 bytes, 253 in all), resolved when the node starts.
+fn node_address(text: &str) -> Result<(SocketAddr, Option<String>), String> {
+    if let Ok(addr) = text.parse::<SocketAddr>() {
+        return Ok((addr, None));
+    }
+    let bad = || {
+        format!(
+            "`{text}` is not an IP:port or host:port address (e.g. 127.0.0.1:7100, gi-node.lan:7100)"
+        )
+    };
+    let (host, port) = text.rsplit_once(':').ok_or_else(bad)?;
+    let port: u16 = port.parse().map_err(|_| bad())?;
+    let label_ok = |l: &str| {
+        (1..=63).contains(&l.len())
+            && l.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-')
+            && !l.starts_with('-')
+            && !l.ends_with('-')
+    };
+    let host = host.strip_suffix('.').unwrap_or(host);
+    if host.len() > 253
+        || !host.split('.').all(label_ok)
+        || host.parse::<std::net::IpAddr>().is_ok()
+    {
+        return Err(bad());
+    }
+    // All-numeric dotted names are IPv4 typos (e.g. 127.0.0.300), not host names.
+    if host
+        .split('.')
+        .all(|l| l.bytes().all(|b| b.is_ascii_digit()))
+    {
+        return Err(bad());
+    }
+    Ok((
+        SocketAddr::from(([0, 0, 0, 0], port)),
+        Some(host.to_string()),
+    ))
 }
 
 fn parse_stages(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
@@ -476,6 +523,17 @@ fn parse_stages(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
             (None, Some(list)) => {
                 if list.is_empty() {
                     w.err(&span, &t.key("nodes"), "lists no node");
+                    continue;
+                }
+                if list.len() as u64 > MAX_REPLICAS {
+                    w.err(
+                        &span,
+                        &t.key("nodes"),
+                        format!(
+                            "lists {} nodes, one per replica: at most {MAX_REPLICAS}",
+                            list.len()
+                        ),
+                    );
                     continue;
                 }
                 if let Some(r) = &replicas
@@ -588,36 +646,46 @@ fn parse_links(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
         let to = t.string(w, "to");
         let mut profile = LinkProfile::default();
         let mut ok = true;
-        for (k, slot, max) in [
-            ("latency_ms", &mut profile.latency_ms, f64::INFINITY),
-            ("jitter_ms", &mut profile.jitter_ms, f64::INFINITY),
-            ("loss", &mut profile.loss, 1.0),
-            ("duplicate", &mut profile.duplicate, 1.0),
-            ("reorder", &mut profile.reorder, 1.0),
+        for (k, slot, range, unit) in [
+            (
+                "latency_ms",
+                &mut profile.latency_ms,
+                Bound::closed(0.0, MAX_LINK_DELAY_MS),
+                "ms",
+            ),
+            (
+                "jitter_ms",
+                &mut profile.jitter_ms,
+                Bound::closed(0.0, MAX_LINK_DELAY_MS),
+                "ms",
+            ),
+            ("loss", &mut profile.loss, Bound::closed(0.0, 1.0), ""),
+            (
+                "duplicate",
+                &mut profile.duplicate,
+                Bound::closed(0.0, 1.0),
+                "",
+            ),
+            ("reorder", &mut profile.reorder, Bound::closed(0.0, 1.0), ""),
         ] {
-            if let Some(v) = t.float(w, k) {
-                if *v.get_ref() < 0.0 || *v.get_ref() > max {
-                    let range = if max.is_finite() { "in [0, 1]" } else { ">= 0" };
-                    w.err(
-                        &v.span(),
-                        &t.key(k),
-                        format!("must be {range}, got {}", v.get_ref()),
-                    );
-                    ok = false;
+            if t.table.get(k).is_some() {
+                match bounded(w, &mut t, k, range, unit) {
+                    Some(v) => *slot = v,
+                    None => ok = false,
                 }
-                *slot = v.into_inner();
             }
         }
-        if let Some(b) = t.float(w, "bandwidth_mbps") {
-            if *b.get_ref() <= 0.0 {
-                w.err(
-                    &b.span(),
-                    &t.key("bandwidth_mbps"),
-                    "must be > 0 (leave it out for no cap)",
-                );
-                ok = false;
+        if t.table.get("bandwidth_mbps").is_some() {
+            match bounded(
+                w,
+                &mut t,
+                "bandwidth_mbps",
+                MBPS_RANGE,
+                "Mbit/s (leave it out for no cap)",
+            ) {
+                Some(b) => profile.bandwidth_mbps = Some(b),
+                None => ok = false,
             }
-            profile.bandwidth_mbps = Some(b.into_inner());
         }
         t.finish(
             w,

@@ -149,6 +149,31 @@ impl Plan {
         }
     }
 
+    /// Checks every stage's parameters against the loaded scene ([`StageKind::check_scene`]),
+    /// each problem naming file:line:key.
+    pub fn check_scene(
+        &self,
+        registry: &StageRegistry,
+        scene: &crate::stage::AnyScene,
+    ) -> Result<(), TopologyErrors> {
+        let map = &self.topology.source;
+        let errors: Vec<Diagnostic> = self
+            .topology
+            .stages
+            .iter()
+            .filter_map(|s| {
+                let kind = registry.get(&s.kind)?;
+                let e = kind.check_scene(&s.params, scene).err()?;
+                Some(map.diag(&s.span, &format!("{}.params", s.key), e))
+            })
+            .collect();
+        if errors.is_empty() {
+            Ok(())
+        } else {
+            Err(TopologyErrors(errors))
+        }
+    }
+
     /// Checks a parsed topology against the stage kinds and expands it.
     pub fn build(topology: Topology, registry: &StageRegistry) -> Result<Plan, TopologyErrors> {
         let map = topology.source.clone();
@@ -402,7 +427,7 @@ impl Plan {
             t.transport.max_packet_bytes, t.transport.encrypt
         );
         for n in &t.nodes {
-            let _ = writeln!(s, "node {:?} {}", n.name, n.address);
+            let _ = writeln!(s, "node {:?} {}", n.name, n.declared());
         }
         for st in &t.stages {
             let _ = writeln!(
@@ -461,7 +486,7 @@ impl Plan {
                 s,
                 "node {} @ {}: {}",
                 node.name,
-                node.address,
+                node.declared(),
                 if here.is_empty() {
                     "no stages".to_string()
                 } else {

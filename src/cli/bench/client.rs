@@ -3,6 +3,8 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::cli::ranges;
+
 use cloudlight::bench::client::ClientBenchOptions;
 use cloudlight::render::photon::{PackFormat, PhotonSettings, trace_iteration};
 use cloudlight::render::raster::Raster;
@@ -18,28 +20,30 @@ pub struct Args {
     #[arg(long, default_value = "cornell")]
     scene: String,
     /// Frame width, pixels.
-    #[arg(long, default_value_t = 640)]
+    #[arg(long, default_value_t = 640, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     width: u32,
     /// Frame height, pixels.
-    #[arg(long, default_value_t = 360)]
+    #[arg(long, default_value_t = 360, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     height: u32,
     /// Frames timed (whole, then split by pass).
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = 30, value_parser = ranges::count::<usize>(1, 100_000))]
     frames: usize,
     /// Scene time advances 1/fps per frame (lights move as the scene's animation says).
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, default_value_t = 30.0, value_parser = ranges::closed(1.0 / 3600.0, 1000.0, "frames/s"))]
     fps: f64,
     /// Photons splatted (one iteration of this budget).
-    #[arg(long, default_value_t = 10_000)]
+    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     photons: u64,
     /// Emissive surfaces become n² × 2 point emitters per triangle.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = ranges::count::<u32>(1, 64))]
     light_samples: u32,
     /// Shadow-map side, texels.
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = 512, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     shadow_size: u32,
     /// Photon accumulation buffer downsampling per axis (1, 2 or 4; the client's default 2).
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = clap::builder::TypedValueParser::map(
+        clap::builder::PossibleValuesParser::new(["1", "2", "4"]),
+        |s| s.parse::<u32>().expect("one of the listed values")))]
     downsample: u32,
     /// Also write the JSON report to this file.
     #[arg(long, value_name = "PATH")]
@@ -61,12 +65,6 @@ fn target_line(scene: &str, width: u32, height: u32) -> String {
 pub fn run(a: Args) -> ExitCode {
     let go = || -> anyhow::Result<()> {
         cloudlight::bench::require_technique(&a.technique)?;
-        if a.frames == 0 || !(a.fps > 0.0 && a.fps.is_finite()) {
-            anyhow::bail!("--frames must be at least 1 and --fps a positive number");
-        }
-        if ![1, 2, 4].contains(&a.downsample) {
-            anyhow::bail!("--downsample must be 1, 2 or 4");
-        }
         let scene = cloudlight::scenes::load(&a.scene)?;
         let raster = Raster::new()?;
         eprintln!("{}: tracing {} photons...", scene.name, a.photons);

@@ -4,6 +4,8 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::cli::ranges;
+
 use cloudlight::bench::photons::{PhotonOptions, Photons, QualityOptions};
 use cloudlight::bench::{ClusterOptions, default_out, require_technique};
 use cloudlight::render::raster::Raster;
@@ -19,22 +21,22 @@ pub struct Table2Args {
     #[arg(long, value_delimiter = ',', default_value = "cornell")]
     scene: Vec<String>,
     /// Photons per iteration, one per scene (the last repeats).
-    #[arg(long, value_delimiter = ',', default_value = "10000")]
+    #[arg(long, value_delimiter = ',', default_value = "10000", value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     photons: Vec<u64>,
     /// Photons per batch.
-    #[arg(long, default_value_t = 10_000)]
+    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u32>(1, ranges::MAX_BATCH))]
     batch_size: u32,
     /// Iteration period, milliseconds.
-    #[arg(long, default_value_t = 33.0)]
+    #[arg(long, default_value_t = 33.0, value_parser = ranges::closed(0.0, 3.6e6, "ms"))]
     interval_ms: f64,
     /// Seconds each scene runs.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = 5.0, value_parser = ranges::above(0.0, 86_400.0, "seconds"))]
     seconds: f64,
     /// Client frame width for the indirect time.
-    #[arg(long, default_value_t = 1280)]
+    #[arg(long, default_value_t = 1280, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     width: u32,
     /// Client frame height for the indirect time.
-    #[arg(long, default_value_t = 720)]
+    #[arg(long, default_value_t = 720, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     height: u32,
     /// Also write the JSON report to this file.
     #[arg(long, value_name = "PATH")]
@@ -48,22 +50,22 @@ pub struct ScalingArgs {
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Client counts, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "1,2,5,10,20,50")]
+    #[arg(long, value_delimiter = ',', default_value = "1,2,5,10,20,50", value_parser = ranges::count::<usize>(0, 1000))]
     clients: Vec<usize>,
     /// Scene.
     #[arg(long, default_value = "cornell-animated")]
     scene: String,
     /// Photons per iteration.
-    #[arg(long, default_value_t = 10_000)]
+    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     photons: u64,
     /// Photons per batch.
-    #[arg(long, default_value_t = 10_000)]
+    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u32>(1, ranges::MAX_BATCH))]
     batch_size: u32,
     /// Iteration period, milliseconds.
-    #[arg(long, default_value_t = 33.0)]
+    #[arg(long, default_value_t = 33.0, value_parser = ranges::closed(0.0, 3.6e6, "ms"))]
     interval_ms: f64,
     /// Seconds per client count.
-    #[arg(long, default_value_t = 4.0)]
+    #[arg(long, default_value_t = 4.0, value_parser = ranges::above(0.0, 86_400.0, "seconds"))]
     seconds: f64,
     /// Emulate no link (plain loopback) instead of the campus link (5 ms ± 1 ms,
     /// 1 Gbit/s, 0.1% loss).
@@ -87,46 +89,33 @@ pub struct QualityArgs {
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "2500,5000,10000,40000,160000"
+        default_value = "2500,5000,10000,40000,160000",
+        value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS)
     )]
     budgets: Vec<u64>,
     /// Photons per batch.
-    #[arg(long, default_value_t = 10_000)]
+    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u32>(1, ranges::MAX_BATCH))]
     batch_size: u32,
     /// Reference samples per pixel.
-    #[arg(long, default_value_t = 4096)]
+    #[arg(long, default_value_t = 4096, value_parser = ranges::count::<u32>(1, ranges::MAX_SPP))]
     spp: u32,
     /// Image width.
-    #[arg(long, default_value_t = 128)]
+    #[arg(long, default_value_t = 128, value_parser = ranges::count::<u32>(1, 4096))]
     width: u32,
     /// Image height.
-    #[arg(long, default_value_t = 128)]
+    #[arg(long, default_value_t = 128, value_parser = ranges::count::<u32>(1, 4096))]
     height: u32,
     /// Update rate the Mbps column assumes (capped by the update time), Hz.
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, default_value_t = 30.0, value_parser = ranges::closed(0.001, 1e6, "Hz"))]
     rate_hz: f64,
     /// Output folder [default: runs/bench-quality-<time>].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
 }
 
-fn check_cluster(seconds: f64, interval_ms: f64, batch_size: u32) -> anyhow::Result<()> {
-    if !(seconds > 0.0 && seconds.is_finite() && seconds <= 86_400.0) {
-        anyhow::bail!("--seconds must be in (0, 86400]");
-    }
-    if !(interval_ms >= 0.0 && interval_ms.is_finite()) {
-        anyhow::bail!("--interval-ms must be a non-negative number");
-    }
-    if batch_size == 0 {
-        anyhow::bail!("--batch-size must be at least 1");
-    }
-    Ok(())
-}
-
 pub fn table2(a: Table2Args) -> ExitCode {
     let go = || -> anyhow::Result<()> {
         require_technique(&a.technique)?;
-        check_cluster(a.seconds, a.interval_ms, a.batch_size)?;
         let rt = crate::cli::async_runtime()?;
         let raster = Raster::new()?;
         let options = PhotonOptions {
@@ -170,9 +159,8 @@ pub fn table2(a: Table2Args) -> ExitCode {
 pub fn scaling(a: ScalingArgs) -> ExitCode {
     let go = || -> anyhow::Result<()> {
         require_technique(&a.technique)?;
-        check_cluster(a.seconds, a.interval_ms, a.batch_size)?;
-        if a.clients.is_empty() || a.clients.iter().any(|&c| c > 1000) {
-            anyhow::bail!("--clients must list counts in 0..=1000");
+        if a.clients.is_empty() {
+            anyhow::bail!("--clients lists no count");
         }
         let rt = crate::cli::async_runtime()?;
         let options = PhotonOptions {
@@ -197,14 +185,8 @@ pub fn scaling(a: ScalingArgs) -> ExitCode {
 pub fn quality(a: QualityArgs) -> ExitCode {
     let go = || -> anyhow::Result<()> {
         require_technique(&a.technique)?;
-        if a.budgets.is_empty() || a.budgets.contains(&0) || a.batch_size == 0 || a.spp == 0 {
-            anyhow::bail!("--budgets, --batch-size and --spp must be at least 1");
-        }
-        if !(1..=4096).contains(&a.width) || !(1..=4096).contains(&a.height) {
-            anyhow::bail!("--width and --height must be in 1..=4096");
-        }
-        if !(a.rate_hz > 0.0 && a.rate_hz.is_finite()) {
-            anyhow::bail!("--rate-hz must be a positive number");
+        if a.budgets.is_empty() {
+            anyhow::bail!("--budgets lists no budget");
         }
         let raster = Raster::new()?;
         let options = QualityOptions {

@@ -6,6 +6,8 @@ use std::process::ExitCode;
 
 use clap::Subcommand;
 
+use crate::cli::ranges;
+
 mod client;
 mod lighting;
 mod raster;
@@ -28,7 +30,7 @@ pub enum BenchCommand {
         #[arg(long, default_value = "city:100000")]
         scene: String,
         /// Frames timed.
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, default_value_t = 5, value_parser = ranges::count::<usize>(1, 1000))]
         rounds: usize,
     },
     /// A technique's client frame alone on the machine: frame time p50/p99, whole and split
@@ -57,10 +59,10 @@ pub enum BenchCommand {
         #[arg(long, default_value = "city:250000")]
         scene: String,
         /// Thread counts, comma-separated.
-        #[arg(long, value_delimiter = ',', default_value = "1,2")]
+        #[arg(long, value_delimiter = ',', default_value = "1,2", value_parser = ranges::count::<usize>(1, 1024))]
         threads: Vec<usize>,
         /// Passes over the rays; the best is kept.
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, default_value_t = 3, value_parser = ranges::count::<usize>(1, 1000))]
         rounds: usize,
     },
 }

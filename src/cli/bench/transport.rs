@@ -4,45 +4,47 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use crate::cli::ranges;
+
 /// Options of `bench transport`.
 #[derive(clap::Args)]
 pub struct Args {
     /// Bytes per message.
-    #[arg(long, default_value_t = 1024)]
+    #[arg(long, default_value_t = 1024, value_parser = ranges::count::<usize>(1, ranges::MAX_MESSAGE_BYTES))]
     size: usize,
     /// Messages in the bulk phase.
-    #[arg(long, default_value_t = 10_000)]
+    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<usize>(1, 100_000_000))]
     count: usize,
     /// Loss probability in [0, 1], applied in both directions.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = ranges::probability())]
     loss: f64,
     /// One-way latency, milliseconds.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = ranges::closed(0.0, 60_000.0, "ms"))]
     latency_ms: f64,
     /// Latency standard deviation, milliseconds.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = ranges::closed(0.0, 60_000.0, "ms"))]
     jitter_ms: f64,
     /// Bandwidth cap per direction, megabits per second (default: none).
-    #[arg(long)]
+    #[arg(long, value_parser = ranges::closed(1e-6, 1e6, "Mbit/s"))]
     bandwidth_mbps: Option<f64>,
     /// Duplication probability in [0, 1].
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = ranges::probability())]
     duplicate: f64,
     /// Reordering probability in [0, 1].
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = ranges::probability())]
     reorder: f64,
     /// Largest packet handed to laminar, bytes (the UDP datagram is 5 bytes more).
-    #[arg(long, default_value_t = 1200)]
+    #[arg(long, default_value_t = 1200, value_parser = ranges::count::<usize>(128, 65_000))]
     packet_bytes: usize,
     /// Messages in flight end to end (the edge capacity).
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, value_parser = ranges::count::<u64>(1, 1_000_000))]
     capacity: u64,
     /// Most unacknowledged packets per peer (the transport's send window).
-    #[arg(long, default_value_t = 1024)]
+    #[arg(long, default_value_t = 1024, value_parser = ranges::count::<usize>(1, 65_536))]
     window: usize,
     /// Message round trips measured after the bulk phase [default: 200, fewer for large
     /// messages so that the round trips move at most 64 MiB each way, at least 5].
-    #[arg(long)]
+    #[arg(long, value_parser = ranges::count::<usize>(1, 1_000_000))]
     rtt_rounds: Option<usize>,
     /// Authenticate packets without encrypting them (what `encrypt = false` does).
     #[arg(long)]
@@ -54,7 +56,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Longest the bench may take, seconds; messages not delivered by then are missing.
-    #[arg(long, default_value_t = 120.0)]
+    #[arg(long, default_value_t = 120.0, value_parser = ranges::above(0.0, 86_400.0, "seconds"))]
     time_limit_s: f64,
     /// Also write the JSON report to this file.
     #[arg(long, value_name = "PATH")]
@@ -65,33 +67,7 @@ pub struct Args {
 fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, String> {
     use cloudlight::transport::LinkProfile;
     use cloudlight::transport::bench::BenchOptions;
-    for (name, p) in [
-        ("loss", args.loss),
-        ("duplicate", args.duplicate),
-        ("reorder", args.reorder),
-    ] {
-        if !(0.0..=1.0).contains(&p) {
-            return Err(format!("--{name} must be in [0, 1], got {p}"));
-        }
-    }
-    let finite = [args.latency_ms, args.jitter_ms, args.time_limit_s]
-        .into_iter()
-        .chain(args.bandwidth_mbps)
-        .all(f64::is_finite);
-    if !(finite && args.time_limit_s > 0.0 && args.time_limit_s <= 86_400.0) {
-        return Err("latency, jitter, bandwidth and the time limit must be finite numbers, the time limit in (0, 86400] seconds".into());
-    }
-    if args.latency_ms < 0.0
-        || args.jitter_ms < 0.0
-        || args.bandwidth_mbps.is_some_and(|b| b <= 0.0)
-        || args.packet_bytes < 128
-        || args.capacity == 0
-    {
-        return Err(
-            "latency and jitter must be >= 0, bandwidth > 0, packet bytes >= 128, capacity >= 1"
-                .into(),
-        );
-    }
+    // Every number was range-checked by its flag's parser.
     Ok(BenchOptions {
         size: args.size,
         count: args.count,
