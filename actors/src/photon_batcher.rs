@@ -445,10 +445,10 @@ pub const PHOTON_EDGE: EdgeSettings = EdgeSettings {
 
 /// Most photons per iteration: what one iteration's sets can hold in memory (about 50 bytes
 /// a stored photon, several bounces each) with room to spare on a 24 GiB machine.
-const MAX_PHOTONS: u64 = 10_000_000;
+pub const MAX_PHOTONS: u64 = 10_000_000;
 /// Most photons per batch: one batch is one message (12–20 bytes a photon), well inside the
 /// transport's message limit.
-const MAX_BATCH_PHOTONS: u32 = 1_000_000;
+pub const MAX_BATCH_PHOTONS: u32 = 1_000_000;
 
 impl BatcherParams {
     /// The photon tracer's settings for `scene`: the budget from `photons` or

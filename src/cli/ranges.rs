@@ -2,16 +2,17 @@
 //! range, checked by clap before a command runs (exit 2, naming the flag, the value and the
 //! range). Integer flags use clap's ranged parsers with the bounds named here.
 
-/// Longest duration any flag may give (a year), seconds: always a valid wall-clock deadline.
-pub const MAX_SECONDS: f64 = 365.0 * 86_400.0;
+/// Longest duration any flag may give (a year, as in topologies), seconds: always a valid
+/// wall-clock deadline.
+pub const MAX_SECONDS: f64 = cloudlight::runtime::topology::MAX_SECONDS;
 /// Largest image side of the reference and quality images, pixels.
 pub const MAX_IMAGE_SIDE: u64 = 16_384;
-/// Largest client frame side, pixels.
-pub const MAX_FRAME_SIDE: u64 = 8_192;
+/// Largest client frame side, pixels (the client shell's limit).
+pub const MAX_FRAME_SIDE: u64 = cloudlight::actors::client::MAX_FRAME_PX as u64;
 /// Most photons per iteration any bench may ask for (the batcher's own limit).
-pub const MAX_PHOTONS: u64 = 10_000_000;
-/// Most photons per batch.
-pub const MAX_BATCH: u64 = 1_000_000;
+pub const MAX_PHOTONS: u64 = cloudlight::actors::photon_batcher::MAX_PHOTONS;
+/// Most photons per batch (the batcher's).
+pub const MAX_BATCH: u64 = cloudlight::actors::photon_batcher::MAX_BATCH_PHOTONS as u64;
 /// Most samples per pixel of a reference image.
 pub const MAX_SPP: u64 = 1_000_000;
 /// Largest message of the transport bench, bytes (the probe's and the transport's limit).

@@ -17,6 +17,7 @@ use std::net::SocketAddr;
 use std::ops::Range;
 use std::path::Path;
 
+pub use parse::{MAX_CAPACITY, MAX_REPLICAS, MAX_SECONDS};
 pub use plan::{EdgePlan, InstancePlan, Plan};
 pub use spec::{EdgeSpec, LinkSpec, NodeSpec, StageSpec, TopologySpec};
 

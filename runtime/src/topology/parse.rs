@@ -267,10 +267,10 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
 
 /// Most seconds any duration in a topology may be (a year): far beyond any run, and always
 /// convertible to a wall-clock `Duration` and deadline.
-const MAX_SECONDS: f64 = 365.0 * 86_400.0;
+pub const MAX_SECONDS: f64 = 365.0 * 86_400.0;
 /// Largest edge capacity: each slot may hold a message, and a `block` edge's permits are
 /// counted in memory.
-pub(super) const MAX_CAPACITY: u64 = 1_000_000;
+pub const MAX_CAPACITY: u64 = 1_000_000;
 /// Longest one-way delay or jitter a link may emulate (a minute): any more is an outage,
 /// which the emulator models by loss.
 const MAX_LINK_DELAY_MS: f64 = 60_000.0;
@@ -281,7 +281,7 @@ const MBPS_RANGE: Bound = Bound {
     open_low: false,
 };
 /// Most replicas of one stage: every instance is an actor with its own state.
-pub(super) const MAX_REPLICAS: u64 = 10_000;
+pub const MAX_REPLICAS: u64 = 10_000;
 
 /// An allowed range of a number: `low` itself is allowed unless `open_low`.
 #[derive(Clone, Copy)]
