@@ -5,11 +5,14 @@
 #   libegl-mesa0 libgl1-mesa-dri     EGL/GL llvmpipe: the second software adapter (WGPU_BACKEND=gl)
 #   fonts-dejavu-core                text of the benchmark plots
 #   iproute2                         `ip netns` + veth for the network-namespace cluster test
+#   nasm                             openh264's x86 assembly (SIMD encode/decode), built from source
+#   ffmpeg                           ffprobe/ffmpeg: the independent decoder the video tests compare with
 # Installed from Debian's archive with apt-get when run as root; otherwise prints the exact
 # apt-get line and exits 1. Does nothing when everything is there already.
 # CLOUDLIGHT_SKIP_SETUP=1 skips the check (a machine that provides the same libraries otherwise).
 set -euo pipefail
-packages=(mesa-vulkan-drivers libvulkan1 libegl-mesa0 libgl1-mesa-dri fonts-dejavu-core iproute2)
+packages=(mesa-vulkan-drivers libvulkan1 libegl-mesa0 libgl1-mesa-dri fonts-dejavu-core iproute2
+  nasm ffmpeg)
 
 if [ "${CLOUDLIGHT_SKIP_SETUP:-0}" = 1 ]; then
   echo "setup: skipped (CLOUDLIGHT_SKIP_SETUP=1)" >&2

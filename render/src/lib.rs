@@ -14,6 +14,7 @@ pub mod raster;
 pub mod raybench;
 pub mod reference;
 pub mod sampling;
+pub mod video;
 
 pub use bvh::{BvhKind, Hit, SceneBvh};
 pub use reference::{ReferenceImages, ReferenceRenderer, RenderSettings, render};
