@@ -646,3 +646,42 @@ fn validate_refuses_device_files_and_scenes_a_run_could_not_load() {
         );
     }
 }
+
+#[test]
+fn bench_video_prints_sdr_and_hdr_rows_beside_the_papers() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("video.json");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "video",
+            "--small",
+            "--frames",
+            "4",
+            "--hdr-size",
+            "16",
+            "--hdr-spp",
+            "4",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    ok(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("| 640x360 | 3.0 Mbit/s |") && text.contains("| QP 20 |"),
+        "{text}"
+    );
+    assert!(
+        text.contains("4.20") || text.contains("1.05"),
+        "the paper's encode time: {text}"
+    );
+    let r = read_json(&json);
+    assert_eq!(r["sdr"].as_array().unwrap().len(), 4);
+    assert_eq!(r["hdr"].as_array().unwrap().len(), 4);
+    for row in r["sdr"].as_array().unwrap() {
+        assert!(row["psnr_y_db"].as_f64().unwrap() > 30.0, "{row}");
+        assert!(row["encode_ms_p50"].as_f64().unwrap() > 0.0);
+    }
+}

@@ -23,6 +23,7 @@ pub mod client;
 pub mod paper;
 pub mod photons;
 pub mod table;
+pub mod video;
 
 /// Names of the techniques the benchmarks know, implemented or not.
 pub const TECHNIQUES: [&str; 3] = ["photons", "irradiance", "voxels"];

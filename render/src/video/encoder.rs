@@ -249,23 +249,13 @@ impl Encoder {
                 layer.iDLayerQp = q as c_int;
             }
         }
-        // SAFETY: the encoder is live and the parameters are a complete struct.
-        check(
-            unsafe { (self.vtbl.initialize_ext)(self.ptr, &p) },
-            "InitializeExt",
-        )?;
-        let mut format: c_int = videoFormatI420;
         let mut trace: c_int = WELS_LOG_QUIET;
-        // SAFETY: options take a pointer to an int that outlives the call.
+        let mut format: c_int = videoFormatI420;
+        // SAFETY: the encoder is live, the parameters are a complete struct, and options take
+        // a pointer to an int that outlives the call. Quiet first, so that initialising does
+        // not print openh264's warnings (e.g. that a bitrate without frame skipping is a
+        // target, not a cap: wanted here).
         unsafe {
-            check(
-                (self.vtbl.set_option)(
-                    self.ptr,
-                    ENCODER_OPTION_DATAFORMAT,
-                    (&mut format as *mut c_int).cast(),
-                ),
-                "SetOption(DATAFORMAT)",
-            )?;
             check(
                 (self.vtbl.set_option)(
                     self.ptr,
@@ -273,6 +263,15 @@ impl Encoder {
                     (&mut trace as *mut c_int).cast(),
                 ),
                 "SetOption(TRACE_LEVEL)",
+            )?;
+            check((self.vtbl.initialize_ext)(self.ptr, &p), "InitializeExt")?;
+            check(
+                (self.vtbl.set_option)(
+                    self.ptr,
+                    ENCODER_OPTION_DATAFORMAT,
+                    (&mut format as *mut c_int).cast(),
+                ),
+                "SetOption(DATAFORMAT)",
             )?;
         }
         Ok(())

@@ -6,7 +6,8 @@
 //! - Y = 0 for L = 0 (unlit texels stay exactly black); otherwise
 //!   Y = 1 + round(254 · (log₂ L − lo) / (hi − lo)), clamped to [1, 255]. `lo` and `hi` are
 //!   whole stops around the frame's valid texels, at most [`MAX_STOPS`] apart (darker texels
-//!   are clamped up to 2^lo and counted). One code step is (hi − lo)/254 stops, so packing
+//!   are clamped up to 2^lo and counted; so are the darkest [`DARK_SHARE`] of lit texels,
+//!   which would otherwise widen every step for a few noisy ones). One code step is (hi − lo)/254 stops, so packing
 //!   alone changes luminance by at most 2^(step/2) − 1 (0.55 % at 8 stops, 2.2 % at 16).
 //! - U = round(255 · B/S), V = round(255 · R/S) (G/S follows from the two), each averaged
 //!   over the valid texels of its 2×2 block; chromaticity of a flat 2×2 block is kept within
@@ -25,6 +26,10 @@ use super::yuv::{FrameError, Yuv420};
 /// Widest range of a packed frame, stops (a factor of 65,536 between the darkest and the
 /// brightest texel kept apart).
 pub const MAX_STOPS: f32 = 16.0;
+
+/// Share of a frame's lit texels that may lie below its range (clamped up to its bottom and
+/// counted in [`Packed::clamped`]).
+pub const DARK_SHARE: f32 = 0.005;
 
 const LUMA: Vec3 = Vec3::new(0.2126, 0.7152, 0.0722);
 
@@ -187,15 +192,20 @@ pub fn pack(img: &HdrImage) -> Result<Packed, FrameError> {
     }
     let mut out = Yuv420::filled(img.width, img.height, [0, 85, 85])?;
     let texels = dilate(img, 8);
-    let lit = (0..w * h)
+    let mut lit: Vec<f32> = (0..w * h)
         .filter(|&i| img.is_valid(i))
         .map(|i| LUMA.dot(texels[i]))
-        .filter(|&l| l > 0.0);
-    let (min, max) = lit.fold((f32::INFINITY, 0.0f32), |(a, b), l| (a.min(l), b.max(l)));
-    let range = if max > 0.0 {
-        HdrRange::covering(min, max)
-    } else {
-        HdrRange::covering(1.0, 1.0)
+        .filter(|&l| l > 0.0)
+        .collect();
+    lit.sort_by(f32::total_cmp);
+    let range = match (lit.first(), lit.last()) {
+        (Some(_), Some(&max)) => {
+            // The darkest DARK_SHARE of lit texels may be clamped: a few noisy or occluded
+            // texels would otherwise widen every code step of the frame.
+            let low = lit[((lit.len() as f32 * DARK_SHARE) as usize).min(lit.len() - 1)];
+            HdrRange::covering(low, max)
+        }
+        _ => HdrRange::covering(1.0, 1.0),
     };
     let floor = range.log2_min.exp2();
     let mut clamped = 0;

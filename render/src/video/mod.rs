@@ -14,6 +14,7 @@
 pub mod decoder;
 pub mod encoder;
 pub mod hdr;
+pub mod measure;
 pub mod yuv;
 
 #[cfg(test)]

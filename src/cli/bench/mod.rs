@@ -13,6 +13,7 @@ mod lighting;
 mod raster;
 mod rays;
 mod transport;
+mod video;
 
 #[derive(Subcommand)]
 pub enum BenchCommand {
@@ -51,6 +52,11 @@ pub enum BenchCommand {
     /// ratio of the client's indirect light against the path tracer's indirect-only image of
     /// the same view and time, with update time and Mbps; a table, JSON and a Pareto plot.
     Quality(lighting::QualityArgs),
+    /// H.264 video (openh264, one core): encode and decode ms per frame, Mbps at 30 Hz and
+    /// PSNR for SDR client frames at 640x360 and 1280x720 under 3 bitrates and a fixed QP,
+    /// and the relative luminance and chroma error of an HDR light map packed into 8-bit
+    /// 4:2:0 (alone and coded, per QP); the paper's hardware-encoder figures beside ours.
+    Video(video::Args),
     /// Ray casting on a scene: BVH build time, and million rays per second for coherent
     /// camera rays (1280x720) and incoherent diffuse-bounce rays, for CWBVH and BVH2 at each
     /// thread count (best of --rounds passes).
@@ -75,6 +81,7 @@ pub fn run(what: BenchCommand) -> ExitCode {
         BenchCommand::Table2(a) => lighting::table2(a),
         BenchCommand::Scaling(a) => lighting::scaling(a),
         BenchCommand::Quality(a) => lighting::quality(a),
+        BenchCommand::Video(a) => video::run(a),
         BenchCommand::Rays {
             scene,
             threads,
