@@ -42,6 +42,54 @@ impl ProbeMsg {
     }
 }
 
+/// A picture for a `video_encoder`: a client's SDR frame or an HDR light map.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum FrameMsg {
+    /// sRGB-encoded RGB8, row-major from the top (3 bytes per pixel).
+    Sdr {
+        /// Width, pixels (even).
+        width: u32,
+        /// Height, pixels (even).
+        height: u32,
+        /// The pixels.
+        #[serde(with = "serde_bytes")]
+        rgb: Vec<u8>,
+    },
+    /// Linear RGB texels (W·m⁻² or radiance, as the producer says), row-major from the top,
+    /// and which of them lie in a chart (empty: all).
+    Hdr {
+        /// Width, texels (even).
+        width: u32,
+        /// Height, texels (even).
+        height: u32,
+        /// The texels.
+        texels: Vec<[f32; 3]>,
+        /// Chart coverage per texel (empty: every texel is valid).
+        valid: Vec<bool>,
+    },
+}
+
+/// One H.264 access unit from a `video_encoder` (the runtime's stamp carries the scene time
+/// of the picture it encodes).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VideoMsg {
+    /// Pictures the encoder was given before this one.
+    pub index: u64,
+    /// An IDR: a decoder (a client joining late) can start here.
+    pub key: bool,
+    /// Stream time, milliseconds (strictly increasing).
+    pub timestamp_ms: i64,
+    /// Picture width, pixels.
+    pub width: u32,
+    /// Picture height, pixels.
+    pub height: u32,
+    /// For an HDR map: the luminance range to unpack it with.
+    pub hdr: Option<cloudlight_render::video::HdrRange>,
+    /// Annex-B NAL units.
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -71,6 +119,29 @@ mod tests {
     fn every_edge_message_type_round_trips() {
         round_trip(ProbeMsg::new(7, 3, 1000));
         round_trip(ProbeMsg::new(0, 0, 0));
+        round_trip(FrameMsg::Sdr {
+            width: 2,
+            height: 2,
+            rgb: vec![9; 12],
+        });
+        round_trip(FrameMsg::Hdr {
+            width: 2,
+            height: 2,
+            texels: vec![[1.0, 2.0, 3.0]; 4],
+            valid: vec![true, false, true, true],
+        });
+        round_trip(VideoMsg {
+            index: 4,
+            key: true,
+            timestamp_ms: 133,
+            width: 640,
+            height: 360,
+            hdr: Some(cloudlight_render::video::HdrRange {
+                log2_min: -3.0,
+                log2_max: 5.0,
+            }),
+            data: vec![0, 0, 0, 1, 0x65, 7],
+        });
     }
 
     #[test]
