@@ -685,3 +685,51 @@ fn bench_video_prints_sdr_and_hdr_rows_beside_the_papers() {
         assert!(row["encode_ms_p50"].as_f64().unwrap() > 0.0);
     }
 }
+
+#[test]
+fn the_full_frame_baseline_streams_cloud_rendered_frames_to_thin_clients() {
+    // photons-video.toml: the photon client renders in the cloud, its frames go to a video
+    // encoder, and thin clients on their own nodes decode and show them.
+    let dir = tempfile::tempdir().unwrap();
+    let out = cloudlight()
+        .arg("run")
+        .arg(example("photons-video.toml"))
+        .args(["--duration", "3", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    ok(&out);
+    let json = read_json(dir.path().join("metrics.json"));
+    let stage = |name: &str| {
+        json["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == name)
+            .unwrap_or_else(|| panic!("no stage {name}"))
+            .clone()
+    };
+    for i in 0..2 {
+        let enc = stage(&format!("encode[{i}]"))["report"].clone();
+        assert!(enc["units"].as_u64().unwrap() >= 1, "{enc}");
+        assert!(enc["key_frames"].as_u64().unwrap() >= 1, "{enc}");
+        let viewer = stage(&format!("viewer[{i}]"))["report"].clone();
+        assert!(
+            viewer["decoder"]["pictures"].as_u64().unwrap() >= 1,
+            "{viewer}"
+        );
+        assert_eq!(viewer["decoder"]["errors"], 0, "{viewer}");
+        assert!(viewer["indirect_shown"].as_bool().unwrap(), "{viewer}");
+        let pngs = std::fs::read_dir(dir.path().join(format!("viewer-{i}")))
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .unwrap()
+                    .path()
+                    .extension()
+                    .is_some_and(|x| x == "png")
+            })
+            .count();
+        assert!(pngs >= 1, "viewer[{i}] wrote its pictures");
+    }
+}

@@ -30,6 +30,8 @@ use cloudlight_runtime::{
 };
 
 use crate::the_scene;
+use crate::wire::FrameMsg;
+use cloudlight_scenes::glam::Vec3;
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use hdrhistogram::Histogram;
 use serde::de::DeserializeOwned;
@@ -251,6 +253,15 @@ pub trait ClientTechnique: Send + Sized + 'static {
     /// The technique's report.
     fn report(&self) -> Self::Report;
 
+    /// True for techniques whose messages are whole pictures (video): the shell renders
+    /// nothing itself (no GPU is used) and shows [`ClientTechnique::picture`] each frame.
+    const SHOWS_PICTURES: bool = false;
+
+    /// The newest whole picture, for techniques that show pictures.
+    fn picture(&self) -> Option<Arc<Picture>> {
+        None
+    }
+
     /// The technique's part of the one-line summary.
     fn summary(&self) -> String;
 
@@ -259,6 +270,17 @@ pub trait ClientTechnique: Send + Sized + 'static {
 
     /// The values of [`ClientTechnique::csv_columns`] now.
     fn csv_values(&self) -> String;
+}
+
+/// A whole picture a client shows: sRGB-encoded RGB8, row-major from the top.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Picture {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// 3 bytes per pixel.
+    pub rgb: Vec<u8>,
 }
 
 /// What every client reports; the technique's fields sit beside the shell's.
@@ -356,7 +378,8 @@ impl Output {
             T::csv_columns()
         )?;
         Ok(Output {
-            frames_dir: (params.write_frames && params.render).then_some(dir),
+            frames_dir: (params.write_frames && (params.render || T::SHOWS_PICTURES))
+                .then_some(dir),
             log: Some(log),
         })
     }
@@ -409,7 +432,7 @@ impl<T: ClientTechnique> ClientShell<T> {
             .camera_index(setup.info.replica, &scene)
             .map_err(anyhow::Error::msg)?;
         let technique = T::new(setup, &params.technique, &scene)?;
-        let gpu = if params.client.render {
+        let gpu = if params.client.render && !T::SHOWS_PICTURES {
             let raster = shared_raster()?;
             let frame = FrameRenderer::new(
                 &raster,
@@ -467,7 +490,7 @@ impl<T: ClientTechnique> ClientShell<T> {
                 f.age_max_s * 1000.0
             )
         };
-        let frames = if self.gpu.is_some() {
+        let frames = if self.gpu.is_some() || T::SHOWS_PICTURES {
             format!("{} frames (p50 {:.0} ms), ", f.frames, ms(&f.frame_us, 0.5))
         } else {
             String::new()
@@ -536,8 +559,13 @@ impl<T: ClientTechnique> ClientShell<T> {
         Ok(self.scene.direct_lights(t, &samples))
     }
 
-    /// Renders (and maybe writes) the frame for scene time `t`; returns its time in ms.
-    async fn render(&mut self, t: f64) -> anyhow::Result<Option<f64>> {
+    /// Renders (and maybe writes) the frame for scene time `t`; returns its time in ms, and
+    /// the composed frame when `keep` (to send it on).
+    async fn render(
+        &mut self,
+        t: f64,
+        keep: bool,
+    ) -> anyhow::Result<Option<(f64, Option<Arc<Vec<Vec3>>>)>> {
         let Some(gpu) = self.gpu.clone() else {
             return Ok(None);
         };
@@ -575,7 +603,7 @@ impl<T: ClientTechnique> ClientShell<T> {
                 camera,
                 lights: &lights,
             };
-            let readback = if write {
+            let readback = if write || keep {
                 Readback::Composed
             } else {
                 Readback::Nothing
@@ -591,19 +619,51 @@ impl<T: ClientTechnique> ClientShell<T> {
             .frame_us
             .record(frame_time.as_micros().max(1) as u64);
         self.figures.frames += 1;
-        if let (Some(dir), Some(image)) = (&self.output.frames_dir, images.composed) {
-            let stops = *self
-                .exposure
-                .get_or_insert_with(|| cloudlight_render::image_io::auto_exposure(&image));
+        let composed = images.composed.map(Arc::new);
+        if let Some(image) = &composed {
+            self.exposure
+                .get_or_insert_with(|| cloudlight_render::image_io::auto_exposure(image));
+        }
+        if let (Some(dir), Some(image), true) = (&self.output.frames_dir, &composed, write) {
+            let stops = self.exposure.unwrap_or(0.0);
             let path = dir.join(format!("frame_{:05}.png", self.figures.frames_written));
-            let (w, h) = (self.params.width, self.params.height);
+            let (w, h, image) = (self.params.width, self.params.height, image.clone());
             tokio::task::spawn_blocking(move || {
                 cloudlight_render::image_io::write_png(&path, w, h, &image, stops)
             })
             .await??;
             self.figures.frames_written += 1;
         }
-        Ok(Some(frame_time.as_secs_f64() * 1000.0))
+        Ok(Some((
+            frame_time.as_secs_f64() * 1000.0,
+            composed.filter(|_| keep),
+        )))
+    }
+
+    /// Shows the technique's newest picture (techniques that show pictures): counts it as a
+    /// frame and writes it when asked; returns the time this took in ms.
+    async fn show_picture(&mut self) -> anyhow::Result<Option<f64>> {
+        let Some(picture) = self.technique.picture() else {
+            return Ok(None);
+        };
+        let start = Instant::now();
+        let write = self.output.frames_dir.is_some()
+            && self.figures.frames.is_multiple_of(self.params.write_every);
+        if let (Some(dir), true) = (&self.output.frames_dir, write) {
+            let path = dir.join(format!("frame_{:05}.png", self.figures.frames_written));
+            tokio::task::spawn_blocking(move || {
+                image::RgbImage::from_raw(picture.width, picture.height, picture.rgb.clone())
+                    .ok_or_else(|| anyhow::anyhow!("a picture of the wrong size"))?
+                    .save(&path)
+                    .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))
+            })
+            .await??;
+            self.figures.frames_written += 1;
+        }
+        self.figures.frames += 1;
+        let ms = start.elapsed().as_secs_f64() * 1000.0;
+        let _ = self.figures.frame_us.record((ms * 1000.0) as u64 + 1);
+        Ok(Some(ms))
     }
 
     fn log_frame(&mut self, t: f64, frame_ms: Option<f64>) -> anyhow::Result<()> {
@@ -645,7 +705,19 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
         let due = *self.next_due.get_or_insert_with(Instant::now);
         let t = ctx.clock().scene_time_at_s(now_unix_ns());
         self.record_age(t);
-        let frame_ms = self.render(t).await?;
+        let frame_ms = if T::SHOWS_PICTURES {
+            self.show_picture().await?
+        } else {
+            let keep = ctx.has_consumers("frames");
+            match self.render(t, keep).await? {
+                Some((ms, Some(image))) => {
+                    let (w, h) = (self.params.width, self.params.height);
+                    send_frame(ctx, t, image, (w, h), self.exposure.unwrap_or(0.0)).await?;
+                    Some(ms)
+                }
+                other => other.map(|(ms, _)| ms),
+            }
+        };
         self.log_frame(t, frame_ms)?;
         self.publish(ctx);
         let interval = Duration::from_secs_f64(1.0 / self.params.fps);
@@ -664,6 +736,23 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
     }
 }
 
+/// Sends a rendered frame on `frames` (tone-mapped to sRGB RGB8 at the client's exposure)
+/// for a `video_encoder`: the full-frame streaming baseline.
+async fn send_frame(
+    ctx: &mut StageCtx,
+    t: f64,
+    image: Arc<Vec<Vec3>>,
+    (width, height): (u32, u32),
+    stops: f32,
+) -> anyhow::Result<()> {
+    let rgb =
+        tokio::task::spawn_blocking(move || cloudlight_render::metrics::tonemap(&image, stops))
+            .await?;
+    ctx.send("frames", t, FrameMsg::Sdr { width, height, rgb })
+        .await?;
+    Ok(())
+}
+
 /// Registers a client kind `name` of technique `T` (stage technique `technique`), with its
 /// `in` port's default edge settings.
 pub fn register<T: ClientTechnique>(
@@ -678,6 +767,7 @@ pub fn register<T: ClientTechnique>(
             Ok(Box::new(ClientShell::<T>::new(s)?))
         })
         .input::<T::Msg>("in", edge)
+        .output::<FrameMsg>("frames")
         .checked_params::<Params<T::Params>>()
         .scene_check(|table, scene| {
             let params: Params<T::Params> = parse_params(table)?;

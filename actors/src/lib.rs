@@ -3,7 +3,7 @@
 //! A stage is a thin shell over a kernel of `cloudlight-render`: receive → compute → send.
 //! Stages never open sockets or look at placement; the runtime moves their messages.
 //! Techniques: `photons` (photon_batcher → photon_reconstructor), `video` (video_encoder:
-//! pictures to H.264 access units) and `probe`, the diagnostic used to qualify topologies and
+//! pictures to H.264 access units; video_client: decode and show) and `probe`, the diagnostic used to qualify topologies and
 //! links. Every technique's client runs on the shared client
 //! shell ([`client`]).
 
@@ -11,6 +11,7 @@ pub mod client;
 pub mod photon_batcher;
 pub mod photon_reconstructor;
 pub mod probe;
+pub mod video_client;
 pub mod video_encoder;
 pub mod wire;
 
@@ -31,5 +32,6 @@ pub fn registry() -> StageRegistry {
     photon_reconstructor::register(&mut r);
     probe::register(&mut r);
     video_encoder::register(&mut r);
+    video_client::register(&mut r);
     r
 }

@@ -201,6 +201,13 @@ impl StageCtx {
         self.metrics.set_report(value);
     }
 
+    /// Whether output `port` has any consumer (a stage may skip work nobody receives).
+    pub fn has_consumers(&self, port: &str) -> bool {
+        self.outputs
+            .iter()
+            .any(|p| p.name == port && !p.edges.is_empty())
+    }
+
     /// Sends `body`, computed for `scene_time_s`, to every consumer of output `port`. Under
     /// `block` this waits for room; the wait is not counted as busy time.
     pub async fn send<T: Message>(

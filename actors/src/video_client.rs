@@ -1,0 +1,193 @@
+//! `video_client`: a thin client on the shared client shell ([`crate::client`]) that decodes
+//! H.264 access units ([`VideoMsg`]) and shows the pictures — the client of the voxel
+//! technique's final frames and of the full-frame streaming baseline.
+//!
+//! What is its own: decoding (openh264, counted errors, pictures resume at the next key frame;
+//! a client that joins late shows its first picture at the next key frame), the scene time of
+//! the newest picture (its light is valid as of then, so the shell's age of indirect light is
+//! the age of the picture shown), decode time, bytes, and pictures dropped or undecodable. It
+//! renders nothing: the shell shows its pictures (and writes them when asked).
+//!
+//! Its `in` port defaults to `block`, 16 deep: a dropped unit breaks every picture up to the
+//! next key frame.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use cloudlight_render::raster::{NoIndirect, Raster, RasterError};
+use cloudlight_render::video::{Decoder, DecoderStats};
+use cloudlight_runtime::{CheckParams, EdgeSettings, Policy, StageRegistry, StageSetup, Stamped};
+use cloudlight_scenes::Scene;
+use hdrhistogram::Histogram;
+use serde::{Deserialize, Serialize};
+
+use crate::client::{ClientTechnique, Picture, register as register_client};
+use crate::video_encoder::TECHNIQUE;
+use crate::wire::VideoMsg;
+
+/// Default settings of a video client's input.
+pub const VIDEO_EDGE: EdgeSettings = EdgeSettings {
+    capacity: 16,
+    policy: Policy::Block,
+};
+
+/// The video client's own parameters (none yet, beside the shell's).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VideoClientParams {}
+
+impl CheckParams for VideoClientParams {
+    fn check(&self) -> Result<(), String> {
+        Ok(())
+    }
+}
+
+/// The video client's figures in its report.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct VideoClientReport {
+    /// What the decoder saw (units, pictures, errors, units dropped waiting for a key frame).
+    pub decoder: DecoderStats,
+    /// Bytes of access units received.
+    pub bytes_received: u64,
+    /// Decode time per unit (with the conversion to RGB), median, ms.
+    pub decode_ms_p50: f64,
+    /// 99th percentile, ms.
+    pub decode_ms_p99: f64,
+    /// HDR units (light maps), which this client cannot show (an irradiance client can).
+    pub hdr_units_ignored: u64,
+}
+
+/// The video technique's part of a client.
+pub struct VideoClient {
+    decoder: Decoder,
+    picture: Option<Arc<Picture>>,
+    valid_as_of: Option<f64>,
+    bytes: u64,
+    hdr_ignored: u64,
+    decode_us: Histogram<u64>,
+}
+
+impl ClientTechnique for VideoClient {
+    type Msg = VideoMsg;
+    type Params = VideoClientParams;
+    type Pass = NoIndirect;
+    type Update = ();
+    type Report = VideoClientReport;
+    const SHOWS_PICTURES: bool = true;
+
+    fn new(_: &StageSetup, _: &Self::Params, _: &Arc<Scene>) -> anyhow::Result<Self> {
+        Ok(VideoClient {
+            decoder: Decoder::new()?,
+            picture: None,
+            valid_as_of: None,
+            bytes: 0,
+            hdr_ignored: 0,
+            decode_us: Histogram::new(3).expect("3 significant digits is valid"),
+        })
+    }
+
+    fn on_message(&mut self, stage: &str, msg: &Stamped<VideoMsg>) {
+        let unit = &msg.body;
+        self.bytes += unit.data.len() as u64;
+        if unit.hdr.is_some() {
+            self.hdr_ignored += 1;
+            return;
+        }
+        let start = Instant::now();
+        match self.decoder.decode(&unit.data) {
+            Ok(Some(yuv)) => {
+                self.picture = Some(Arc::new(Picture {
+                    width: yuv.width,
+                    height: yuv.height,
+                    rgb: yuv.to_rgb8(),
+                }));
+                self.valid_as_of = Some(msg.scene_time_s);
+                let _ = self
+                    .decode_us
+                    .record(start.elapsed().as_micros().max(1) as u64);
+            }
+            Ok(None) => {}
+            Err(e) => {
+                // Counted in the report; logged at 1, 2, 4, 8, ... so a flood stays readable.
+                let n = self.decoder.stats().errors;
+                if n.is_power_of_two() {
+                    tracing::warn!(
+                        stage,
+                        index = unit.index,
+                        errors = n,
+                        "undecodable unit: {e}"
+                    );
+                }
+            }
+        }
+    }
+
+    fn valid_as_of(&self) -> Option<f64> {
+        self.valid_as_of
+    }
+
+    fn new_pass(_: &Raster, _: &Self::Params) -> NoIndirect {
+        NoIndirect
+    }
+
+    fn update(&mut self) -> Option<()> {
+        None
+    }
+
+    fn apply(_: &mut NoIndirect, _: &Raster, _: ()) -> Result<(), RasterError> {
+        Ok(())
+    }
+
+    fn picture(&self) -> Option<Arc<Picture>> {
+        self.picture.clone()
+    }
+
+    fn report(&self) -> VideoClientReport {
+        let q = |p: f64| {
+            if self.decode_us.is_empty() {
+                0.0
+            } else {
+                self.decode_us.value_at_quantile(p) as f64 / 1000.0
+            }
+        };
+        VideoClientReport {
+            decoder: self.decoder.stats(),
+            bytes_received: self.bytes,
+            decode_ms_p50: q(0.5),
+            decode_ms_p99: q(0.99),
+            hdr_units_ignored: self.hdr_ignored,
+        }
+    }
+
+    fn summary(&self) -> String {
+        let s = self.decoder.stats();
+        format!(
+            "{} units → {} pictures, decode {:.2} ms p50, {} undecodable, {} dropped waiting for a key frame",
+            s.units,
+            s.pictures,
+            self.report().decode_ms_p50,
+            s.errors,
+            s.waiting_for_key
+        )
+    }
+
+    fn csv_columns() -> &'static str {
+        "pictures,decode_errors"
+    }
+
+    fn csv_values(&self) -> String {
+        let s = self.decoder.stats();
+        format!("{},{}", s.pictures, s.errors)
+    }
+}
+
+/// Registers `video_client`.
+pub fn register(registry: &mut StageRegistry) {
+    register_client::<VideoClient>(
+        registry,
+        "video_client",
+        TECHNIQUE,
+        "decodes H.264 access units and shows the pictures (a thin client)",
+        VIDEO_EDGE,
+    );
+}
