@@ -691,9 +691,18 @@ fn the_full_frame_baseline_streams_cloud_rendered_frames_to_thin_clients() {
     // photons-video.toml: the photon client renders in the cloud, its frames go to a video
     // encoder, and thin clients on their own nodes decode and show them.
     let dir = tempfile::tempdir().unwrap();
+    // The cloud-side clients record too: a raster client's recording.
+    let text = std::fs::read_to_string(example("photons-video.toml"))
+        .unwrap()
+        .replace(
+            "params = { width = 320, height = 240, fps = 8.0 }",
+            "params = { width = 320, height = 240, fps = 8.0, record = \"render.mp4\" }",
+        );
+    let topology = dir.path().join("photons-video.toml");
+    std::fs::write(&topology, text).unwrap();
     let out = cloudlight()
         .arg("run")
-        .arg(example("photons-video.toml"))
+        .arg(&topology)
         .args(["--duration", "3", "--out"])
         .arg(dir.path())
         .output()
@@ -731,5 +740,36 @@ fn the_full_frame_baseline_streams_cloud_rendered_frames_to_thin_clients() {
             })
             .count();
         assert!(pngs >= 1, "viewer[{i}] wrote its pictures");
+        // Both recordings are MP4s that ffprobe reads frame by frame.
+        for (stage_name, file) in [
+            (format!("viewer[{i}]"), format!("viewer-{i}/viewer.mp4")),
+            (format!("render[{i}]"), format!("render-{i}/render.mp4")),
+        ] {
+            let report = stage(&stage_name)["report"].clone();
+            let frames = report["frames_recorded"].as_u64().unwrap();
+            assert!(frames >= 1, "{report}");
+            let Ok(probe) = std::process::Command::new("ffprobe")
+                .args([
+                    "-v",
+                    "error",
+                    "-count_frames",
+                    "-show_entries",
+                    "stream=nb_read_frames",
+                ])
+                .args(["-of", "csv=p=0"])
+                .arg(dir.path().join(&file))
+                .output()
+            else {
+                eprintln!("skipped: ffprobe is not installed (scripts/setup.sh installs it)");
+                continue;
+            };
+            let read = String::from_utf8_lossy(&probe.stdout).trim().to_string();
+            assert_eq!(
+                read,
+                frames.to_string(),
+                "{file}: {}",
+                String::from_utf8_lossy(&probe.stderr)
+            );
+        }
     }
 }

@@ -121,6 +121,10 @@ pub struct ClientReport<R> {
     pub frames_written: u64,
     /// Where frames and `frames.csv` go.
     pub frames_dir: Option<String>,
+    /// The MP4 recording, when asked for.
+    pub recording: Option<String>,
+    /// Frames in it (known when the client stops).
+    pub frames_recorded: u64,
     /// Frame time, p50, ms.
     pub frame_ms_p50: f64,
     /// Frame time, p99, ms.
@@ -180,6 +184,8 @@ fn ms(h: &Histogram<u64>, q: f64) -> f64 {
 struct Output {
     frames_dir: Option<PathBuf>,
     log: Option<std::io::BufWriter<std::fs::File>>,
+    /// Where the MP4 recording goes, when asked for.
+    record: Option<PathBuf>,
 }
 
 impl Output {
@@ -188,6 +194,7 @@ impl Output {
             return Ok(Output {
                 frames_dir: None,
                 log: None,
+                record: params.record.as_ref().map(PathBuf::from),
             });
         };
         let name = setup.info.name.replace(['[', ']'], "-");
@@ -206,16 +213,21 @@ impl Output {
         )?;
         Ok(Output {
             frames_dir: (params.write_frames && (params.render || T::SHOWS_PICTURES))
-                .then_some(dir),
+                .then_some(dir.clone()),
             log: Some(log),
+            record: params.record.as_ref().map(|name| dir.join(name)),
         })
     }
 }
+
+/// QP of MP4 recordings: near-transparent for frames people look at.
+const RECORD_QP: u8 = 20;
 
 /// Figures the shell keeps.
 struct Figures {
     frames: u64,
     frames_written: u64,
+    frames_recorded: u64,
     frame_us: Histogram<u64>,
     age_us: Histogram<u64>,
     age_max_s: f64,
@@ -239,6 +251,8 @@ pub struct ClientShell<T: ClientTechnique> {
     overview: Camera,
     output: Output,
     exposure: Option<f32>,
+    /// The MP4 recording, made at the first frame shown.
+    recorder: Option<cloudlight_render::video::Recorder>,
     figures: Figures,
     next_due: Option<Instant>,
 }
@@ -292,9 +306,11 @@ impl<T: ClientTechnique> ClientShell<T> {
             overview,
             output,
             exposure: None,
+            recorder: None,
             figures: Figures {
                 frames: 0,
                 frames_written: 0,
+                frames_recorded: 0,
                 frame_us: histogram(),
                 age_us: histogram(),
                 age_max_s: 0.0,
@@ -331,6 +347,8 @@ impl<T: ClientTechnique> ClientShell<T> {
                 .frames_dir
                 .as_ref()
                 .map(|d| d.display().to_string()),
+            recording: self.output.record.as_ref().map(|p| p.display().to_string()),
+            frames_recorded: f.frames_recorded,
             frame_ms_p50: ms(&f.frame_us, 0.5),
             frame_ms_p99: ms(&f.frame_us, 0.99),
             age_ms_p50: ms(&f.age_us, 0.5),
@@ -493,6 +511,28 @@ impl<T: ClientTechnique> ClientShell<T> {
         Ok(Some(ms))
     }
 
+    /// Adds the picture shown at `t` to the MP4 recording (made at the first one).
+    fn record(&mut self, picture: &Picture, t: f64) -> anyhow::Result<()> {
+        use cloudlight_render::video::{EncoderSettings, RateControl, Recorder, Yuv420};
+        let Some(path) = &self.output.record else {
+            return Ok(());
+        };
+        if self.recorder.is_none() {
+            let settings = EncoderSettings {
+                width: picture.width,
+                height: picture.height,
+                fps: self.params.fps.clamp(0.1, 240.0) as f32,
+                rate: RateControl::FixedQp(RECORD_QP),
+                keyframe_s: 2.0,
+                ..Default::default()
+            };
+            self.recorder = Some(Recorder::create(path, settings)?);
+        }
+        let yuv = Yuv420::from_rgb8(picture.width, picture.height, &picture.rgb)?;
+        self.recorder.as_mut().expect("made above").push(&yuv, t)?;
+        Ok(())
+    }
+
     fn log_frame(&mut self, t: f64, frame_ms: Option<f64>) -> anyhow::Result<()> {
         let Some(log) = &mut self.output.log else {
             return Ok(());
@@ -532,14 +572,35 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
         let due = *self.next_due.get_or_insert_with(Instant::now);
         let t = ctx.clock().scene_time_at_s(now_unix_ns());
         self.record_age(t);
+        let recording = self.output.record.is_some();
         let frame_ms = if T::SHOWS_PICTURES {
-            self.show_picture().await?
+            let ms = self.show_picture().await?;
+            if let (true, Some(picture)) = (recording && ms.is_some(), self.technique.picture()) {
+                self.record(&picture, t)?;
+            }
+            ms
         } else {
-            let keep = ctx.has_consumers("frames");
-            match self.render(t, keep).await? {
+            let send = ctx.has_consumers("frames");
+            match self.render(t, send || recording).await? {
                 Some((ms, Some(image))) => {
-                    let (w, h) = (self.params.width, self.params.height);
-                    send_frame(ctx, t, image, (w, h), self.exposure.unwrap_or(0.0)).await?;
+                    let stops = self.exposure.unwrap_or(0.0);
+                    let rgb = tokio::task::spawn_blocking(move || {
+                        cloudlight_render::metrics::tonemap(&image, stops)
+                    })
+                    .await?;
+                    let picture = Picture {
+                        width: self.params.width,
+                        height: self.params.height,
+                        rgb,
+                    };
+                    if recording {
+                        self.record(&picture, t)?;
+                    }
+                    if send {
+                        let Picture { width, height, rgb } = picture;
+                        ctx.send("frames", t, FrameMsg::Sdr { width, height, rgb })
+                            .await?;
+                    }
                     Some(ms)
                 }
                 other => other.map(|(ms, _)| ms),
@@ -558,26 +619,14 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
         if let Some(log) = &mut self.output.log {
             log.flush()?;
         }
+        if let (Some(recorder), Some(path)) = (self.recorder.take(), &self.output.record) {
+            let frames = recorder.finish()?;
+            self.figures.frames_recorded = frames;
+            tracing::info!(stage = ctx.name(), frames, path = %path.display(), "recording written");
+        }
         self.publish(ctx);
         Ok(())
     }
-}
-
-/// Sends a rendered frame on `frames` (tone-mapped to sRGB RGB8 at the client's exposure)
-/// for a `video_encoder`: the full-frame streaming baseline.
-async fn send_frame(
-    ctx: &mut StageCtx,
-    t: f64,
-    image: Arc<Vec<Vec3>>,
-    (width, height): (u32, u32),
-    stops: f32,
-) -> anyhow::Result<()> {
-    let rgb =
-        tokio::task::spawn_blocking(move || cloudlight_render::metrics::tonemap(&image, stops))
-            .await?;
-    ctx.send("frames", t, FrameMsg::Sdr { width, height, rgb })
-        .await?;
-    Ok(())
 }
 
 /// Registers a client kind `name` of technique `T` (stage technique `technique`), with its
@@ -611,6 +660,7 @@ mod tests {
     fn client_keys_are_the_fields_of_client_params() {
         let table = toml::Table::try_from(ClientParams {
             camera: Some(1),
+            record: Some("c.mp4".into()),
             ..Default::default()
         })
         .unwrap();

@@ -37,10 +37,14 @@ pub struct ClientParams {
     /// Shadow-map size, texels.
     #[serde(default = "default_shadow_size")]
     pub shadow_size: u32,
+    /// Record what the client shows as an H.264 MP4 of this name (in the client's folder of
+    /// the run's output, or as given when the run writes none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub record: Option<String>,
 }
 
 /// The keys of [`ClientParams`] (a test keeps the two in step).
-pub const CLIENT_KEYS: [&str; 9] = [
+pub const CLIENT_KEYS: [&str; 10] = [
     "width",
     "height",
     "fps",
@@ -50,6 +54,7 @@ pub const CLIENT_KEYS: [&str; 9] = [
     "write_every",
     "light_samples",
     "shadow_size",
+    "record",
 ];
 
 fn default_width() -> u32 {
@@ -86,6 +91,7 @@ impl Default for ClientParams {
             write_every: 1,
             light_samples: default_light_samples(),
             shadow_size: default_shadow_size(),
+            record: None,
         }
     }
 }
@@ -110,6 +116,13 @@ impl CheckParams for ClientParams {
             "per axis",
         )?;
         check_range("shadow_size", self.shadow_size as f64, 1.0, px, "texels")?;
+        if let Some(name) = &self.record {
+            if !name.to_ascii_lowercase().ends_with(".mp4") || name.contains('\0') {
+                return Err(format!("`record` = {name:?} must name an .mp4 file"));
+            }
+            cloudlight_render::video::yuv::check_size(self.width, self.height)
+                .map_err(|e| format!("`record`: {e}"))?;
+        }
         if let Some(c) = self.camera {
             check_range("camera", c as f64, 0.0, 1e6, "(index)")?;
         }

@@ -15,6 +15,7 @@ pub mod decoder;
 pub mod encoder;
 pub mod hdr;
 pub mod measure;
+pub mod record;
 pub mod yuv;
 
 #[cfg(test)]
@@ -23,6 +24,7 @@ mod tests;
 pub use decoder::{Decoder, DecoderStats, is_key_unit};
 pub use encoder::{EncodedFrame, Encoder, EncoderSettings, RateControl};
 pub use hdr::{HdrError, HdrImage, HdrRange, Packed};
+pub use record::Recorder;
 pub use yuv::{FrameError, Yuv420, psnr};
 
 /// Why video could not be encoded or decoded.

@@ -350,3 +350,56 @@ fn ffmpeg_decodes_the_raw_stream_to_the_same_pixels() {
         "{info}"
     );
 }
+
+#[test]
+fn a_recording_is_an_mp4_that_ffprobe_and_ffmpeg_read_frame_by_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("client.mp4");
+    let mut rec = Recorder::create(&path, settings(RateControl::FixedQp(24))).unwrap();
+    for i in 0..45u32 {
+        let yuv = Yuv420::from_rgb8(160, 96, &test_frame(160, 96, i)).unwrap();
+        rec.push(&yuv, i as f64 / 30.0).unwrap();
+    }
+    assert_eq!(rec.finish().unwrap(), 45);
+    let Ok(probe) = std::process::Command::new("ffprobe")
+        .args(["-v", "error", "-count_frames", "-select_streams", "v:0"])
+        .args([
+            "-show_entries",
+            "stream=codec_name,width,height,nb_read_frames",
+        ])
+        .args(["-of", "default=noprint_wrappers=1"])
+        .arg(&path)
+        .output()
+    else {
+        eprintln!(
+            "skipped the ffprobe check: ffprobe is not installed (scripts/setup.sh installs it)"
+        );
+        return;
+    };
+    let info = String::from_utf8_lossy(&probe.stdout);
+    assert!(
+        probe.status.success(),
+        "{}",
+        String::from_utf8_lossy(&probe.stderr)
+    );
+    for want in [
+        "codec_name=h264",
+        "width=160",
+        "height=96",
+        "nb_read_frames=45",
+    ] {
+        assert!(info.contains(want), "{want}: {info}");
+    }
+    // Every frame decodes without an error.
+    let decode = std::process::Command::new("ffmpeg")
+        .args(["-v", "error", "-i"])
+        .arg(&path)
+        .args(["-f", "null", "-"])
+        .output()
+        .unwrap();
+    assert!(
+        decode.status.success() && decode.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&decode.stderr)
+    );
+}
