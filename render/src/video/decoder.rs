@@ -30,13 +30,20 @@ pub struct Decoder {
     stats: DecoderStats,
 }
 
+/// NAL units of an Annex-B access unit, without their start codes, in order.
+pub fn nal_payloads(unit: &[u8]) -> Vec<&[u8]> {
+    openh264::nal_units(unit)
+        .filter_map(|nal| {
+            // Skip the start code (00 00 01 or 00 00 00 01) to the header byte.
+            let start = nal.iter().position(|&b| b == 1)? + 1;
+            nal.get(start..).filter(|p| !p.is_empty())
+        })
+        .collect()
+}
+
 /// NAL unit types of an Annex-B access unit, in order.
 pub fn nal_types(unit: &[u8]) -> impl Iterator<Item = u8> + '_ {
-    openh264::nal_units(unit).filter_map(|nal| {
-        // Skip the start code (00 00 01 or 00 00 00 01) to the header byte.
-        let start = nal.iter().position(|&b| b == 1)? + 1;
-        nal.get(start).map(|h| h & 0x1f)
-    })
+    nal_payloads(unit).into_iter().map(|nal| nal[0] & 0x1f)
 }
 
 /// Whether an access unit holds an IDR slice (NAL type 5): a decoder can start there.

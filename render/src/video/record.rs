@@ -10,17 +10,8 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
+use super::decoder::nal_payloads;
 use super::{EncodedFrame, Encoder, EncoderSettings, VideoError, Yuv420};
-
-/// NAL units of an Annex-B access unit, without their start codes.
-pub fn nal_payloads(unit: &[u8]) -> Vec<&[u8]> {
-    openh264::nal_units(unit)
-        .filter_map(|nal| {
-            let start = nal.iter().position(|&b| b == 1)? + 1;
-            nal.get(start..).filter(|p| !p.is_empty())
-        })
-        .collect()
-}
 
 /// Records pictures into an MP4 file.
 pub struct Recorder {
