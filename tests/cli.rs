@@ -450,6 +450,63 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
 }
 
 #[test]
+fn table2_puts_the_full_frame_baseline_beside_the_photon_cut() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("baseline.json");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "table2",
+            "--technique",
+            "photons-video",
+            "--seconds",
+            "2",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--fps",
+            "15",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    ok(&out);
+    for row in [
+        "| cornell | photons: client splats |",
+        "| cornell | photons-video: cloud renders + encodes |",
+        "| paper: Cornell Box | voxels: final frames as video (HW encoder) |",
+        "5 ms frame + 4.2 ms encode",
+    ] {
+        assert!(text.contains(row), "{row} missing: {text}");
+    }
+    let report = read_json(&json);
+    let (p, v) = (
+        &report["columns"][0]["photons"],
+        &report["columns"][0]["video"],
+    );
+    assert!(p["server_to_client_mbps"].as_f64().unwrap() > 0.0, "{p}");
+    assert!(p["age_ms_p50"].as_f64().unwrap() > 0.0, "{p}");
+    for key in [
+        "frame_ms_p50",
+        "encode_ms_p50",
+        "decode_ms_p50",
+        "wire_mbps",
+    ] {
+        assert!(v[key].as_f64().unwrap() > 0.0, "{key}: {v}");
+    }
+    assert!(
+        v["pictures"].as_u64().unwrap() > 0,
+        "the thin client showed pictures: {v}"
+    );
+    assert_eq!(v["decode_errors"], 0, "{v}");
+    assert!(v["key_frames"].as_u64().unwrap() >= 1, "{v}");
+    assert!(v["age_ms_p50"].as_f64().unwrap() > 0.0, "{v}");
+}
+
+#[test]
 fn benchmarks_of_missing_techniques_say_so() {
     for bench in ["table2", "scaling", "quality", "client"] {
         let out = cloudlight()
@@ -459,6 +516,17 @@ fn benchmarks_of_missing_techniques_say_so() {
         assert!(!out.status.success(), "{bench}");
         assert!(
             String::from_utf8_lossy(&out.stderr).contains("not implemented yet"),
+            "{bench}"
+        );
+    }
+    for bench in ["scaling", "quality", "client"] {
+        let out = cloudlight()
+            .args(["bench", bench, "--technique", "photons-video"])
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{bench}");
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains("by `bench table2` only"),
             "{bench}"
         );
     }

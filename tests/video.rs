@@ -52,6 +52,11 @@ struct SourceParams {
     count: u64,
     #[serde(default)]
     hdr: bool,
+    /// Live: one picture per 1/30 s of wall time, stamped with the cluster's scene time and
+    /// showing light this many seconds older (a renderer in the cloud); otherwise pictures as
+    /// fast as the edge takes them, 1/30 s of scene time apart.
+    #[serde(default)]
+    live_light_lag_s: Option<f64>,
 }
 
 struct Source {
@@ -77,11 +82,31 @@ impl Stage for Source {
                 width: W,
                 height: H,
                 rgb: picture(self.next),
+                light_s: None,
             }
         };
-        // Scene time 1/30 s per picture, whatever the wall clock does.
-        ctx.send("out", self.next as f64 / 30.0, frame).await?;
         self.next += 1;
+        if let Some(lag) = self.p.live_light_lag_s {
+            let t = ctx.scene_time_s();
+            let frame = match frame {
+                FrameMsg::Sdr {
+                    width, height, rgb, ..
+                } => FrameMsg::Sdr {
+                    width,
+                    height,
+                    rgb,
+                    light_s: Some(t - lag),
+                },
+                hdr => hdr,
+            };
+            ctx.send("out", t, frame).await?;
+            return Ok(NextTick::After(std::time::Duration::from_secs_f64(
+                1.0 / 30.0,
+            )));
+        }
+        // Scene time 1/30 s per picture, whatever the wall clock does.
+        ctx.send("out", (self.next - 1) as f64 / 30.0, frame)
+            .await?;
         Ok(NextTick::After(std::time::Duration::from_millis(5)))
     }
 }
@@ -141,6 +166,29 @@ impl Stage for Sink {
     }
 }
 
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct GateParams {
+    /// First unit passed on: the client behind the gate joins the stream here.
+    open_at: u64,
+}
+
+/// Passes units on from `open_at`: what a client joining a running stream receives.
+struct Gate {
+    p: GateParams,
+}
+
+#[async_trait::async_trait]
+impl Stage for Gate {
+    async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
+        let msg = input.get::<VideoMsg>()?;
+        if msg.body.index >= self.p.open_at {
+            ctx.send("out", msg.scene_time_s, msg.body.clone()).await?;
+        }
+        Ok(())
+    }
+}
+
 fn registry(seen: &Arc<Seen>) -> StageRegistry {
     let mut r = cloudlight::actors::registry();
     let edge = EdgeSettings {
@@ -156,6 +204,14 @@ fn registry(seen: &Arc<Seen>) -> StageRegistry {
         })
         .output::<FrameMsg>("out")
         .params::<SourceParams>(),
+    );
+    r.register(
+        StageKind::new("join_gate", "test", "a client joining late", |s| {
+            Ok(Box::new(Gate { p: s.params()? }))
+        })
+        .input::<VideoMsg>("in", edge)
+        .output::<VideoMsg>("out")
+        .params::<GateParams>(),
     );
     let seen = seen.clone();
     r.register(
@@ -283,4 +339,60 @@ async fn hdr_maps_keep_their_luminance_and_a_late_client_starts_at_a_key_frame()
         "its first picture is the key frame at 15"
     );
     assert_eq!(late_decoded.len(), 25);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_video_client_joining_late_shows_pictures_within_one_key_frame_interval() {
+    // A live stream at 30 fps with key frames every 0.5 s (15 pictures); the real
+    // `video_client`, across the cut edge, receives it from picture 10 on.
+    let seen = Arc::new(Seen::default());
+    let client = "kind = \"video_client\"\nnode = \"home\"\n\
+        params = { width = 96, height = 64, fps = 30.0 }\n\
+        [[stage]]\nname = \"gate\"\nkind = \"join_gate\"\nnode = \"cloud\"\n\
+        params = { open_at = 10 }\n";
+    let text = topology(
+        "cloud",
+        "count = 45, live_light_lag_s = 0.25",
+        "qp = 24, keyframe_s = 0.5, fps = 30.0",
+        "",
+    )
+    .replace("kind = \"video_sink\"\nnode = \"home\"\n", client)
+    .replace(
+        "from = \"enc\"\nto = \"view\"",
+        "from = \"enc\"\nto = \"gate\"\n[[edge]]\nfrom = \"gate\"\nto = \"view\"",
+    );
+    let text = format!("duration_s = 2.5\n{text}");
+    let reg = registry(&seen);
+    let plan = plan_text(&text, &reg);
+    let report = run_plan(&plan, &reg, RunOptions::default()).await.unwrap();
+    assert_eq!(report.end, EndReason::Duration, "{text}");
+    let view = report
+        .metrics
+        .stages
+        .iter()
+        .find(|s| s.name == "view")
+        .and_then(|s| s.report.clone())
+        .expect("the client reports");
+    let decoder = &view["decoder"];
+    let (units, pictures, waiting) = (
+        decoder["units"].as_u64().unwrap(),
+        decoder["pictures"].as_u64().unwrap(),
+        decoder["waiting_for_key"].as_u64().unwrap(),
+    );
+    assert_eq!(decoder["errors"], 0, "{view}");
+    assert_eq!(units, 35, "units 10 to 44 reach the client: {view}");
+    assert!(
+        (1..15).contains(&waiting),
+        "it joined between key frames and waited less than one interval (15 pictures): {view}"
+    );
+    assert_eq!(
+        pictures,
+        units - waiting,
+        "then it shows every picture: {view}"
+    );
+    assert_eq!(view["indirect_shown"], true, "{view}");
+    // The age it reports is the light's (rendered 0.25 s before the picture), not the
+    // picture's.
+    let age = view["age_ms_p50"].as_f64().unwrap();
+    assert!((250.0..1000.0).contains(&age), "age p50 {age} ms: {view}");
 }

@@ -101,7 +101,9 @@ impl ClientTechnique for VideoClient {
                     height: yuv.height,
                     rgb: yuv.to_rgb8(),
                 }));
-                self.valid_as_of = Some(msg.scene_time_s);
+                // The light's age, not only the picture's: a frame rendered in the cloud
+                // shows light that was already old when it was rendered.
+                self.valid_as_of = Some(unit.light_s.unwrap_or(msg.scene_time_s));
                 let _ = self
                     .decode_us
                     .record(start.elapsed().as_micros().max(1) as u64);

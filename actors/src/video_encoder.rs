@@ -201,12 +201,18 @@ impl Stage for VideoEncoder {
         self.started.get_or_insert_with(Instant::now);
         self.report.pictures += 1;
         let t = Instant::now();
-        let (width, height, yuv, range) = match &msg.body {
-            FrameMsg::Sdr { width, height, rgb } => (
+        let (width, height, yuv, range, light_s) = match &msg.body {
+            FrameMsg::Sdr {
+                width,
+                height,
+                rgb,
+                light_s,
+            } => (
                 *width,
                 *height,
                 Yuv420::from_rgb8(*width, *height, rgb)?,
                 None,
+                *light_s,
             ),
             FrameMsg::Hdr {
                 width,
@@ -220,7 +226,7 @@ impl Stage for VideoEncoder {
                     texels: texels.iter().map(|&c| Vec3::from(c)).collect(),
                     valid: valid.clone(),
                 })?;
-                (*width, *height, packed.yuv, Some(packed.range))
+                (*width, *height, packed.yuv, Some(packed.range), None)
             }
         };
         let unit = self
@@ -241,6 +247,7 @@ impl Stage for VideoEncoder {
             width,
             height,
             hdr: range,
+            light_s,
             data: unit.data,
         };
         ctx.send("out", msg.scene_time_s, out).await?;

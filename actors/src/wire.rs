@@ -54,6 +54,9 @@ pub enum FrameMsg {
         /// The pixels.
         #[serde(with = "serde_bytes")]
         rgb: Vec<u8>,
+        /// Scene time of the indirect light the frame shows, when the renderer knows it (a
+        /// client rendering in the cloud); the frame's own stamp is its render time.
+        light_s: Option<f64>,
     },
     /// Linear RGB texels (W·m⁻² or radiance, as the producer says), row-major from the top,
     /// and which of them lie in a chart (empty: all).
@@ -85,6 +88,9 @@ pub struct VideoMsg {
     pub height: u32,
     /// For an HDR map: the luminance range to unpack it with.
     pub hdr: Option<cloudlight_render::video::HdrRange>,
+    /// Scene time of the indirect light the picture shows, when its producer said
+    /// ([`FrameMsg::Sdr::light_s`]); a light map is its own light (the stamp).
+    pub light_s: Option<f64>,
     /// Annex-B NAL units.
     #[serde(with = "serde_bytes")]
     pub data: Vec<u8>,
@@ -123,6 +129,7 @@ mod tests {
             width: 2,
             height: 2,
             rgb: vec![9; 12],
+            light_s: Some(3.25),
         });
         round_trip(FrameMsg::Hdr {
             width: 2,
@@ -140,6 +147,7 @@ mod tests {
                 log2_min: -3.0,
                 log2_max: 5.0,
             }),
+            light_s: None,
             data: vec![0, 0, 0, 1, 0x65, 7],
         });
     }

@@ -19,6 +19,7 @@ use cloudlight_transport::LinkProfile;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 
+pub mod baseline;
 pub mod client;
 pub mod paper;
 pub mod photons;
@@ -35,6 +36,10 @@ pub fn require_technique(name: &str) -> anyhow::Result<()> {
         n if TECHNIQUES.contains(&n) => {
             anyhow::bail!("technique `{n}` is not implemented yet; benchmarks exist for `photons`")
         }
+        baseline::NAME => anyhow::bail!(
+            "`{}` (the full-frame baseline) is measured by `bench table2` only",
+            baseline::NAME
+        ),
         other => anyhow::bail!(
             "unknown technique `{other}` (one of: {})",
             TECHNIQUES.join(", ")
@@ -125,28 +130,39 @@ pub struct ClusterRun<T: Technique + ?Sized> {
 }
 
 impl<T: Technique + ?Sized> ClusterRun<T> {
-    fn sending_edges(&self) -> impl Iterator<Item = &EdgeSnapshot> {
-        self.metrics
-            .edges
-            .iter()
-            .filter(|e| e.wire.is_some() && !e.name.ends_with("(rx)"))
-    }
-
     /// Total wire megabits per second leaving the cloud (headers and retransmissions in).
     pub fn wire_mbps(&self) -> f64 {
-        self.sending_edges()
-            .filter_map(|e| e.wire.as_ref())
-            .map(|w| w.wire_mbps)
-            .sum()
+        wire_mbps(&self.metrics)
     }
 
     /// Total payload megabits per second leaving the cloud.
     pub fn payload_mbps(&self) -> f64 {
-        self.sending_edges().map(|e| e.mbps).sum()
+        payload_mbps(&self.metrics)
     }
 }
 
-fn stage_report<R: DeserializeOwned>(m: &MetricsSnapshot, name: &str) -> anyhow::Result<R> {
+/// The cut edges' sending ends (in a benchmark's cluster: what leaves the cloud).
+fn sending_edges(m: &MetricsSnapshot) -> impl Iterator<Item = &EdgeSnapshot> {
+    m.edges
+        .iter()
+        .filter(|e| e.wire.is_some() && !e.name.ends_with("(rx)"))
+}
+
+/// Total wire megabits per second on the cut edges (headers and retransmissions in).
+pub fn wire_mbps(m: &MetricsSnapshot) -> f64 {
+    sending_edges(m)
+        .filter_map(|e| e.wire.as_ref())
+        .map(|w| w.wire_mbps)
+        .sum()
+}
+
+/// Total payload megabits per second on the cut edges.
+pub fn payload_mbps(m: &MetricsSnapshot) -> f64 {
+    sending_edges(m).map(|e| e.mbps).sum()
+}
+
+/// The report stage `name` sent last, as `R`.
+pub fn stage_report<R: DeserializeOwned>(m: &MetricsSnapshot, name: &str) -> anyhow::Result<R> {
     let value = m
         .stages
         .iter()
@@ -156,6 +172,41 @@ fn stage_report<R: DeserializeOwned>(m: &MetricsSnapshot, name: &str) -> anyhow:
     serde_json::from_value(value).with_context(|| format!("reading the report of `{name}`"))
 }
 
+/// Plans `spec` (named `file` in errors) and runs it in this process for `seconds`; the
+/// run's final metrics.
+pub fn run_spec(
+    runtime: &tokio::runtime::Runtime,
+    spec: &TopologySpec,
+    file: &str,
+    seconds: f64,
+) -> anyhow::Result<MetricsSnapshot> {
+    let registry = cloudlight_actors::registry();
+    let plan = spec
+        .plan(file, &registry)
+        .map_err(|e| anyhow::anyhow!("{e}\n{}", spec.to_toml()))?;
+    let report = runtime
+        .block_on(cloudlight_runtime::run(
+            &plan,
+            &registry,
+            RunOptions {
+                duration: Some(Duration::from_secs_f64(seconds)),
+                ..RunOptions::default()
+            },
+            std::future::pending(),
+        ))
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(report.metrics)
+}
+
+/// Name of replica `i` of a stage `name` with `n` replicas.
+pub fn replica_name(name: &str, i: usize, n: usize) -> String {
+    if n == 1 {
+        name.to_string()
+    } else {
+        format!("{name}[{i}]")
+    }
+}
+
 /// Runs the cluster of [`cluster_topology`] for `cluster.seconds` and reads its reports.
 pub fn run_cluster<T: Technique>(
     runtime: &tokio::runtime::Runtime,
@@ -163,33 +214,11 @@ pub fn run_cluster<T: Technique>(
     cluster: &ClusterOptions,
     clients: usize,
 ) -> anyhow::Result<ClusterRun<T>> {
-    let registry = cloudlight_actors::registry();
     let spec = cluster_topology::<T>(options, cluster, clients)?;
     let file = format!("<{} benchmark>", T::NAME);
-    let plan = spec
-        .plan(&file, &registry)
-        .map_err(|e| anyhow::anyhow!("{e}\n{}", spec.to_toml()))?;
-    let report = runtime
-        .block_on(cloudlight_runtime::run(
-            &plan,
-            &registry,
-            RunOptions {
-                duration: Some(Duration::from_secs_f64(cluster.seconds)),
-                ..RunOptions::default()
-            },
-            std::future::pending(),
-        ))
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let m = report.metrics;
+    let m = run_spec(runtime, &spec, &file, cluster.seconds)?;
     let clients = (0..clients)
-        .map(|i| {
-            let name = if clients == 1 {
-                "client".to_string()
-            } else {
-                format!("client[{i}]")
-            };
-            stage_report(&m, &name)
-        })
+        .map(|i| stage_report(&m, &replica_name("client", i, clients)))
         .collect::<anyhow::Result<_>>()?;
     Ok(ClusterRun {
         server: stage_report(&m, "server")?,

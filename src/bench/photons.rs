@@ -145,6 +145,10 @@ pub struct PhotonColumn {
     pub client_resolution: String,
     /// Bytes per photon.
     pub bytes_per_photon: usize,
+    /// Age of the indirect light at the client, p50, ms.
+    pub age_ms_p50: f64,
+    /// Age, p99, ms.
+    pub age_ms_p99: f64,
 }
 
 /// Measures one Table 2 column: the cloud and one client over loopback for
@@ -205,6 +209,8 @@ pub fn table2_column(
             .map_or(0.0, |p| p.p50_ms),
         client_resolution: format!("{width}x{height}"),
         bytes_per_photon: bt.bytes_per_photon,
+        age_ms_p50: client.age_ms_p50,
+        age_ms_p99: client.age_ms_p99,
     })
 }
 

@@ -598,8 +598,14 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
                     }
                     if send {
                         let Picture { width, height, rgb } = picture;
-                        ctx.send("frames", t, FrameMsg::Sdr { width, height, rgb })
-                            .await?;
+                        let light_s = self.technique.valid_as_of();
+                        let frame = FrameMsg::Sdr {
+                            width,
+                            height,
+                            rgb,
+                            light_s,
+                        };
+                        ctx.send("frames", t, frame).await?;
                     }
                     Some(ms)
                 }
