@@ -209,7 +209,7 @@ pub fn video_cut(
     })
 }
 
-/// Both cuts for each scene (`budgets[i]` photons for scene `i`, the last repeating).
+/// Both cuts for each scene of [`super::photons::per_scene`].
 #[allow(clippy::too_many_arguments)]
 pub fn table2(
     runtime: &tokio::runtime::Runtime,
@@ -221,36 +221,21 @@ pub fn table2(
     cluster: &ClusterOptions,
     size: (u32, u32),
 ) -> anyhow::Result<Vec<BaselineColumn>> {
-    let mut columns = Vec::new();
-    for (i, scene) in scenes.iter().enumerate() {
-        let o = PhotonOptions {
-            photons: budgets
-                .get(i)
-                .or(budgets.last())
-                .copied()
-                .unwrap_or(photons.photons),
-            ..photons.clone()
-        };
-        let c = ClusterOptions {
-            scene: scene.clone(),
-            ..cluster.clone()
-        };
-        eprintln!(
-            "{scene}: the photon cut ({} photons per iteration) for {} s...",
-            o.photons, c.seconds
-        );
-        let photon_cut = table2_column(runtime, raster, &o, &c, size)?;
-        eprintln!(
-            "{scene}: the video cut (frames rendered and encoded in the cloud) for {} s...",
-            c.seconds
-        );
-        let video_cut = video_cut(runtime, &o, video, &c, size)?;
-        columns.push(BaselineColumn {
-            photons: photon_cut,
-            video: video_cut,
-        });
-    }
-    Ok(columns)
+    super::photons::per_scene(scenes, budgets, photons, cluster)
+        .map(|(o, c)| {
+            eprintln!(
+                "{}: the photon cut ({} photons per iteration) for {} s...",
+                c.scene, o.photons, c.seconds
+            );
+            let photons = table2_column(runtime, raster, &o, &c, size)?;
+            eprintln!(
+                "{}: the video cut (frames rendered and encoded in the cloud) for {} s...",
+                c.scene, c.seconds
+            );
+            let video = video_cut(runtime, &o, video, &c, size)?;
+            Ok(BaselineColumn { photons, video })
+        })
+        .collect()
 }
 
 /// Per scene, one row per placement and the paper's final-frame row, as Markdown.

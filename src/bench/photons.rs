@@ -613,8 +613,34 @@ fn quality_plot(
     )
 }
 
-/// `cloudlight bench table2 --technique photons`: one column per scene (`budgets[i]`
-/// photons for scene `i`, the last repeating), every light re-traced each iteration.
+/// Scene `i` of `scenes` with its budget (`budgets[i]`, the last repeating, none: the
+/// options' own), as the photon options and cluster of one Table 2 column.
+pub fn per_scene<'a>(
+    scenes: &'a [String],
+    budgets: &'a [u64],
+    options: &'a PhotonOptions,
+    cluster: &'a ClusterOptions,
+) -> impl Iterator<Item = (PhotonOptions, ClusterOptions)> + 'a {
+    scenes.iter().enumerate().map(move |(i, scene)| {
+        let photons = budgets
+            .get(i)
+            .or(budgets.last())
+            .copied()
+            .unwrap_or(options.photons);
+        (
+            PhotonOptions {
+                photons,
+                ..options.clone()
+            },
+            ClusterOptions {
+                scene: scene.clone(),
+                ..cluster.clone()
+            },
+        )
+    })
+}
+
+/// The photon block of Table 2: one column per scene of [`per_scene`].
 pub fn table2(
     runtime: &tokio::runtime::Runtime,
     raster: &Raster,
@@ -624,26 +650,13 @@ pub fn table2(
     cluster: &ClusterOptions,
     size: (u32, u32),
 ) -> anyhow::Result<Vec<PhotonColumn>> {
-    let mut columns = Vec::new();
-    for (i, scene) in scenes.iter().enumerate() {
-        let photons = budgets
-            .get(i)
-            .or(budgets.last())
-            .copied()
-            .unwrap_or(options.photons);
-        eprintln!(
-            "{scene}: {photons} photons per iteration, running the cloud and a client for {} s...",
-            cluster.seconds
-        );
-        let o = PhotonOptions {
-            photons,
-            ..options.clone()
-        };
-        let c = ClusterOptions {
-            scene: scene.clone(),
-            ..cluster.clone()
-        };
-        columns.push(table2_column(runtime, raster, &o, &c, size)?);
-    }
-    Ok(columns)
+    per_scene(scenes, budgets, options, cluster)
+        .map(|(o, c)| {
+            eprintln!(
+                "{}: {} photons per iteration, running the cloud and a client for {} s...",
+                c.scene, o.photons, c.seconds
+            );
+            table2_column(runtime, raster, &o, &c, size)
+        })
+        .collect()
 }
