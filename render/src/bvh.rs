@@ -314,6 +314,7 @@ mod tests {
             v,
             n: [Vec3::Y; 3],
             uv: [Vec2::ZERO; 3],
+            lightmap_uv: [Vec2::ZERO; 3],
             material: 0,
         };
         let tris = vec![

@@ -6,6 +6,7 @@
 //! knows about actors, queues or sockets.
 
 pub mod bvh;
+pub mod direct_light;
 pub mod image_io;
 pub mod metrics;
 pub mod photon;

@@ -469,6 +469,8 @@ pub struct WorldTriangle {
     pub n: [Vec3; 3],
     /// Texture coordinates.
     pub uv: [Vec2; 3],
+    /// Light-map coordinates in [0, 1]² of the atlas (zero when the mesh has none).
+    pub lightmap_uv: [Vec2; 3],
     /// Material index.
     pub material: u32,
 }
@@ -668,10 +670,12 @@ fn push_object_triangles(o: &Object, t_s: f64, out: &mut Vec<WorldTriangle>) {
     for tri in &mesh.indices {
         let i = tri.map(|k| k as usize);
         let uv = |k: usize| mesh.uvs.get(k).copied().unwrap_or(Vec2::ZERO);
+        let lightmap_uv = |k: usize| mesh.lightmap_uvs.get(k).copied().unwrap_or(Vec2::ZERO);
         out.push(WorldTriangle {
             v: i.map(|k| m.transform_point3(mesh.positions[k])),
             n: i.map(|k| (nm * mesh.normals[k]).normalize_or_zero()),
             uv: i.map(uv),
+            lightmap_uv: i.map(lightmap_uv),
             material: o.material,
         });
     }

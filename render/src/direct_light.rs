@@ -1,0 +1,169 @@
+//! Direct light at a surface point: one emissive-triangle sample chosen by power (uniform on
+//! the triangle) plus every punctual and directional light, with ray-traced shadows. The
+//! reference tracer's next-event estimation and the light-map gatherer's texture-space
+//! direct light both call it, so the two agree on what "direct" means.
+
+use cloudlight_scenes::{LightState, Scene};
+use glam::Vec3;
+
+use crate::bvh::SceneBvh;
+use crate::sampling::{Rng, uniform_triangle};
+
+/// Emissive triangles of a BVH, ready for power-proportional sampling.
+struct Emitters {
+    triangles: Vec<u32>,
+    cdf: Vec<f32>,
+    total: f32,
+}
+
+impl Emitters {
+    fn new(scene: &Scene, bvh: &SceneBvh) -> Self {
+        let mut triangles = Vec::new();
+        let mut cdf = Vec::new();
+        let mut total = 0.0;
+        for (i, t) in bvh.triangles().iter().enumerate() {
+            let m = &scene.materials[t.material as usize];
+            let area = 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length();
+            let power = m.emission.element_sum() * area;
+            if power > 0.0 && area.is_finite() {
+                total += power;
+                triangles.push(i as u32);
+                cdf.push(total);
+            }
+        }
+        Emitters {
+            triangles,
+            cdf,
+            total,
+        }
+    }
+
+    /// A triangle and the probability of having picked it.
+    fn pick(&self, u: f32) -> Option<(u32, f32)> {
+        if self.triangles.is_empty() {
+            return None;
+        }
+        let x = u * self.total;
+        let i = self
+            .cdf
+            .partition_point(|c| *c <= x)
+            .min(self.triangles.len() - 1);
+        let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
+        Some((self.triangles[i], (self.cdf[i] - lo) / self.total))
+    }
+}
+
+/// The lights of one scene at one time, ready to shade points.
+pub struct DirectLight<'a> {
+    scene: &'a Scene,
+    bvh: &'a SceneBvh,
+    emitters: Emitters,
+    lights: Vec<LightState>,
+    eps: f32,
+}
+
+impl<'a> DirectLight<'a> {
+    /// The lights of `scene` at `t_s`, whose BVH at that time is `bvh`.
+    pub fn new(scene: &'a Scene, bvh: &'a SceneBvh, t_s: f64) -> Self {
+        let (lo, hi) = bvh.bounds();
+        let extent = (hi - lo).length();
+        DirectLight {
+            scene,
+            bvh,
+            emitters: Emitters::new(scene, bvh),
+            lights: scene.lights.iter().map(|l| l.at(t_s)).collect(),
+            eps: if extent.is_finite() && extent > 0.0 {
+                extent * 1e-5
+            } else {
+                1e-5
+            },
+        }
+    }
+
+    /// How far off a surface a ray starts, meters (1e-5 of the scene's diagonal).
+    pub fn eps(&self) -> f32 {
+        self.eps
+    }
+
+    /// Whether anything emits (emissive triangles or lights).
+    pub fn any(&self) -> bool {
+        !self.emitters.triangles.is_empty() || !self.lights.is_empty()
+    }
+
+    /// Irradiance E at `x` (unit normal `n`, W·m⁻² per channel) from one emitter sample and
+    /// every punctual and directional light, with ray-traced shadows (unbiased).
+    pub fn irradiance(&self, x: Vec3, n: Vec3, rng: &mut Rng) -> Vec3 {
+        let mut e = Vec3::ZERO;
+        let (u0, u1, u2) = (rng.next_f32(), rng.next_f32(), rng.next_f32());
+        if let Some((ti, p_tri)) = self.emitters.pick(u0) {
+            let t = &self.bvh.triangles()[ti as usize];
+            let b = uniform_triangle(u1, u2);
+            let y = t.v[0] * (1.0 - b.x - b.y) + t.v[1] * b.x + t.v[2] * b.y;
+            let cross = (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]);
+            let area = 0.5 * cross.length();
+            let ny = cross / (2.0 * area);
+            let to = y - x;
+            let dist2 = to.length_squared();
+            let w = to / dist2.sqrt();
+            let (cx, cy) = (n.dot(w), -ny.dot(w));
+            if cx > 0.0 && cy > 0.0 && !self.bvh.occluded(x, w, dist2.sqrt() * (1.0 - 1e-4)) {
+                let le = self.scene.materials[t.material as usize].emission;
+                e += le * cx * cy / dist2 * area / p_tri;
+            }
+        }
+        for l in &self.lights {
+            match *l {
+                LightState::Point {
+                    position,
+                    intensity,
+                } => e += self.punctual(x, n, position, intensity, None),
+                LightState::Spot {
+                    position,
+                    direction,
+                    cos_cone,
+                    intensity,
+                } => e += self.punctual(x, n, position, intensity, Some((direction, cos_cone))),
+                LightState::Surface {
+                    position,
+                    normal,
+                    intensity,
+                } => {
+                    let cos_light = (x - position).normalize_or_zero().dot(normal).max(0.0);
+                    e += self.punctual(x, n, position, intensity * cos_light, None);
+                }
+                LightState::Directional {
+                    direction,
+                    irradiance,
+                } => {
+                    let w = -direction;
+                    let c = n.dot(w);
+                    if c > 0.0 && !self.bvh.occluded(x, w, f32::INFINITY) {
+                        e += irradiance * c;
+                    }
+                }
+            }
+        }
+        e
+    }
+
+    fn punctual(
+        &self,
+        x: Vec3,
+        n: Vec3,
+        p: Vec3,
+        intensity: Vec3,
+        cone: Option<(Vec3, f32)>,
+    ) -> Vec3 {
+        let to = p - x;
+        let dist2 = to.length_squared();
+        let w = to / dist2.sqrt();
+        let c = n.dot(w);
+        if c <= 0.0 || cone.is_some_and(|(axis, cos_cone)| (-w).dot(axis) < cos_cone) {
+            return Vec3::ZERO;
+        }
+        if self.bvh.occluded(x, w, dist2.sqrt() * (1.0 - 1e-4)) {
+            return Vec3::ZERO;
+        }
+        intensity * c / dist2
+    }
+}
