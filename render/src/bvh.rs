@@ -72,6 +72,23 @@ fn rt_triangle(t: &WorldTriangle, scale: f32) -> Triangle {
     }
 }
 
+/// Barycentric weights (of vertices 1 and 2) where `ray` crosses `t`'s plane (Möller–
+/// Trumbore). obvhs 0.4's `compute_barycentric` divides by the *unit* normal, so its weights
+/// are scaled by twice the triangle's area (measured: texture and light-map lookups landed
+/// off their triangles); this is the exact form.
+fn barycentric(t: &Triangle, ray: &Ray) -> Vec2 {
+    let (e1, e2) = (t.v1 - t.v0, t.v2 - t.v0);
+    let p = ray.direction.cross(e2);
+    let det = e1.dot(p);
+    if det.abs() < f32::MIN_POSITIVE {
+        return Vec2::ZERO;
+    }
+    let s = ray.origin - t.v0;
+    let q = s.cross(e1);
+    let uv = Vec2::new(s.dot(p), ray.direction.dot(q)) / det;
+    uv.clamp(Vec2::ZERO, Vec2::ONE)
+}
+
 /// Units of the normalized frame across the scene's bounding diagonal.
 const NORMALIZED_EXTENT: f32 = 100.0;
 
@@ -180,7 +197,7 @@ impl SceneBvh {
             Tree::Cw(b) => b.primitive_indices[hit.primitive_id as usize],
             Tree::Bin(b) => b.primitive_indices[hit.primitive_id as usize],
         };
-        let uv = self.rt[triangle as usize].compute_barycentric(&ray);
+        let uv = barycentric(&self.rt[triangle as usize], &ray);
         Some(Hit {
             t: hit.t / self.scale,
             triangle,
@@ -305,6 +322,29 @@ mod tests {
         let s = cloudlight_scenes::builtin("city:20000").unwrap();
         agree_with_brute_force(&s, BvhKind::Cwbvh, 300);
         agree_with_brute_force(&s, BvhKind::Bvh2, 300);
+    }
+
+    #[test]
+    fn hit_barycentrics_reproduce_the_hit_point() {
+        // Texture, normal and light-map lookups interpolate with these weights: the point
+        // they give must be where the ray hit.
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::Bvh2);
+        let mut rng = Rng::new(3, 4);
+        let mut checked = 0;
+        for _ in 0..500 {
+            let o = Vec3::new(0.278, 0.274, 0.28)
+                + (Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) - 0.5) * 0.2;
+            let d = crate::sampling::uniform_sphere(rng.next_f32(), rng.next_f32());
+            let Some(h) = bvh.closest_hit(o, d, f32::INFINITY) else {
+                continue;
+            };
+            let t = &bvh.triangles()[h.triangle as usize];
+            let p = t.v[0] * (1.0 - h.uv.x - h.uv.y) + t.v[1] * h.uv.x + t.v[2] * h.uv.y;
+            assert!(p.distance(o + d * h.t) < 1e-4, "{p} vs {}", o + d * h.t);
+            checked += 1;
+        }
+        assert!(checked > 400);
     }
 
     #[test]

@@ -8,6 +8,7 @@
 pub mod bvh;
 pub mod direct_light;
 pub mod image_io;
+pub mod lightmap;
 pub mod metrics;
 pub mod photon;
 pub mod plan;

@@ -1,0 +1,384 @@
+//! One irradiance-map update (CloudLight §4.2, steps 3–4): a texture-space deferred pass.
+//!
+//! Phases of [`Gatherer::update`]:
+//! 1. **Scene** at the update's time: the BVH and the texels' world frames (rebuilt only when
+//!    geometry moves).
+//! 2. **Direct light in texture space**: E_direct per valid texel from `direct_samples`
+//!    light samples with ray-traced shadows ([`DirectLight`]), kept while lights and
+//!    geometry are static.
+//! 3. **Radiosity**: per texel, the radiance it sends on, B = ρ/π · (E_direct + E_previous),
+//!    dilated into the padding. Reading the previous map adds one bounce per update.
+//! 4. **Gather**: at each basis centre (or each texel, the paper's naive server), N
+//!    cosine-distributed rays from a Hammersley set, visited in a fixed coherent order;
+//!    E = (π/N) · Σ B(hit) over front-face hits (back faces and misses add nothing).
+//! 5. **Reconstruct**: per texel, E = Σ w_k E_k over its bases; dilate.
+//!
+//! While lights and geometry are static the update converges to a fixed point (a fixed
+//! sample set); once an update changes the map by less than [`CONVERGED`] relative, later
+//! updates re-gather nothing and hand out the same map.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+
+use crate::bvh::{BvhKind, SceneBvh};
+use crate::direct_light::DirectLight;
+use crate::sampling::{Rng, basis, cosine_hemisphere};
+use crate::video::HdrImage;
+
+use super::Lightmap;
+use super::texels::hammersley;
+
+/// Relative change of the map's energy below which a static scene's update is final.
+pub const CONVERGED: f32 = 1e-4;
+
+/// Where gather rays start.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GatherMode {
+    /// Once per basis, reconstructed per texel (the paper's efficient server).
+    #[default]
+    Bases,
+    /// At every valid texel (the paper's naive server).
+    Texels,
+}
+
+/// Settings of the gather.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GatherSettings {
+    /// Per basis or per texel.
+    pub mode: GatherMode,
+    /// Rays per basis (the paper: 26k rays for 50 bases).
+    pub rays_per_basis: u32,
+    /// Rays per texel in [`GatherMode::Texels`].
+    pub rays_per_texel: u32,
+    /// Light samples per texel for texture-space direct light.
+    pub direct_samples: u32,
+    /// Seed of the direct-light samples and the gather's sample rotation.
+    pub seed: u64,
+}
+
+impl Default for GatherSettings {
+    fn default() -> Self {
+        GatherSettings {
+            mode: GatherMode::Bases,
+            rays_per_basis: 512,
+            rays_per_texel: 64,
+            direct_samples: 4,
+            seed: 1,
+        }
+    }
+}
+
+/// An indirect-irradiance map: E_indirect per texel, W·m⁻² per channel.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IrradianceMap {
+    /// Width, texels.
+    pub width: u32,
+    /// Height, texels.
+    pub height: u32,
+    /// E_indirect per texel, row-major from the top, dilated into invalid texels.
+    pub texels: Vec<Vec3>,
+    /// Which texels stand for a surface point.
+    pub valid: Vec<bool>,
+    /// Scene time the map is valid for, seconds.
+    pub time_s: f64,
+}
+
+impl IrradianceMap {
+    /// The map as an HDR image (what the video encoder packs).
+    pub fn to_hdr(&self) -> HdrImage {
+        HdrImage {
+            width: self.width,
+            height: self.height,
+            texels: self.texels.clone(),
+            valid: self.valid.clone(),
+        }
+    }
+
+    /// Bilinear lookup at light-map UV `uv` in [0, 1]² (clamped at the edges).
+    pub fn sample(&self, uv: Vec2) -> Vec3 {
+        bilinear(&self.texels, self.width, self.height, uv)
+    }
+}
+
+/// Bilinear lookup at `uv` in a `w` × `h` map.
+pub fn bilinear(texels: &[Vec3], w: u32, h: u32, uv: Vec2) -> Vec3 {
+    if texels.is_empty() {
+        return Vec3::ZERO;
+    }
+    let p = uv * Vec2::new(w as f32, h as f32) - 0.5;
+    let p = if p.is_finite() { p } else { Vec2::ZERO };
+    let x0 = p.x.floor().clamp(0.0, (w - 1) as f32);
+    let y0 = p.y.floor().clamp(0.0, (h - 1) as f32);
+    let f = (p - Vec2::new(x0, y0)).clamp(Vec2::ZERO, Vec2::ONE);
+    let (x0, y0) = (x0 as u32, y0 as u32);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let at = |x: u32, y: u32| texels[(y * w + x) as usize];
+    let top = at(x0, y0).lerp(at(x1, y0), f.x);
+    let bottom = at(x0, y1).lerp(at(x1, y1), f.x);
+    top.lerp(bottom, f.y)
+}
+
+/// What one update did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Update {
+    /// The new map.
+    pub map: Arc<IrradianceMap>,
+    /// Gather rays traced (0 when converged).
+    pub rays: u64,
+    /// Shadow rays of texture-space direct light (0 when kept).
+    pub direct_rays: u64,
+    /// Points gathered at (bases or texels).
+    pub gather_points: usize,
+    /// Whether the scene was static and converged, so nothing was re-gathered.
+    pub converged: bool,
+    /// Wall time of the whole update, seconds.
+    pub seconds: f64,
+}
+
+/// The light-map server's state across updates: the previous map (for the next bounce)
+/// and the direct light while it is valid.
+pub struct Gatherer {
+    lightmap: Arc<Lightmap>,
+    settings: GatherSettings,
+    bvh: Option<SceneBvh>,
+    frame: (Vec<Vec3>, Vec<Vec3>),
+    direct: Option<Vec<Vec3>>,
+    previous: Arc<IrradianceMap>,
+    converged: bool,
+    updates: u64,
+}
+
+impl Gatherer {
+    /// A gatherer over a baked light map, starting from a black map.
+    pub fn new(lightmap: Arc<Lightmap>, settings: GatherSettings) -> Self {
+        let t = &lightmap.texels;
+        let previous = Arc::new(IrradianceMap {
+            width: t.width,
+            height: t.height,
+            texels: vec![Vec3::ZERO; t.valid.len()],
+            valid: t.valid.clone(),
+            time_s: 0.0,
+        });
+        Gatherer {
+            frame: (t.positions.clone(), t.normals.clone()),
+            lightmap,
+            settings,
+            bvh: None,
+            direct: None,
+            previous,
+            converged: false,
+            updates: 0,
+        }
+    }
+
+    /// The light map gathered over.
+    pub fn lightmap(&self) -> &Arc<Lightmap> {
+        &self.lightmap
+    }
+
+    /// The latest map.
+    pub fn map(&self) -> &Arc<IrradianceMap> {
+        &self.previous
+    }
+
+    /// Computes the map for scene time `t_s` (one more bounce than the last).
+    pub fn update(&mut self, t_s: f64) -> Update {
+        let start = Instant::now();
+        let scene = &self.lightmap.scene;
+        let moving_geometry = scene.has_moving_geometry();
+        let moving_lights = scene.is_animated() && !moving_geometry;
+        let is_static = !scene.is_animated();
+        if is_static && self.converged {
+            let mut map = (*self.previous).clone();
+            map.time_s = t_s;
+            self.previous = Arc::new(map);
+            return self.finish(start, 0, 0, 0, true);
+        }
+        // 1. Scene.
+        if self.bvh.is_none() || moving_geometry {
+            let bvh = SceneBvh::at(scene, t_s, BvhKind::default());
+            if moving_geometry {
+                self.frame = self.lightmap.texels.frame_at(bvh.triangles());
+            }
+            self.bvh = Some(bvh);
+        }
+        let bvh = self.bvh.as_ref().expect("built above");
+        // 2. Direct light.
+        let mut direct_rays = 0;
+        if self.direct.is_none() || moving_geometry || moving_lights {
+            let (e, rays) = direct_map(
+                &self.lightmap,
+                bvh,
+                &self.frame,
+                t_s,
+                &self.settings,
+                self.updates,
+            );
+            self.direct = Some(e);
+            direct_rays = rays;
+        }
+        // 3. Radiosity.
+        let radiosity = self.radiosity();
+        // 4–5. Gather and reconstruct.
+        let (texels, rays, points) = self.gather(bvh, &radiosity);
+        let map = Arc::new(IrradianceMap {
+            width: self.previous.width,
+            height: self.previous.height,
+            texels: self.lightmap.dilated(texels),
+            valid: self.previous.valid.clone(),
+            time_s: t_s,
+        });
+        let (old, new) = (energy(&self.previous), energy(&map));
+        self.converged = is_static && (new - old).abs() <= CONVERGED * new.max(f32::MIN_POSITIVE);
+        self.previous = map;
+        self.finish(start, rays, direct_rays, points, false)
+    }
+
+    fn finish(
+        &mut self,
+        start: Instant,
+        rays: u64,
+        direct_rays: u64,
+        points: usize,
+        converged: bool,
+    ) -> Update {
+        self.updates += 1;
+        Update {
+            map: self.previous.clone(),
+            rays,
+            direct_rays,
+            gather_points: points,
+            converged,
+            seconds: start.elapsed().as_secs_f64(),
+        }
+    }
+
+    /// B = ρ/π · (E_direct + E_previous) per texel, dilated.
+    fn radiosity(&self) -> Vec<Vec3> {
+        let lm = &self.lightmap;
+        let direct = self.direct.as_deref().unwrap_or_default();
+        let b: Vec<Vec3> = (0..lm.albedo.len())
+            .into_par_iter()
+            .map(|i| {
+                if !lm.texels.valid[i] {
+                    return Vec3::ZERO;
+                }
+                let e = direct.get(i).copied().unwrap_or_default() + self.previous.texels[i];
+                lm.albedo[i] * e / std::f32::consts::PI
+            })
+            .collect();
+        lm.dilated(b)
+    }
+
+    fn gather(&self, bvh: &SceneBvh, radiosity: &[Vec3]) -> (Vec<Vec3>, u64, usize) {
+        let lm = &self.lightmap;
+        let (pos, nrm) = &self.frame;
+        let eps = lm.texels.texel_m * 1e-2;
+        let (w, h) = (lm.texels.width, lm.texels.height);
+        let gather_at = |texel: usize, rays: u32| -> Vec3 {
+            let (x, n) = (pos[texel], nrm[texel]);
+            let (t, b) = basis(n);
+            // A fixed rotation per point decorrelates neighbours' sample sets.
+            let mut rng = Rng::new(self.settings.seed, texel as u64);
+            let (r1, r2) = (rng.next_f32(), rng.next_f32());
+            let mut sum = Vec3::ZERO;
+            for i in 0..rays {
+                let (u1, u2) = hammersley(i, rays);
+                let l = cosine_hemisphere((u1 + r1).fract(), (u2 + r2).fract());
+                let d = (t * l.x + b * l.y + n * l.z).normalize();
+                if let Some(hit) = bvh.closest_hit(x + n * eps, d, f32::INFINITY)
+                    && bvh.geometric_normal(hit.triangle).dot(d) < 0.0
+                {
+                    let tri = &bvh.triangles()[hit.triangle as usize];
+                    let (bu, bv) = (hit.uv.x, hit.uv.y);
+                    let uv = tri.lightmap_uv[0] * (1.0 - bu - bv)
+                        + tri.lightmap_uv[1] * bu
+                        + tri.lightmap_uv[2] * bv;
+                    sum += bilinear(radiosity, w, h, uv);
+                }
+            }
+            sum * (std::f32::consts::PI / rays.max(1) as f32)
+        };
+        match self.settings.mode {
+            GatherMode::Bases => {
+                let n = self.settings.rays_per_basis;
+                let per_basis: Vec<Vec3> = lm
+                    .bases
+                    .bases
+                    .par_iter()
+                    .map(|b| gather_at(b.texel as usize, n))
+                    .collect();
+                let rays = per_basis.len() as u64 * n as u64;
+                (lm.bases.reconstruct(&per_basis), rays, per_basis.len())
+            }
+            GatherMode::Texels => {
+                let n = self.settings.rays_per_texel;
+                let texels: Vec<Vec3> = (0..lm.texels.valid.len())
+                    .into_par_iter()
+                    .map(|i| {
+                        if lm.texels.valid[i] {
+                            gather_at(i, n)
+                        } else {
+                            Vec3::ZERO
+                        }
+                    })
+                    .collect();
+                let points = lm.texels.valid_count();
+                (texels, points as u64 * n as u64, points)
+            }
+        }
+    }
+}
+
+/// Mean of the valid texels' channel sums.
+fn energy(map: &IrradianceMap) -> f32 {
+    let (sum, n) = map
+        .texels
+        .iter()
+        .zip(&map.valid)
+        .filter(|(_, v)| **v)
+        .fold((0.0f64, 0u64), |(s, n), (e, _)| {
+            (s + e.element_sum() as f64, n + 1)
+        });
+    (sum / n.max(1) as f64) as f32
+}
+
+/// Texture-space direct irradiance (W·m⁻²) of every valid texel, and the shadow rays spent.
+fn direct_map(
+    lm: &Lightmap,
+    bvh: &SceneBvh,
+    frame: &(Vec<Vec3>, Vec<Vec3>),
+    t_s: f64,
+    s: &GatherSettings,
+    update: u64,
+) -> (Vec<Vec3>, u64) {
+    let light = DirectLight::new(&lm.scene, bvh, t_s);
+    let samples = s.direct_samples.max(1);
+    let eps = light.eps().max(lm.texels.texel_m * 1e-3);
+    let seed = s.seed ^ update.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    let e: Vec<Vec3> = (0..lm.texels.valid.len())
+        .into_par_iter()
+        .map(|i| {
+            if !lm.texels.valid[i] || !light.any() {
+                return Vec3::ZERO;
+            }
+            let (x, n) = (frame.0[i], frame.1[i]);
+            let mut rng = Rng::new(seed, i as u64);
+            let sum: Vec3 = (0..samples)
+                .map(|_| light.irradiance(x + n * eps, n, &mut rng))
+                .sum();
+            let e = sum / samples as f32;
+            if e.is_finite() {
+                e.max(Vec3::ZERO)
+            } else {
+                Vec3::ZERO
+            }
+        })
+        .collect();
+    let lights = lm.scene.lights.len() as u64 + 1;
+    (e, lm.texels.valid_count() as u64 * samples as u64 * lights)
+}

@@ -1,0 +1,321 @@
+//! Physics and robustness of the light-map kernels: a furnace converges to its closed form
+//! bounce by bounce, a thin wall keeps the dark side dark, the Cornell box bakes like the
+//! paper, blends are normalised, results are deterministic, extremes stay finite.
+
+use std::sync::Arc;
+
+use cloudlight_scenes::{Material, Mesh, Motion, Object, Scene};
+use glam::Vec3;
+
+use super::*;
+
+fn object(name: &str, mesh: Mesh, material: u32) -> Object {
+    Object {
+        name: name.into(),
+        mesh,
+        material,
+        motion: Motion::identity(),
+    }
+}
+
+fn bare(name: &str, materials: Vec<Material>, objects: Vec<Object>) -> Scene {
+    Scene {
+        name: name.into(),
+        materials,
+        objects,
+        lights: Vec::new(),
+        cameras: Vec::new(),
+    }
+}
+
+/// The inside of a 1 m cube whose walls all emit `le` and reflect `albedo`.
+fn furnace(le: f32, albedo: f32) -> Scene {
+    let mut m = Mesh::default();
+    m.push_box(Vec3::ZERO, Vec3::ONE);
+    let material = Material {
+        emission: Vec3::splat(le),
+        ..Material::diffuse("glow", Vec3::splat(albedo))
+    };
+    bare(
+        "furnace",
+        vec![material],
+        vec![object("cube", m.flipped(), 0)],
+    )
+}
+
+fn mean_valid(map: &IrradianceMap) -> Vec3 {
+    let (sum, n) = map
+        .texels
+        .iter()
+        .zip(&map.valid)
+        .filter(|(_, v)| **v)
+        .fold((Vec3::ZERO, 0), |(s, n), (e, _)| (s + *e, n + 1));
+    sum / n.max(1) as f32
+}
+
+#[test]
+fn a_furnace_converges_to_its_closed_form_bounce_by_bounce() {
+    // Every wall sees emission Le over its whole hemisphere: E_direct = π·Le, and each
+    // update adds one bounce: E_n = π·Le·(ρ + ρ² + … + ρⁿ) → π·Le·ρ/(1 − ρ).
+    let (le, rho) = (1.0f32, 0.5f32);
+    let lm = Arc::new(Lightmap::bake(&furnace(le, rho), &LightmapSettings::default()).unwrap());
+    let settings = GatherSettings {
+        direct_samples: 16,
+        ..Default::default()
+    };
+    let mut g = Gatherer::new(lm, settings);
+    let pi = std::f32::consts::PI;
+    let mut means = Vec::new();
+    for _ in 0..14 {
+        means.push(mean_valid(&g.update(0.0).map).x);
+    }
+    let first = pi * le * rho;
+    assert!(
+        (means[0] / first - 1.0).abs() < 0.05,
+        "one bounce: {} vs {first}",
+        means[0]
+    );
+    for n in 1..5 {
+        let growth = (means[n + 1] - means[n]) / (means[n] - means[n - 1]);
+        assert!(
+            (growth - rho).abs() < 0.05,
+            "bounce {n}: energy grows by {growth}, not ρ = {rho}"
+        );
+    }
+    let limit = pi * le * rho / (1.0 - rho);
+    let last = *means.last().unwrap();
+    assert!(
+        (last / limit - 1.0).abs() < 0.05,
+        "converged {last} vs {limit}"
+    );
+}
+
+/// A 4 × 2 × 2 m closed room split at x = 2 by a 0.1 m wall, a point light on the left.
+fn thin_wall() -> Scene {
+    let mut room = Mesh::default();
+    room.push_box(Vec3::ZERO, Vec3::new(4.0, 2.0, 2.0));
+    let mut wall = Mesh::default();
+    wall.push_box(Vec3::new(1.95, -0.01, -0.01), Vec3::new(2.05, 2.01, 2.01));
+    let mut s = bare(
+        "thin-wall",
+        vec![Material::diffuse("white", Vec3::splat(0.8))],
+        vec![object("room", room.flipped(), 0), object("wall", wall, 0)],
+    );
+    s.lights.push(cloudlight_scenes::Light {
+        name: "bulb".into(),
+        kind: cloudlight_scenes::LightKind::Point,
+        power_w: Vec3::splat(100.0),
+        motion: Motion::Static(glam::Affine3A::from_translation(Vec3::new(1.0, 1.0, 1.0))),
+        sun_path: None,
+    });
+    s
+}
+
+#[test]
+fn a_thin_wall_leaves_the_dark_side_dark() {
+    let settings = LightmapSettings {
+        atlas: AtlasSettings {
+            resolution: 128,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let lm = Arc::new(Lightmap::bake(&thin_wall(), &settings).unwrap());
+    assert!(
+        lm.texels.buried + lm.texels.moved > 0,
+        "the room's surfaces under the wall are moved out or buried"
+    );
+    let mut g = Gatherer::new(lm.clone(), GatherSettings::default());
+    for _ in 0..4 {
+        g.update(0.0);
+    }
+    let map = g.map().clone();
+    let (mut lit, mut dark) = ((Vec3::ZERO, 0), (Vec3::ZERO, 0));
+    for i in 0..map.texels.len() {
+        if !map.valid[i] {
+            continue;
+        }
+        let x = lm.texels.positions[i].x;
+        let side = if x < 1.9 {
+            &mut lit
+        } else if x > 2.1 {
+            &mut dark
+        } else {
+            continue;
+        };
+        side.0 += map.texels[i];
+        side.1 += 1;
+    }
+    let (lit, dark) = (lit.0 / lit.1 as f32, dark.0 / dark.1.max(1) as f32);
+    println!(
+        "thin wall: lit {lit}, dark {dark}; moved {} buried {}",
+        lm.texels.moved, lm.texels.buried
+    );
+    assert!(lit.x > 0.0);
+    assert!(
+        dark.x <= 1e-3 * lit.x,
+        "dark side {dark} against lit side {lit}: light leaks through the wall"
+    );
+}
+
+#[test]
+fn the_cornell_box_bakes_near_the_papers_fifty_bases_with_normalised_blends() {
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let lm = Lightmap::bake(&scene, &LightmapSettings::default()).unwrap();
+    let a = &lm.atlas;
+    let valid = lm.texels.valid_count();
+    println!(
+        "atlas {}×{} charts {} utilisation {:.2} texel {:.4} m unwrap {:.3} s; valid {valid} moved {} buried {}; bases {}; bake {:.3} s",
+        a.width,
+        a.height,
+        a.charts,
+        a.utilization,
+        1.0 / a.texels_per_m,
+        a.unwrap_s,
+        lm.texels.moved,
+        lm.texels.buried,
+        lm.bases.bases.len(),
+        lm.bake_s
+    );
+    assert_eq!((a.width, a.height), (128, 128));
+    assert_eq!(a.source, UvSource::Unwrapped);
+    assert!(
+        (30..=80).contains(&lm.bases.bases.len()),
+        "{} bases",
+        lm.bases.bases.len()
+    );
+    assert!(valid > 128 * 128 / 3, "{valid} valid texels");
+    assert!(lm.texels.buried > 0, "the floor under the blocks is buried");
+    for (i, w) in lm.bases.weights.iter().enumerate() {
+        if lm.texels.valid[i] {
+            assert!(!w.is_empty() && w.len() <= MAX_BASES_PER_TEXEL);
+            let sum: f32 = w.iter().map(|(_, w)| w).sum();
+            assert!((sum - 1.0).abs() < 1e-4, "texel {i}: weights sum to {sum}");
+            assert!(w.iter().all(|(_, w)| w.is_finite() && *w >= 0.0));
+        } else {
+            assert!(w.is_empty());
+        }
+    }
+    // Seams stay shut: every map texel (padding included) has a finite value after dilation.
+    let mut g = Gatherer::new(Arc::new(lm), GatherSettings::default());
+    let u = g.update(0.0);
+    assert!(
+        u.map
+            .texels
+            .iter()
+            .all(|e| e.is_finite() && e.min_element() >= 0.0)
+    );
+    assert!(mean_valid(&u.map).x > 0.0);
+    println!("update: {} rays, {:.2} ms", u.rays, u.seconds * 1e3);
+}
+
+#[test]
+fn the_same_seed_gives_the_same_map() {
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let a = Arc::new(Lightmap::bake(&scene, &LightmapSettings::default()).unwrap());
+    let b = Arc::new(Lightmap::bake(&scene, &LightmapSettings::default()).unwrap());
+    assert_eq!(a.bases, b.bases);
+    let (mut ga, mut gb) = (
+        Gatherer::new(a, GatherSettings::default()),
+        Gatherer::new(b, GatherSettings::default()),
+    );
+    for _ in 0..2 {
+        assert_eq!(ga.update(0.5).map, gb.update(0.5).map);
+    }
+}
+
+#[test]
+fn a_static_scene_stops_gathering_once_converged() {
+    let lm = Arc::new(Lightmap::bake(&furnace(1.0, 0.3), &LightmapSettings::default()).unwrap());
+    let mut g = Gatherer::new(lm, GatherSettings::default());
+    let mut updates = 0;
+    while !g.update(updates as f64).converged {
+        updates += 1;
+        assert!(updates < 40, "a static furnace never converged");
+    }
+    let u = g.update(100.0);
+    assert!(u.converged && u.rays == 0 && u.map.time_s == 100.0);
+}
+
+#[test]
+fn light_maps_scale_with_the_lights_and_stay_finite_at_extremes() {
+    let base = cloudlight_scenes::builtin("cornell").unwrap();
+    let mut means = Vec::new();
+    for k in [1e-6f32, 1.0, 1e6] {
+        let lm = Arc::new(
+            Lightmap::bake(&base.with_lights_scaled(k), &LightmapSettings::default()).unwrap(),
+        );
+        let mut g = Gatherer::new(lm, GatherSettings::default());
+        let map = g.update(0.0).map;
+        assert!(map.texels.iter().all(|e| e.is_finite()), "scale {k}");
+        means.push(mean_valid(&map).x / k);
+    }
+    assert!(
+        (means[0] / means[1] - 1.0).abs() < 1e-3 && (means[2] / means[1] - 1.0).abs() < 1e-3,
+        "{means:?}"
+    );
+}
+
+#[test]
+fn scenes_that_cannot_be_parametrised_say_why() {
+    let cornell = cloudlight_scenes::builtin("cornell").unwrap();
+    let no_unwrap = LightmapSettings {
+        atlas: AtlasSettings {
+            unwrap_limit_s: 0.0,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    assert_eq!(
+        Lightmap::bake(&cornell, &no_unwrap).unwrap_err(),
+        NotParametrizable::NoUvsAndNoUnwrap
+    );
+    let tiny = LightmapSettings {
+        atlas: AtlasSettings {
+            max_resolution: 32,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let city = cloudlight_scenes::builtin("city:2000").unwrap();
+    let err = Lightmap::bake(&city, &tiny).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            NotParametrizable::TooManyCharts { .. } | NotParametrizable::TexelsTooLarge { .. }
+        ),
+        "{err}"
+    );
+    println!("city:2000 in 32²: {err}");
+    let empty = bare("empty", vec![Material::diffuse("w", Vec3::ONE)], Vec::new());
+    assert_eq!(
+        Lightmap::bake(&empty, &LightmapSettings::default()).unwrap_err(),
+        NotParametrizable::NoSurfaces
+    );
+}
+
+#[test]
+fn one_triangle_bakes_and_gathers_without_nan() {
+    let m = Mesh {
+        positions: vec![Vec3::ZERO, Vec3::X, Vec3::Z],
+        normals: vec![Vec3::Y; 3],
+        indices: vec![[0, 2, 1]],
+        ..Default::default()
+    };
+    let mut s = bare(
+        "one",
+        vec![Material::diffuse("w", Vec3::splat(0.5))],
+        vec![object("t", m, 0)],
+    );
+    s.lights = thin_wall().lights;
+    match Lightmap::bake(&s, &LightmapSettings::default()) {
+        Ok(lm) => {
+            let mut g = Gatherer::new(Arc::new(lm), GatherSettings::default());
+            let map = g.update(0.0).map;
+            assert!(map.texels.iter().all(|e| e.is_finite()));
+            // Nothing to bounce off: no indirect light.
+            assert_eq!(mean_valid(&map), Vec3::ZERO);
+        }
+        Err(e) => panic!("one triangle should bake: {e}"),
+    }
+}
