@@ -74,15 +74,42 @@ pub fn run(args: Args) -> ExitCode {
         ]);
     }
     println!("voxels (leaf {:.4} m):\n{v}", p.leaf_voxel_m);
-    println!(
-        "irradiance maps at the Cornell density ({:.0} texels per m²): {} texels (about {}²), {} bases of {:.0} texels; \
-         a 1024² atlas would give each texel {:.4} m²",
-        settings.texels_per_m2,
-        p.lightmap_texels,
-        (p.lightmap_texels as f64).sqrt().ceil(),
-        p.bases,
-        settings.texels_per_basis,
-        p.area_m2 / (1024.0 * 1024.0)
-    );
+    print_lightmap(&scene, &p, &settings);
     ExitCode::SUCCESS
+}
+
+/// The light map the irradiance technique would bake with its defaults, or why it cannot
+/// (the paper's "n/a").
+fn print_lightmap(
+    scene: &cloudlight::scenes::Scene,
+    p: &cloudlight::render::plan::ScenePlan,
+    settings: &cloudlight::render::plan::PlanSettings,
+) {
+    use cloudlight::render::lightmap::{Lightmap, LightmapSettings};
+    let estimate = format!(
+        "{} texels at {:.0} per m², {} bases of {:.0} texels",
+        p.lightmap_texels, settings.texels_per_m2, p.bases, settings.texels_per_basis
+    );
+    match Lightmap::bake(scene, &LightmapSettings::default()) {
+        Ok(lm) => {
+            let a = &lm.atlas;
+            println!(
+                "irradiance maps: {}×{} atlas ({:?} UVs), {} charts, {:.0}% of the map covered, texels {:.4} m, unwrap {:.3} s; \
+                 {} valid texels ({} moved out from under geometry, {} buried), {} bases, bake {:.3} s (estimate from the area: {estimate})",
+                a.width,
+                a.height,
+                a.source,
+                a.charts,
+                a.utilization * 100.0,
+                1.0 / a.texels_per_m,
+                a.unwrap_s,
+                lm.texels.valid_count(),
+                lm.texels.moved,
+                lm.texels.buried,
+                lm.bases.bases.len(),
+                lm.bake_s
+            );
+        }
+        Err(e) => println!("irradiance maps: n/a: {e} (estimate from the area: {estimate})"),
+    }
 }

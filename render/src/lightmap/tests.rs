@@ -319,3 +319,26 @@ fn one_triangle_bakes_and_gathers_without_nan() {
         Err(e) => panic!("one triangle should bake: {e}"),
     }
 }
+
+#[test]
+fn a_gathered_cornell_map_survives_h264_within_the_video_bounds() {
+    // The bounds of the video layer's light-map test (a path-traced stand-in map): the
+    // gathered map is smoother, so it must do at least as well.
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let lm = Arc::new(Lightmap::bake(&scene, &LightmapSettings::default()).unwrap());
+    let mut g = Gatherer::new(lm, GatherSettings::default());
+    for _ in 0..3 {
+        g.update(0.0);
+    }
+    let img = g.map().to_hdr();
+    for (qp, bound) in [(12u8, 0.025), (20, 0.05), (28, 0.11)] {
+        let f =
+            crate::video::measure::hdr_codec(&img, crate::video::RateControl::FixedQp(qp)).unwrap();
+        println!(
+            "QP {qp}: luminance error {:.4}, chroma {:.4}, key frame {} B, next {} B",
+            f.key.luminance_mean, f.key.chroma_mean, f.key_bytes, f.next_bytes
+        );
+        assert!(f.key.luminance_mean <= bound, "QP {qp}: {:?}", f.key);
+        assert!(f.key.chroma_mean <= 0.03, "QP {qp}: {:?}", f.key);
+    }
+}

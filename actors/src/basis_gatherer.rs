@@ -1,0 +1,369 @@
+//! `basis_gatherer`: the cloud side of the irradiance-map technique (CloudLight §4.2).
+//!
+//! At start it bakes the scene's light map (atlas, texel G-buffer, bases; cached per scene
+//! in the process) — a scene that cannot be parametrised fails validation with the reason,
+//! the paper's "n/a". Every `interval_ms` it runs one update of the kernel
+//! ([`Gatherer::update`]: texture-space direct light, one gathered bounce over the previous
+//! map, per-texel reconstruction) at the current scene time and sends the map as
+//! [`FrameMsg::Hdr`] (E_indirect in W·m⁻², valid texels marked), stamped with the scene time
+//! it is valid for. One gatherer feeds every client (through one `video_encoder`, or raw).
+//! A static scene that has converged is not gathered again; its map is re-sent every
+//! `resend_s` so late clients get it.
+//!
+//! Ports: `out` (FrameMsg::Hdr). What `latest` drops on `out`: older maps (each map is
+//! complete; the newest supersedes them).
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use cloudlight_render::lightmap::{
+    AtlasSettings, BasisSettings, GatherMode, GatherSettings, Gatherer, Lightmap, LightmapSettings,
+};
+use cloudlight_runtime::{CheckParams, NextTick, Stage, StageCtx, StageKind, StageSetup};
+use hdrhistogram::Histogram;
+use serde::{Deserialize, Serialize};
+
+use crate::wire::FrameMsg;
+
+/// Technique name of the irradiance-map stages.
+pub const TECHNIQUE: &str = "irradiance";
+
+/// Parameters of `basis_gatherer`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GathererParams {
+    /// `bases` (default: gather once per basis) or `texels` (the paper's naive server).
+    pub mode: GatherMode,
+    /// Rays per basis.
+    pub rays_per_basis: u32,
+    /// Rays per texel in `texels` mode.
+    pub rays_per_texel: u32,
+    /// Light samples per texel for texture-space direct light.
+    pub direct_samples: u32,
+    /// Valid texels per basis (sets the basis budget).
+    pub texels_per_basis: f32,
+    /// Map side in texels (0: from the surface area at `texels_per_m2`).
+    pub resolution: u32,
+    /// Texels per m² the atlas aims for.
+    pub texels_per_m2: f64,
+    /// Largest map side the texel budget allows.
+    pub max_resolution: u32,
+    /// Largest texel edge allowed, meters.
+    pub max_texel_m: f32,
+    /// Time the unwrap may take, seconds (0: only the scene's own light-map UVs).
+    pub unwrap_limit_s: f64,
+    /// Period of updates, milliseconds (an update that takes longer is followed at once).
+    pub interval_ms: f64,
+    /// Re-send the map when none went out for this long, seconds (0: never).
+    pub resend_s: f64,
+}
+
+impl Default for GathererParams {
+    fn default() -> Self {
+        let (a, b, g) = (
+            AtlasSettings::default(),
+            BasisSettings::default(),
+            GatherSettings::default(),
+        );
+        GathererParams {
+            mode: g.mode,
+            rays_per_basis: g.rays_per_basis,
+            rays_per_texel: g.rays_per_texel,
+            direct_samples: g.direct_samples,
+            texels_per_basis: b.texels_per_basis,
+            resolution: a.resolution,
+            texels_per_m2: a.texels_per_m2,
+            max_resolution: a.max_resolution,
+            max_texel_m: a.max_texel_m,
+            unwrap_limit_s: a.unwrap_limit_s,
+            interval_ms: 100.0,
+            resend_s: 1.0,
+        }
+    }
+}
+
+/// Largest map side (texels): 4096² maps are 200 MB of f32 texels per message.
+pub const MAX_RESOLUTION: u32 = 4096;
+
+impl GathererParams {
+    /// The kernel's offline settings.
+    pub fn lightmap_settings(&self) -> LightmapSettings {
+        LightmapSettings {
+            atlas: AtlasSettings {
+                texels_per_m2: self.texels_per_m2,
+                resolution: self.resolution,
+                max_resolution: self.max_resolution,
+                max_texel_m: self.max_texel_m,
+                unwrap_limit_s: self.unwrap_limit_s,
+                ..Default::default()
+            },
+            bases: BasisSettings {
+                texels_per_basis: self.texels_per_basis,
+                ..Default::default()
+            },
+        }
+    }
+
+    /// The kernel's per-update settings.
+    pub fn gather_settings(&self, seed: u64) -> GatherSettings {
+        GatherSettings {
+            mode: self.mode,
+            rays_per_basis: self.rays_per_basis,
+            rays_per_texel: self.rays_per_texel,
+            direct_samples: self.direct_samples,
+            seed,
+        }
+    }
+}
+
+impl CheckParams for GathererParams {
+    fn check(&self) -> Result<(), String> {
+        use cloudlight_runtime::check_range;
+        check_range(
+            "rays_per_basis",
+            self.rays_per_basis as f64,
+            1.0,
+            1e6,
+            "rays",
+        )?;
+        check_range(
+            "rays_per_texel",
+            self.rays_per_texel as f64,
+            1.0,
+            1e5,
+            "rays",
+        )?;
+        check_range(
+            "direct_samples",
+            self.direct_samples as f64,
+            1.0,
+            1e4,
+            "samples",
+        )?;
+        check_range(
+            "texels_per_basis",
+            self.texels_per_basis as f64,
+            1.0,
+            1e7,
+            "texels",
+        )?;
+        check_range(
+            "resolution",
+            self.resolution as f64,
+            0.0,
+            MAX_RESOLUTION as f64,
+            "texels",
+        )?;
+        check_range(
+            "texels_per_m2",
+            self.texels_per_m2,
+            1e-6,
+            1e9,
+            "texels per m²",
+        )?;
+        check_range(
+            "max_resolution",
+            self.max_resolution as f64,
+            16.0,
+            MAX_RESOLUTION as f64,
+            "texels",
+        )?;
+        check_range("max_texel_m", self.max_texel_m as f64, 1e-6, 1e4, "m")?;
+        check_range("unwrap_limit_s", self.unwrap_limit_s, 0.0, 86_400.0, "s")?;
+        check_range("interval_ms", self.interval_ms, 0.0, 3.6e6, "ms")?;
+        check_range("resend_s", self.resend_s, 0.0, 86_400.0, "s")
+    }
+}
+
+/// What `basis_gatherer` reports (its stage report, as JSON).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GathererReport {
+    /// One line for people.
+    pub summary: String,
+    /// Updates done (converged ones included).
+    pub updates: u64,
+    /// Updates that gathered nothing (a static scene that had converged).
+    pub converged_updates: u64,
+    /// Map side, texels.
+    pub resolution: u32,
+    /// Valid texels.
+    pub valid_texels: usize,
+    /// Charts of the atlas (0: the scene's own UVs).
+    pub charts: u32,
+    /// Fraction of the map covered by charts.
+    pub utilization: f32,
+    /// Unwrap time, seconds.
+    pub unwrap_s: f64,
+    /// Bases.
+    pub bases: usize,
+    /// Gather rays of the last update that gathered.
+    pub rays_per_update: u64,
+    /// Update time, p50 / p99 / mean, ms (updates that gathered).
+    pub update_ms_p50: f64,
+    /// p99, ms.
+    pub update_ms_p99: f64,
+    /// Mean, ms.
+    pub update_ms_mean: f64,
+    /// Maps handed downstream.
+    pub maps_sent: u64,
+    /// Bytes of the maps handed downstream (f32 texels + validity).
+    pub bytes_sent: u64,
+    /// Bytes a client holds for one map at f16 RGBA.
+    pub client_bytes: u64,
+}
+
+/// The basis gatherer stage.
+pub struct BasisGatherer {
+    params: GathererParams,
+    gatherer: Arc<Mutex<Gatherer>>,
+    next_due: Option<Instant>,
+    last_sent: Option<Instant>,
+    report: GathererReport,
+    update_us: Histogram<u64>,
+}
+
+fn lock(g: &Mutex<Gatherer>) -> std::sync::MutexGuard<'_, Gatherer> {
+    g.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl BasisGatherer {
+    fn new(setup: &StageSetup) -> anyhow::Result<Self> {
+        let params: GathererParams = setup.params()?;
+        params
+            .check()
+            .map_err(|e| anyhow::anyhow!("{}: params: {e}", setup.info.name))?;
+        let scene = cloudlight_scenes::load(&setup.scene)?;
+        let lightmap = Lightmap::cached(&scene, &params.lightmap_settings()).map_err(|e| {
+            anyhow::anyhow!(
+                "{}: {} has no irradiance map (n/a): {e}",
+                setup.info.name,
+                scene.name
+            )
+        })?;
+        let report = GathererReport {
+            resolution: lightmap.texels.width,
+            valid_texels: lightmap.texels.valid_count(),
+            charts: lightmap.atlas.charts,
+            utilization: lightmap.atlas.utilization,
+            unwrap_s: lightmap.atlas.unwrap_s,
+            bases: lightmap.bases.bases.len(),
+            client_bytes: lightmap.client_bytes(),
+            ..Default::default()
+        };
+        let gatherer = Gatherer::new(lightmap, params.gather_settings(setup.seed));
+        Ok(BasisGatherer {
+            params,
+            gatherer: Arc::new(Mutex::new(gatherer)),
+            next_due: None,
+            last_sent: None,
+            report,
+            update_us: Histogram::new(3).expect("3 significant digits is valid"),
+        })
+    }
+
+    fn publish(&mut self, ctx: &StageCtx) {
+        let h = &self.update_us;
+        let q = |q: f64| {
+            if h.is_empty() {
+                0.0
+            } else {
+                h.value_at_quantile(q) as f64 / 1e3
+            }
+        };
+        let r = &mut self.report;
+        r.update_ms_p50 = q(0.5);
+        r.update_ms_p99 = q(0.99);
+        r.update_ms_mean = if h.is_empty() { 0.0 } else { h.mean() / 1e3 };
+        r.summary = format!(
+            "{} updates (p50 {:.1} ms, {} rays, {} converged), {}² map, {} bases, {} maps sent",
+            r.updates,
+            r.update_ms_p50,
+            r.rays_per_update,
+            r.converged_updates,
+            r.resolution,
+            r.bases,
+            r.maps_sent
+        );
+        ctx.report(serde_json::to_value(&self.report).unwrap_or_default());
+    }
+
+    /// One update on a blocking thread; sends the map unless the scene converged and it
+    /// went out less than `resend_s` ago.
+    async fn update(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
+        let t = ctx.scene_time_s();
+        let g = self.gatherer.clone();
+        let u = tokio::task::spawn_blocking(move || lock(&g).update(t)).await?;
+        self.report.updates += 1;
+        if u.converged {
+            self.report.converged_updates += 1;
+            let resend = Duration::from_secs_f64(self.params.resend_s);
+            let recent = self.last_sent.is_some_and(|s| s.elapsed() < resend);
+            if recent || self.params.resend_s == 0.0 {
+                return Ok(());
+            }
+        } else {
+            let _ = self.update_us.record((u.seconds * 1e6).max(1.0) as u64);
+            self.report.rays_per_update = u.rays;
+        }
+        let map = &u.map;
+        let msg = FrameMsg::Hdr {
+            width: map.width,
+            height: map.height,
+            texels: map.texels.iter().map(|e| e.to_array()).collect(),
+            valid: map.valid.clone(),
+        };
+        ctx.send("out", map.time_s, msg).await?;
+        self.last_sent = Some(Instant::now());
+        self.report.maps_sent += 1;
+        self.report.bytes_sent += map.texels.len() as u64 * 13;
+        Ok(())
+    }
+}
+
+#[async_trait::async_trait]
+impl Stage for BasisGatherer {
+    async fn on_start(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
+        self.publish(ctx);
+        Ok(())
+    }
+
+    async fn on_tick(&mut self, ctx: &mut StageCtx) -> anyhow::Result<NextTick> {
+        if ctx.is_stopping() {
+            return Ok(NextTick::Never);
+        }
+        let due = *self.next_due.get_or_insert_with(Instant::now);
+        self.update(ctx).await?;
+        self.publish(ctx);
+        let interval = Duration::from_secs_f64(self.params.interval_ms / 1000.0);
+        let now = Instant::now();
+        let next = (due + interval).max(now);
+        self.next_due = Some(next);
+        Ok(NextTick::After(next - now))
+    }
+
+    async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
+        self.publish(ctx);
+        Ok(())
+    }
+}
+
+/// Registers `basis_gatherer`.
+pub fn register(registry: &mut cloudlight_runtime::StageRegistry) {
+    registry.register(
+        StageKind::new(
+            "basis_gatherer",
+            TECHNIQUE,
+            "gathers one bounce per update at light-map bases and streams the irradiance map",
+            |s| Ok(Box::new(BasisGatherer::new(s)?)),
+        )
+        .output::<FrameMsg>("out")
+        .checked_params::<GathererParams>()
+        .scene_check(|table, scene| {
+            let params: GathererParams = cloudlight_runtime::parse_params(table)?;
+            let scene = crate::the_scene(scene)?;
+            Lightmap::cached(scene, &params.lightmap_settings())
+                .map(|_| ())
+                .map_err(|e| format!("{} has no irradiance map (n/a): {e}", scene.name))
+        }),
+    );
+}
