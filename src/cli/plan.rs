@@ -87,8 +87,8 @@ fn print_lightmap(
 ) {
     use cloudlight::render::lightmap::{Lightmap, LightmapSettings};
     let estimate = format!(
-        "{} texels at {:.0} per m², {} bases of {:.0} texels",
-        p.lightmap_texels, settings.texels_per_m2, p.bases, settings.texels_per_basis
+        "{} texels at {:.0} per m²",
+        p.lightmap_texels, settings.texels_per_m2
     );
     match Lightmap::bake(scene, &LightmapSettings::default()) {
         Ok(lm) => {
