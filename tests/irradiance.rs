@@ -4,22 +4,8 @@
 
 mod common;
 
-use cloudlight::runtime::{MetricsSnapshot, Plan, RunOptions};
-use common::{plan_text, run_plan};
-
-fn report<'a>(m: &'a MetricsSnapshot, stage: &str) -> &'a serde_json::Value {
-    m.stages
-        .iter()
-        .find(|s| s.name == stage)
-        .and_then(|s| s.report.as_ref())
-        .unwrap_or_else(|| panic!("no report from {stage}"))
-}
-
-fn f(v: &serde_json::Value, key: &str) -> f64 {
-    v[key]
-        .as_f64()
-        .unwrap_or_else(|| panic!("{key} missing in {v}"))
-}
+use cloudlight::runtime::{Plan, RunOptions};
+use common::{f, plan_text, report, run_plan};
 
 fn topology(scene: &str, gatherer: &str, clients: u32) -> String {
     format!(

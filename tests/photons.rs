@@ -8,24 +8,8 @@ use std::time::Duration;
 
 use cloudlight::actors::wire::PhotonMsg;
 use cloudlight::render::photon::{Manifest, PackFormat, PackedBatch, pack::BatchHeader};
-use cloudlight::runtime::{
-    MetricsSnapshot, NextTick, RunOptions, Stage, StageCtx, StageKind, StageRegistry,
-};
-use common::{plan_text, run_plan};
-
-fn report<'a>(m: &'a MetricsSnapshot, stage: &str) -> &'a serde_json::Value {
-    m.stages
-        .iter()
-        .find(|s| s.name == stage)
-        .and_then(|s| s.report.as_ref())
-        .unwrap_or_else(|| panic!("no report from {stage}"))
-}
-
-fn f(v: &serde_json::Value, key: &str) -> f64 {
-    v[key]
-        .as_f64()
-        .unwrap_or_else(|| panic!("{key} missing in {v}"))
-}
+use cloudlight::runtime::{NextTick, RunOptions, Stage, StageCtx, StageKind, StageRegistry};
+use common::{f, plan_text, report, run_plan};
 
 /// A topology of a `cloud` and a `home` node on loopback (free ports) followed by `body`.
 fn cloud_and_home(scene: &str, duration_s: f64, body: &str) -> String {

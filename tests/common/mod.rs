@@ -206,3 +206,22 @@ pub fn values(shared: &Shared, consumer: &str) -> Vec<u64> {
 pub fn plan_text(text: &str, registry: &StageRegistry) -> Plan {
     Plan::from_str("test.toml", text, registry).unwrap_or_else(|e| panic!("{e}"))
 }
+
+/// The report `stage` published in a run's metrics.
+pub fn report<'a>(
+    m: &'a cloudlight::runtime::MetricsSnapshot,
+    stage: &str,
+) -> &'a serde_json::Value {
+    m.stages
+        .iter()
+        .find(|s| s.name == stage)
+        .and_then(|s| s.report.as_ref())
+        .unwrap_or_else(|| panic!("no report from {stage}"))
+}
+
+/// A number of a report.
+pub fn f(v: &serde_json::Value, key: &str) -> f64 {
+    v[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key} missing in {v}"))
+}

@@ -180,8 +180,8 @@ impl Lightmap {
         dilate(&img, DILATE_PASSES)
     }
 
-    /// Bytes a client holds for one map at f16 RGBA (the paper's "local device indirect
-    /// light size": three maps of 128² × 16 B = 768 kB on the Cornell box).
+    /// Bytes a client holds for one map at f16 RGBA, 8 B a texel (the paper's "local device
+    /// indirect light size" is 768 kB for the Cornell box's 128², 48 B a texel).
     pub fn client_bytes(&self) -> u64 {
         self.texels.valid.len() as u64 * 8
     }
