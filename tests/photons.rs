@@ -6,6 +6,7 @@ mod common;
 
 use std::time::Duration;
 
+use cloudlight::actors::photon_batcher;
 use cloudlight::actors::wire::PhotonMsg;
 use cloudlight::render::photon::{Manifest, PackFormat, PackedBatch, pack::BatchHeader};
 use cloudlight::runtime::{NextTick, RunOptions, Stage, StageCtx, StageKind, StageRegistry};
@@ -164,7 +165,8 @@ impl Stage for GarbageBatcher {
                 scene_time_s: 0.0,
                 lights: Vec::new(),
             };
-            ctx.send("out", 0.0, PhotonMsg::Manifest(m)).await?;
+            ctx.send(photon_batcher::OUT, 0.0, PhotonMsg::Manifest(m))
+                .await?;
             return Ok(NextTick::Never);
         }
         let photons = vec![
@@ -189,7 +191,8 @@ impl Stage for GarbageBatcher {
             *x = ((i as u32).wrapping_mul(2_654_435_761) ^ self.sent) as u8;
         }
         self.sent += 1;
-        ctx.send("out", 0.0, PhotonMsg::Batch(b)).await?;
+        ctx.send(photon_batcher::OUT, 0.0, PhotonMsg::Batch(b))
+            .await?;
         Ok(NextTick::After(Duration::from_millis(5)))
     }
 }
@@ -201,7 +204,7 @@ async fn garbage_batches_are_rejected_and_counted() {
         StageKind::new("garbage", "photons", "sends corrupt photon batches", |_| {
             Ok(Box::new(GarbageBatcher { sent: 0 }))
         })
-        .output::<PhotonMsg>("out"),
+        .output(photon_batcher::OUT),
     );
     let text = cloud_and_home(
         "cornell",

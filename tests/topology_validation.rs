@@ -19,8 +19,8 @@ fn registry() -> StageRegistry {
         StageKind::new("float_sink", "probe", "takes f32", |_| {
             anyhow::bail!("not built in these tests")
         })
-        .input::<f32>(
-            "in",
+        .input(
+            cloudlight::runtime::Port::<f32>::new("in"),
             EdgeSettings {
                 capacity: 1,
                 policy: Policy::Latest,

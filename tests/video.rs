@@ -6,15 +6,19 @@ mod common;
 
 use std::sync::{Arc, Mutex};
 
-use cloudlight::actors::wire::{FrameMsg, VideoMsg};
+use cloudlight::actors::wire::{FrameMsg, HdrMap, VideoMsg};
 use cloudlight::render::video::{Decoder, Yuv420, hdr, psnr};
 use cloudlight::runtime::{
-    EdgeSettings, EndReason, Input, NextTick, Policy, RunOptions, Stage, StageCtx, StageKind,
+    EdgeSettings, EndReason, Input, NextTick, Policy, Port, RunOptions, Stage, StageCtx, StageKind,
     StageRegistry,
 };
 use cloudlight::scenes::glam::Vec3;
 use common::{plan_text, run_plan};
 use serde::Deserialize;
+
+const PICTURES: Port<FrameMsg> = Port::new("out");
+const UNITS_IN: Port<VideoMsg> = Port::new("in");
+const UNITS_OUT: Port<VideoMsg> = Port::new("out");
 
 const W: u32 = 96;
 const H: u32 = 64;
@@ -36,12 +40,12 @@ fn picture(i: u64) -> Vec<u8> {
 }
 
 /// HDR map `i`: 10 stops across, tinted, brighter with `i`.
-fn map(i: u64) -> Vec<[f32; 3]> {
+fn map(i: u64) -> Vec<Vec3> {
     (0..W * H)
         .map(|k| {
             let (x, y) = (k % W, k / W);
             let l = (x as f32 / W as f32 * 10.0 - 4.0 + i as f32 * 0.01).exp2();
-            [l, l * (0.5 + y as f32 / H as f32 * 0.5), l * 0.7]
+            Vec3::new(l, l * (0.5 + y as f32 / H as f32 * 0.5), l * 0.7)
         })
         .collect()
 }
@@ -71,12 +75,7 @@ impl Stage for Source {
             return Ok(NextTick::Never);
         }
         let frame = if self.p.hdr {
-            FrameMsg::Hdr {
-                width: W,
-                height: H,
-                texels: map(self.next),
-                valid: Vec::new(),
-            }
+            FrameMsg::Hdr(HdrMap::new(W, H, &map(self.next), &[])?)
         } else {
             FrameMsg::Sdr {
                 width: W,
@@ -99,13 +98,13 @@ impl Stage for Source {
                 },
                 hdr => hdr,
             };
-            ctx.send("out", t, frame).await?;
+            ctx.send(PICTURES, t, frame).await?;
             return Ok(NextTick::After(std::time::Duration::from_secs_f64(
                 1.0 / 30.0,
             )));
         }
         // Scene time 1/30 s per picture, whatever the wall clock does.
-        ctx.send("out", (self.next - 1) as f64 / 30.0, frame)
+        ctx.send(PICTURES, (self.next - 1) as f64 / 30.0, frame)
             .await?;
         Ok(NextTick::After(std::time::Duration::from_millis(5)))
     }
@@ -137,7 +136,7 @@ struct Sink {
 #[async_trait::async_trait]
 impl Stage for Sink {
     async fn on_input(&mut self, _ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
-        let msg = input.get::<VideoMsg>()?;
+        let msg = input.on(UNITS_IN)?;
         let v = &msg.body;
         if v.index < self.p.join_at {
             return Ok(());
@@ -151,12 +150,7 @@ impl Stage for Sink {
         };
         let quality = match v.hdr {
             Some(range) => {
-                let original = hdr::HdrImage {
-                    width: W,
-                    height: H,
-                    texels: map(v.index).into_iter().map(Vec3::from).collect(),
-                    valid: Vec::new(),
-                };
+                let original = HdrMap::new(W, H, &map(v.index), &[])?;
                 hdr::error(&original, &hdr::unpack(&yuv, range), range).luminance_mean
             }
             None => psnr(&Yuv420::from_rgb8(W, H, &picture(v.index))?.y, &yuv.y),
@@ -181,9 +175,10 @@ struct Gate {
 #[async_trait::async_trait]
 impl Stage for Gate {
     async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
-        let msg = input.get::<VideoMsg>()?;
+        let msg = input.on(UNITS_IN)?;
         if msg.body.index >= self.p.open_at {
-            ctx.send("out", msg.scene_time_s, msg.body.clone()).await?;
+            ctx.send(UNITS_OUT, msg.scene_time_s, msg.body.clone())
+                .await?;
         }
         Ok(())
     }
@@ -202,15 +197,15 @@ fn registry(seen: &Arc<Seen>) -> StageRegistry {
                 next: 0,
             }))
         })
-        .output::<FrameMsg>("out")
+        .output(PICTURES)
         .params::<SourceParams>(),
     );
     r.register(
         StageKind::new("join_gate", "test", "a client joining late", |s| {
             Ok(Box::new(Gate { p: s.params()? }))
         })
-        .input::<VideoMsg>("in", edge)
-        .output::<VideoMsg>("out")
+        .input(UNITS_IN, edge)
+        .output(UNITS_OUT)
         .params::<GateParams>(),
     );
     let seen = seen.clone();
@@ -223,7 +218,7 @@ fn registry(seen: &Arc<Seen>) -> StageRegistry {
                 name: s.info.name.to_string(),
             }))
         })
-        .input::<VideoMsg>("in", edge)
+        .input(UNITS_IN, edge)
         .params::<SinkParams>(),
     );
     r

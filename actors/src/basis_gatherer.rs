@@ -10,7 +10,7 @@
 //! A static scene that has converged is not gathered again; its map is re-sent every
 //! `resend_s` so late clients get it.
 //!
-//! Ports: `out` (FrameMsg::Hdr). What `latest` drops on `out`: older maps (each map is
+//! Ports: [`OUT`] (FrameMsg::Hdr). What `latest` drops on `out`: older maps (each map is
 //! complete; the newest supersedes them).
 
 use std::sync::{Arc, Mutex};
@@ -19,14 +19,18 @@ use std::time::{Duration, Instant};
 use cloudlight_render::lightmap::{
     AtlasSettings, BasisSettings, GatherMode, GatherSettings, Gatherer, Lightmap, LightmapSettings,
 };
-use cloudlight_runtime::{CheckParams, NextTick, Stage, StageCtx, StageKind, StageSetup};
-use hdrhistogram::Histogram;
+use cloudlight_runtime::{
+    Cadence, CheckParams, Latency, NextTick, Port, Stage, StageCtx, StageKind, StageSetup, lock,
+};
 use serde::{Deserialize, Serialize};
 
 use crate::wire::FrameMsg;
 
 /// Technique name of the irradiance-map stages.
 pub const TECHNIQUE: &str = "irradiance";
+
+/// The maps, one per update (and re-sends).
+pub const OUT: Port<FrameMsg> = Port::new("out");
 
 /// Parameters of `basis_gatherer`.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -82,7 +86,7 @@ impl Default for GathererParams {
     }
 }
 
-/// Largest map side (texels): 4096² maps are 200 MB of f32 texels per message.
+/// Largest map side (texels): a 4096² map is 100 MB of f16 texels per message.
 pub const MAX_RESOLUTION: u32 = 4096;
 
 impl GathererParams {
@@ -204,9 +208,11 @@ pub struct GathererReport {
     pub update_ms_p99: f64,
     /// Mean, ms.
     pub update_ms_mean: f64,
+    /// Updates that ended after the next one was due.
+    pub overruns: u64,
     /// Maps handed downstream.
     pub maps_sent: u64,
-    /// Bytes of the maps handed downstream (f32 texels + validity).
+    /// Bytes of the maps handed downstream (f16 texels + coverage bits).
     pub bytes_sent: u64,
     /// Bytes a client holds for one map at f16 RGBA.
     pub client_bytes: u64,
@@ -216,14 +222,10 @@ pub struct GathererReport {
 pub struct BasisGatherer {
     params: GathererParams,
     gatherer: Arc<Mutex<Gatherer>>,
-    next_due: Option<Instant>,
+    cadence: Cadence,
     last_sent: Option<Instant>,
     report: GathererReport,
-    update_us: Histogram<u64>,
-}
-
-fn lock(g: &Mutex<Gatherer>) -> std::sync::MutexGuard<'_, Gatherer> {
-    g.lock().unwrap_or_else(|p| p.into_inner())
+    update: Latency,
 }
 
 impl BasisGatherer {
@@ -251,29 +253,23 @@ impl BasisGatherer {
             ..Default::default()
         };
         let gatherer = Gatherer::new(lightmap, params.gather_settings(setup.seed));
+        let cadence = Cadence::every_ms(params.interval_ms);
         Ok(BasisGatherer {
-            params,
             gatherer: Arc::new(Mutex::new(gatherer)),
-            next_due: None,
+            cadence,
             last_sent: None,
             report,
-            update_us: Histogram::new(3).expect("3 significant digits is valid"),
+            update: Latency::new(),
+            params,
         })
     }
 
     fn publish(&mut self, ctx: &StageCtx) {
-        let h = &self.update_us;
-        let q = |q: f64| {
-            if h.is_empty() {
-                0.0
-            } else {
-                h.value_at_quantile(q) as f64 / 1e3
-            }
-        };
         let r = &mut self.report;
-        r.update_ms_p50 = q(0.5);
-        r.update_ms_p99 = q(0.99);
-        r.update_ms_mean = if h.is_empty() { 0.0 } else { h.mean() / 1e3 };
+        r.update_ms_p50 = self.update.p50_ms();
+        r.update_ms_p99 = self.update.p99_ms();
+        r.update_ms_mean = self.update.mean_ms();
+        r.overruns = self.cadence.overruns();
         r.summary = format!(
             "{} updates (p50 {:.1} ms, {} rays, {} converged), {}² map, {} bases, {} maps sent",
             r.updates,
@@ -302,20 +298,15 @@ impl BasisGatherer {
                 return Ok(());
             }
         } else {
-            let _ = self.update_us.record((u.seconds * 1e6).max(1.0) as u64);
+            self.update.record_s(u.seconds);
             self.report.rays_per_update = u.rays;
         }
-        let map = &u.map;
-        let msg = FrameMsg::Hdr {
-            width: map.width,
-            height: map.height,
-            texels: map.texels.iter().map(|e| e.to_array()).collect(),
-            valid: map.valid.clone(),
-        };
-        ctx.send("out", map.time_s, msg).await?;
+        let bytes = u.map.data_bytes() as u64;
+        let msg = FrameMsg::Hdr((*u.map).clone());
+        ctx.send(OUT, u.time_s, msg).await?;
         self.last_sent = Some(Instant::now());
         self.report.maps_sent += 1;
-        self.report.bytes_sent += map.texels.len() as u64 * 13;
+        self.report.bytes_sent += bytes;
         Ok(())
     }
 }
@@ -331,14 +322,11 @@ impl Stage for BasisGatherer {
         if ctx.is_stopping() {
             return Ok(NextTick::Never);
         }
-        let due = *self.next_due.get_or_insert_with(Instant::now);
+        self.cadence.begin();
         self.update(ctx).await?;
+        let next = self.cadence.end_tick();
         self.publish(ctx);
-        let interval = Duration::from_secs_f64(self.params.interval_ms / 1000.0);
-        let now = Instant::now();
-        let next = (due + interval).max(now);
-        self.next_due = Some(next);
-        Ok(NextTick::After(next - now))
+        Ok(next)
     }
 
     async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
@@ -356,7 +344,7 @@ pub fn register(registry: &mut cloudlight_runtime::StageRegistry) {
             "gathers one bounce per update at light-map bases and streams the irradiance map",
             |s| Ok(Box::new(BasisGatherer::new(s)?)),
         )
-        .output::<FrameMsg>("out")
+        .output(OUT)
         .checked_params::<GathererParams>()
         .scene_check(|table, scene| {
             let params: GathererParams = cloudlight_runtime::parse_params(table)?;

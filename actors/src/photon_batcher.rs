@@ -18,15 +18,18 @@ use cloudlight_render::photon::{
 use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_runtime::stage::show_number;
 use cloudlight_runtime::{
-    CheckParams, EdgeSettings, NextTick, Policy, Stage, StageCtx, StageKind, StageSetup,
+    Cadence, CheckParams, EdgeSettings, Latency, NextTick, Policy, Port, Stage, StageCtx,
+    StageKind, StageSetup, lock,
 };
 use cloudlight_scenes::Scene;
-use hdrhistogram::Histogram;
 use serde::{Deserialize, Serialize};
 
 pub use cloudlight_render::photon::Retrace;
 
 use crate::wire::PhotonMsg;
+
+/// Batches and manifests, in the order they are made.
+pub const OUT: Port<PhotonMsg> = Port::new("out");
 
 /// Technique name of the photon stages.
 pub const TECHNIQUE: &str = "photons";
@@ -159,6 +162,8 @@ pub struct BatcherReport {
     pub iteration_ms_p99: f64,
     /// Mean iteration time, ms.
     pub iteration_ms_mean: f64,
+    /// Iterations that ended after the next one was due.
+    pub overruns: u64,
 }
 
 /// Figures the batcher keeps.
@@ -170,10 +175,10 @@ struct Figures {
     radius_m: f32,
     bytes_sent: u64,
     resends: u64,
-    trace_us: Histogram<u64>,
-    pack_us: Histogram<u64>,
-    send_us: Histogram<u64>,
-    iteration_us: Histogram<u64>,
+    trace: Latency,
+    pack: Latency,
+    send: Latency,
+    iteration: Latency,
     started: Instant,
 }
 
@@ -185,33 +190,8 @@ pub struct PhotonBatcher {
     stream: Arc<Mutex<PhotonStream>>,
     format: PackFormat,
     bvh: Option<Arc<SceneBvh>>,
-    next_due: Option<Instant>,
+    cadence: Cadence,
     figures: Figures,
-}
-
-fn histogram() -> Histogram<u64> {
-    Histogram::new(3).expect("3 significant digits is valid")
-}
-
-fn record(h: &mut Histogram<u64>, d: Duration) {
-    let _ = h.record(d.as_micros().max(1) as u64);
-}
-
-fn ms(h: &Histogram<u64>, q: f64) -> f64 {
-    if h.is_empty() {
-        0.0
-    } else {
-        h.value_at_quantile(q) as f64 / 1000.0
-    }
-}
-
-fn mean_ms(h: &Histogram<u64>) -> f64 {
-    if h.is_empty() { 0.0 } else { h.mean() / 1000.0 }
-}
-
-fn lock(stream: &Mutex<PhotonStream>) -> std::sync::MutexGuard<'_, PhotonStream> {
-    // A panic while planning fails the stage anyway; the state is still usable.
-    stream.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 impl PhotonBatcher {
@@ -226,13 +206,14 @@ impl PhotonBatcher {
             .settings_for(&scene)
             .map_err(|e| anyhow::anyhow!("{}: params: {e}", setup.info.name))?;
         let stream = PhotonStream::new(settings, format, params.retrace, setup.seed);
+        let cadence = Cadence::every_ms(params.interval_ms);
         Ok(PhotonBatcher {
             params,
             scene,
             stream: Arc::new(Mutex::new(stream)),
             format,
             bvh: None,
-            next_due: None,
+            cadence,
             figures: Figures {
                 iterations: 0,
                 batches_traced: 0,
@@ -241,10 +222,10 @@ impl PhotonBatcher {
                 radius_m: 0.0,
                 bytes_sent: 0,
                 resends: 0,
-                trace_us: histogram(),
-                pack_us: histogram(),
-                send_us: histogram(),
-                iteration_us: histogram(),
+                trace: Latency::new(),
+                pack: Latency::new(),
+                send: Latency::new(),
+                iteration: Latency::new(),
                 started: Instant::now(),
             },
         })
@@ -262,9 +243,9 @@ impl PhotonBatcher {
             summary: format!(
                 "{} iterations (p50 {:.1} ms: trace {:.1}, pack {:.2}), {} batches of {} photons, {:.0} kB per set, {:.1} Mbps sent",
                 f.iterations,
-                ms(&f.iteration_us, 0.5),
-                ms(&f.trace_us, 0.5),
-                ms(&f.pack_us, 0.5),
+                f.iteration.p50_ms(),
+                f.trace.p50_ms(),
+                f.pack.p50_ms(),
                 batches,
                 settings.batch_size,
                 footprint as f64 / 1e3,
@@ -289,15 +270,16 @@ impl PhotonBatcher {
             bytes_sent: f.bytes_sent,
             mbps_sent,
             resends: f.resends,
-            trace_ms_p50: ms(&f.trace_us, 0.5),
-            trace_ms_mean: mean_ms(&f.trace_us),
-            pack_ms_p50: ms(&f.pack_us, 0.5),
-            pack_ms_mean: mean_ms(&f.pack_us),
-            send_ms_p50: ms(&f.send_us, 0.5),
-            send_ms_mean: mean_ms(&f.send_us),
-            iteration_ms_p50: ms(&f.iteration_us, 0.5),
-            iteration_ms_p99: ms(&f.iteration_us, 0.99),
-            iteration_ms_mean: mean_ms(&f.iteration_us),
+            trace_ms_p50: f.trace.p50_ms(),
+            trace_ms_mean: f.trace.mean_ms(),
+            pack_ms_p50: f.pack.p50_ms(),
+            pack_ms_mean: f.pack.mean_ms(),
+            send_ms_p50: f.send.p50_ms(),
+            send_ms_mean: f.send.mean_ms(),
+            iteration_ms_p50: f.iteration.p50_ms(),
+            iteration_ms_p99: f.iteration.p99_ms(),
+            iteration_ms_mean: f.iteration.mean_ms(),
+            overruns: self.cadence.overruns(),
         }
     }
 
@@ -328,16 +310,16 @@ impl PhotonBatcher {
             PhotonMsg::Manifest(_) => 0,
         };
         let start = Instant::now();
-        ctx.send("out", t, msg).await?;
-        record(&mut self.figures.send_us, start.elapsed());
+        ctx.send(OUT, t, msg).await?;
+        self.figures.send.record(start.elapsed());
         self.figures.bytes_sent += bytes;
         Ok(())
     }
 
     fn count(&mut self, traced: &TracedBatch, batch_size: u32) {
         let f = &mut self.figures;
-        record(&mut f.trace_us, traced.trace_time);
-        record(&mut f.pack_us, traced.pack_time);
+        f.trace.record(traced.trace_time);
+        f.pack.record(traced.pack_time);
         f.batches_traced += 1;
         f.photons_emitted += batch_size as u64;
     }
@@ -401,7 +383,7 @@ impl PhotonBatcher {
             }
         }
         self.figures.iterations += 1;
-        record(&mut self.figures.iteration_us, started.elapsed());
+        self.figures.iteration.record(started.elapsed());
         Ok(())
     }
 }
@@ -418,15 +400,11 @@ impl Stage for PhotonBatcher {
         if ctx.is_stopping() {
             return Ok(NextTick::Never);
         }
-        let due = *self.next_due.get_or_insert_with(Instant::now);
+        self.cadence.begin();
         self.iterate(ctx).await?;
+        let next = self.cadence.end_tick();
         self.publish(ctx);
-        let interval = Duration::from_secs_f64(self.params.interval_ms / 1000.0);
-        // Keep the cadence; after an overrun, go on from now instead of bursting.
-        let now = Instant::now();
-        let next = (due + interval).max(now);
-        self.next_due = Some(next);
-        Ok(NextTick::After(next - now))
+        Ok(next)
     }
 
     async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
@@ -529,7 +507,7 @@ pub fn register(registry: &mut cloudlight_runtime::StageRegistry) {
             "traces photon batches per light (re-tracing lights that change) and streams them packed",
             |s| Ok(Box::new(PhotonBatcher::new(s)?)),
         )
-        .output::<PhotonMsg>("out")
+        .output(OUT)
         .checked_params::<BatcherParams>()
         .scene_check(|table, scene| {
             let params: BatcherParams = cloudlight_runtime::parse_params(table)?;

@@ -5,20 +5,25 @@
 //! runtime's and transport's tests use it as their synthetic pipeline.
 
 use std::collections::HashMap;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use cloudlight_runtime::clock::now_unix_ns;
 use cloudlight_runtime::{
-    CheckParams, EdgeSettings, Input, NextTick, Policy, Stage, StageCtx, StageKind, StageRegistry,
-    StageSetup, check_range,
+    Cadence, CheckParams, EdgeSettings, Input, Latency, NextTick, Policy, Port, Stage, StageCtx,
+    StageKind, StageRegistry, StageSetup, check_range,
 };
-use hdrhistogram::Histogram;
 use serde::Deserialize;
 
 use crate::wire::ProbeMsg;
 
 /// Technique name of the probe stages.
 pub const TECHNIQUE: &str = "probe";
+
+/// Probe messages into a relay or a sink.
+pub const IN: Port<ProbeMsg> = Port::new("in");
+
+/// Probe messages out of a source or a relay.
+pub const OUT: Port<ProbeMsg> = Port::new("out");
 
 /// Parameters of `probe_source`.
 #[derive(Clone, Debug, Deserialize)]
@@ -41,7 +46,8 @@ fn default_payload() -> usize {
 pub struct ProbeSource {
     params: SourceParams,
     sent: u64,
-    started: Option<Instant>,
+    /// At `rate_hz`, keeping the average rate after a stall.
+    cadence: Option<Cadence>,
 }
 
 #[async_trait::async_trait]
@@ -50,22 +56,22 @@ impl Stage for ProbeSource {
         if self.params.count.is_some_and(|c| self.sent >= c) || ctx.is_stopping() {
             return Ok(NextTick::Never);
         }
-        let started = *self.started.get_or_insert_with(Instant::now);
+        if let Some(c) = &mut self.cadence {
+            c.begin();
+        }
         let msg = ProbeMsg::new(ctx.seed(), self.sent, self.params.payload_bytes);
         let t = ctx.scene_time_s();
-        ctx.send("out", t, msg).await?;
+        ctx.send(OUT, t, msg).await?;
         self.sent += 1;
-        ctx.report(serde_json::json!({ "sent": self.sent }));
+        let overruns = self.cadence.as_ref().map_or(0, Cadence::overruns);
+        ctx.report(serde_json::json!({ "sent": self.sent, "overruns": overruns }));
         if self.params.count.is_some_and(|c| self.sent >= c) {
             return Ok(NextTick::Never);
         }
-        Ok(match self.params.rate_hz {
-            None => NextTick::Now,
-            Some(hz) => {
-                let due = started + Duration::from_secs_f64(self.sent as f64 / hz);
-                NextTick::After(due.saturating_duration_since(Instant::now()))
-            }
-        })
+        Ok(self
+            .cadence
+            .as_mut()
+            .map_or(NextTick::Now, Cadence::end_tick))
     }
 }
 
@@ -96,11 +102,11 @@ impl Stage for ProbeRelay {
                 self.handled
             );
         }
-        let msg = input.get::<ProbeMsg>()?;
+        let msg = input.on(IN)?;
         if self.params.work_ms > 0.0 {
             tokio::time::sleep(Duration::from_secs_f64(self.params.work_ms / 1000.0)).await;
         }
-        ctx.send("out", msg.scene_time_s, msg.body.clone()).await?;
+        ctx.send(OUT, msg.scene_time_s, msg.body.clone()).await?;
         self.handled += 1;
         Ok(())
     }
@@ -123,28 +129,21 @@ pub struct ProbeSink {
     out_of_order: u64,
     corrupt: u64,
     last_index: HashMap<String, u64>,
-    hop_latency_us: Histogram<u64>,
-    age_us: Histogram<u64>,
+    hop_latency: Latency,
+    age: Latency,
 }
 
 impl ProbeSink {
     fn report(&self) -> serde_json::Value {
-        let q = |h: &Histogram<u64>, q: f64| {
-            if h.is_empty() {
-                0.0
-            } else {
-                h.value_at_quantile(q) as f64 / 1000.0
-            }
-        };
         serde_json::json!({
             "received": self.received,
             "bytes": self.bytes,
             "out_of_order": self.out_of_order,
             "corrupt": self.corrupt,
-            "hop_latency_ms_p50": q(&self.hop_latency_us, 0.5),
-            "hop_latency_ms_p99": q(&self.hop_latency_us, 0.99),
-            "age_ms_p50": q(&self.age_us, 0.5),
-            "age_ms_p99": q(&self.age_us, 0.99),
+            "hop_latency_ms_p50": self.hop_latency.p50_ms(),
+            "hop_latency_ms_p99": self.hop_latency.p99_ms(),
+            "age_ms_p50": self.age.p50_ms(),
+            "age_ms_p99": self.age.p99_ms(),
         })
     }
 }
@@ -152,7 +151,7 @@ impl ProbeSink {
 #[async_trait::async_trait]
 impl Stage for ProbeSink {
     async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
-        let msg = input.get::<ProbeMsg>()?;
+        let msg = input.on(IN)?;
         let now = now_unix_ns();
         self.received += 1;
         self.bytes += msg.body.payload.len() as u64;
@@ -171,11 +170,11 @@ impl Stage for ProbeSink {
                 "corrupt probe payload"
             );
         }
-        let _ = self
-            .hop_latency_us
-            .record((now.saturating_sub(msg.produced_unix_ns) / 1000).max(1));
+        self.hop_latency.record(Duration::from_nanos(
+            now.saturating_sub(msg.produced_unix_ns),
+        ));
         let age_s = (ctx.clock().scene_time_at_s(now) - msg.scene_time_s).max(0.0);
-        let _ = self.age_us.record(((age_s * 1e6) as u64).max(1));
+        self.age.record_s(age_s);
         if self.params.work_ms > 0.0 {
             tokio::time::sleep(Duration::from_secs_f64(self.params.work_ms / 1000.0)).await;
         }
@@ -196,10 +195,6 @@ pub const PROBE_EDGE: EdgeSettings = EdgeSettings {
     capacity: 8,
     policy: Policy::Block,
 };
-
-fn histogram() -> Histogram<u64> {
-    Histogram::new(3).expect("3 significant digits is valid")
-}
 
 /// Largest probe payload: the transport's message limit (a cut edge drops larger ones).
 const MAX_PAYLOAD_BYTES: usize = 64 << 20;
@@ -242,14 +237,15 @@ pub fn register(registry: &mut StageRegistry) {
             "emits pattern-filled messages at `rate_hz` (or as fast as edges allow)",
             |s: &StageSetup| {
                 let params: SourceParams = s.params()?;
+                let cadence = params.rate_hz.map(|hz| Cadence::hz(hz).catching_up());
                 Ok(Box::new(ProbeSource {
                     params,
                     sent: 0,
-                    started: None,
+                    cadence,
                 }))
             },
         )
-        .output::<ProbeMsg>("out")
+        .output(OUT)
         .checked_params::<SourceParams>(),
     );
     registry.register(
@@ -264,8 +260,8 @@ pub fn register(registry: &mut StageRegistry) {
                 }))
             },
         )
-        .input::<ProbeMsg>("in", PROBE_EDGE)
-        .output::<ProbeMsg>("out")
+        .input(IN, PROBE_EDGE)
+        .output(OUT)
         .checked_params::<RelayParams>(),
     );
     registry.register(
@@ -281,12 +277,12 @@ pub fn register(registry: &mut StageRegistry) {
                     out_of_order: 0,
                     corrupt: 0,
                     last_index: HashMap::new(),
-                    hop_latency_us: histogram(),
-                    age_us: histogram(),
+                    hop_latency: Latency::new(),
+                    age: Latency::new(),
                 }))
             },
         )
-        .input::<ProbeMsg>("in", PROBE_EDGE)
+        .input(IN, PROBE_EDGE)
         .checked_params::<SinkParams>(),
     );
 }

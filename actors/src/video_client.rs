@@ -18,7 +18,6 @@ use cloudlight_render::raster::{NoIndirect, Raster, RasterError};
 use cloudlight_render::video::{Decoder, DecoderStats};
 use cloudlight_runtime::{CheckParams, EdgeSettings, Policy, StageRegistry, StageSetup, Stamped};
 use cloudlight_scenes::Scene;
-use hdrhistogram::Histogram;
 use serde::{Deserialize, Serialize};
 
 use crate::client::{ClientTechnique, Picture, register as register_client};
@@ -64,7 +63,7 @@ pub struct VideoClient {
     valid_as_of: Option<f64>,
     bytes: u64,
     hdr_ignored: u64,
-    decode_us: Histogram<u64>,
+    decode: cloudlight_runtime::Latency,
 }
 
 impl ClientTechnique for VideoClient {
@@ -82,7 +81,7 @@ impl ClientTechnique for VideoClient {
             valid_as_of: None,
             bytes: 0,
             hdr_ignored: 0,
-            decode_us: Histogram::new(3).expect("3 significant digits is valid"),
+            decode: cloudlight_runtime::Latency::new(),
         })
     }
 
@@ -104,9 +103,7 @@ impl ClientTechnique for VideoClient {
                 // The light's age, not only the picture's: a frame rendered in the cloud
                 // shows light that was already old when it was rendered.
                 self.valid_as_of = Some(unit.light_s.unwrap_or(msg.scene_time_s));
-                let _ = self
-                    .decode_us
-                    .record(start.elapsed().as_micros().max(1) as u64);
+                self.decode.record(start.elapsed());
             }
             Ok(None) => {}
             Err(e) => {
@@ -145,18 +142,11 @@ impl ClientTechnique for VideoClient {
     }
 
     fn report(&self) -> VideoClientReport {
-        let q = |p: f64| {
-            if self.decode_us.is_empty() {
-                0.0
-            } else {
-                self.decode_us.value_at_quantile(p) as f64 / 1000.0
-            }
-        };
         VideoClientReport {
             decoder: self.decoder.stats(),
             bytes_received: self.bytes,
-            decode_ms_p50: q(0.5),
-            decode_ms_p99: q(0.99),
+            decode_ms_p50: self.decode.p50_ms(),
+            decode_ms_p99: self.decode.p99_ms(),
             hdr_units_ignored: self.hdr_ignored,
         }
     }

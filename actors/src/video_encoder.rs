@@ -2,8 +2,8 @@
 //! H.264 access units out ([`VideoMsg`]), each with its scene time (the stamp), frame index,
 //! stream time and key-frame flag — the kernel is `cloudlight_render::video`.
 //!
-//! Ports and what they drop: `in` defaults to `latest`, 2 deep (a newer picture supersedes
-//! one not yet encoded); `out` feeds decoders, whose edges should be `block` (a dropped
+//! Ports and what they drop: [`IN`] defaults to `latest`, 2 deep (a newer picture supersedes
+//! one not yet encoded); [`OUT`] feeds decoders, whose edges should be `block` (a dropped
 //! P frame corrupts every picture until the next key frame). One encoder may feed many
 //! clients (shared content: irradiance maps); a client joining late shows its first picture
 //! at the next key frame, at most `keyframe_s` of stream time later. Replicate it per client
@@ -17,17 +17,21 @@ use std::time::Instant;
 
 use cloudlight_render::video::{self, EncoderSettings, RateControl, Yuv420, hdr};
 use cloudlight_runtime::{
-    CheckParams, EdgeSettings, Input, Policy, Stage, StageCtx, StageKind, StageRegistry,
-    StageSetup, check_range,
+    CheckParams, EdgeSettings, Input, Latency, Policy, Port, Stage, StageCtx, StageKind,
+    StageRegistry, StageSetup, check_range,
 };
-use cloudlight_scenes::glam::Vec3;
-use hdrhistogram::Histogram;
 use serde::{Deserialize, Serialize};
 
 use crate::wire::{FrameMsg, VideoMsg};
 
 /// The technique of the video stages (list it in a topology's `techniques`).
 pub const TECHNIQUE: &str = "video";
+
+/// Pictures to encode.
+pub const IN: Port<FrameMsg> = Port::new("in");
+
+/// Access units, in stream order.
+pub const OUT: Port<VideoMsg> = Port::new("out");
 
 /// Default settings of the encoder's input: the newest picture wins.
 pub const FRAME_EDGE: EdgeSettings = EdgeSettings {
@@ -142,7 +146,7 @@ pub struct VideoEncoder {
     params: EncoderParams,
     encoder: Option<video::Encoder>,
     report: EncoderReport,
-    encode_us: Histogram<u64>,
+    encode: Latency,
     started: Option<Instant>,
 }
 
@@ -156,7 +160,7 @@ impl VideoEncoder {
             params,
             encoder: None,
             report: EncoderReport::default(),
-            encode_us: Histogram::new(3).expect("3 significant digits is valid"),
+            encode: Latency::new(),
             started: None,
         })
     }
@@ -174,17 +178,10 @@ impl VideoEncoder {
     }
 
     fn snapshot(&self) -> EncoderReport {
-        let q = |p: f64| {
-            if self.encode_us.is_empty() {
-                0.0
-            } else {
-                self.encode_us.value_at_quantile(p) as f64 / 1000.0
-            }
-        };
         let elapsed = self.started.map_or(0.0, |s| s.elapsed().as_secs_f64());
         let mut r = self.report.clone();
-        r.encode_ms_p50 = q(0.5);
-        r.encode_ms_p99 = q(0.99);
+        r.encode_ms_p50 = self.encode.p50_ms();
+        r.encode_ms_p99 = self.encode.p99_ms();
         r.mbps = r.bytes as f64 * 8.0 / elapsed.max(1e-9) / 1e6;
         r.summary = format!(
             "{} pictures → {} units ({} key), {:.2} Mbit/s, encode {:.2} ms p50 / {:.2} ms p99",
@@ -197,7 +194,7 @@ impl VideoEncoder {
 #[async_trait::async_trait]
 impl Stage for VideoEncoder {
     async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
-        let msg = input.get::<FrameMsg>()?;
+        let msg = input.on(IN)?;
         self.started.get_or_insert_with(Instant::now);
         self.report.pictures += 1;
         let t = Instant::now();
@@ -214,25 +211,18 @@ impl Stage for VideoEncoder {
                 None,
                 *light_s,
             ),
-            FrameMsg::Hdr {
-                width,
-                height,
-                texels,
-                valid,
-            } => {
-                let packed = hdr::pack(&hdr::HdrImage {
-                    width: *width,
-                    height: *height,
-                    texels: texels.iter().map(|&c| Vec3::from(c)).collect(),
-                    valid: valid.clone(),
-                })?;
-                (*width, *height, packed.yuv, Some(packed.range), None)
+            FrameMsg::Hdr(map) => {
+                map.check()
+                    .map_err(|e| anyhow::anyhow!("a light map that does not add up: {e}"))?;
+                let packed = hdr::pack(map)?;
+                let (w, h) = (map.width(), map.height());
+                (w, h, packed.yuv, Some(packed.range), None)
             }
         };
         let unit = self
             .encoder_for(width, height)?
             .encode(&yuv, msg.scene_time_s)?;
-        let _ = self.encode_us.record(t.elapsed().as_micros().max(1) as u64);
+        self.encode.record(t.elapsed());
         let Some(unit) = unit else {
             self.report.skipped += 1;
             return Ok(());
@@ -250,7 +240,7 @@ impl Stage for VideoEncoder {
             light_s,
             data: unit.data,
         };
-        ctx.send("out", msg.scene_time_s, out).await?;
+        ctx.send(OUT, msg.scene_time_s, out).await?;
         if self.report.units % 30 == 1 {
             ctx.report(serde_json::to_value(self.snapshot())?);
         }
@@ -272,8 +262,8 @@ pub fn register(registry: &mut StageRegistry) {
             "encodes pictures (SDR frames or HDR light maps) as H.264 access units",
             |s| Ok(Box::new(VideoEncoder::new(s)?)),
         )
-        .input::<FrameMsg>("in", FRAME_EDGE)
-        .output::<VideoMsg>("out")
+        .input(IN, FRAME_EDGE)
+        .output(OUT)
         .checked_params::<EncoderParams>(),
     );
 }

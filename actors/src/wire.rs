@@ -2,6 +2,7 @@
 //! cut; the runtime wraps each in `Stamped<T>` and encodes it with `cloudlight_runtime::codec`.
 //! Techniques add their batch, delta and frame types here as they arrive.
 
+pub use cloudlight_render::HdrMap;
 use serde::{Deserialize, Serialize};
 
 /// A probe message: a payload whose bytes follow [`ProbeMsg::pattern`], so a receiver can
@@ -58,18 +59,9 @@ pub enum FrameMsg {
         /// client rendering in the cloud); the frame's own stamp is its render time.
         light_s: Option<f64>,
     },
-    /// Linear RGB texels (W·m⁻² or radiance, as the producer says), row-major from the top,
-    /// and which of them lie in a chart (empty: all).
-    Hdr {
-        /// Width, texels (even).
-        width: u32,
-        /// Height, texels (even).
-        height: u32,
-        /// The texels.
-        texels: Vec<[f32; 3]>,
-        /// Chart coverage per texel (empty: every texel is valid).
-        valid: Vec<bool>,
-    },
+    /// An HDR light map (f16 texels and coverage bits: the same bits in process and on the
+    /// wire; check it with [`HdrMap::check`] before use).
+    Hdr(HdrMap),
 }
 
 /// One H.264 access unit from a `video_encoder` (the runtime's stamp carries the scene time
@@ -131,12 +123,17 @@ mod tests {
             rgb: vec![9; 12],
             light_s: Some(3.25),
         });
-        round_trip(FrameMsg::Hdr {
-            width: 2,
-            height: 2,
-            texels: vec![[1.0, 2.0, 3.0]; 4],
-            valid: vec![true, false, true, true],
-        });
+        let map = HdrMap::new(
+            2,
+            2,
+            &[cloudlight_scenes::glam::Vec3::new(1.0, 2.0, 3.0); 4],
+            &[true, false, true, true],
+        )
+        .unwrap();
+        // 6 bytes a texel and one coverage byte, beside a few bytes of framing.
+        let len = codec::encoded_len(&FrameMsg::Hdr(map.clone())).unwrap();
+        assert!(len <= 4 * 6 + 1 + 24, "{len} bytes for a 2×2 map");
+        round_trip(FrameMsg::Hdr(map));
         round_trip(VideoMsg {
             index: 4,
             key: true,

@@ -7,6 +7,7 @@
 
 pub mod bvh;
 pub mod direct_light;
+pub mod hdr_map;
 pub mod image_io;
 pub mod lightmap;
 pub mod metrics;
@@ -19,4 +20,5 @@ pub mod sampling;
 pub mod video;
 
 pub use bvh::{BvhKind, Hit, SceneBvh};
+pub use hdr_map::HdrMap;
 pub use reference::{ReferenceImages, ReferenceRenderer, RenderSettings, render};

@@ -203,10 +203,7 @@ pub(crate) struct SupervisorState {
 
 impl RunSupervisor {
     fn name_of(state: &SupervisorState, id: ActorId) -> Arc<str> {
-        state
-            .names
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
+        crate::toolkit::lock(&state.names)
             .get(&id)
             .cloned()
             .unwrap_or_else(|| Arc::from(format!("actor {id}")))

@@ -169,7 +169,7 @@ impl Edge {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, VecDeque<Queued>> {
         // A panic while holding this lock cannot leave the deque inconsistent.
-        self.queue.lock().unwrap_or_else(|e| e.into_inner())
+        crate::toolkit::lock(&self.queue)
     }
 
     /// Registers the consumer's wake-up; called once, before any producer runs.

@@ -16,6 +16,7 @@ pub mod message;
 pub mod metrics;
 mod net;
 pub mod stage;
+pub mod toolkit;
 pub mod topology;
 
 pub use actor::RunEvent;
@@ -28,4 +29,5 @@ pub use stage::{
     AnyScene, CheckParams, Input, InstanceInfo, NextTick, SendError, Stage, StageCtx, StageKind,
     StageRegistry, StageSetup, check_range, parse_params,
 };
+pub use toolkit::{Cadence, Latency, Port, lock};
 pub use topology::{Diagnostic, Plan, Topology, TopologyErrors, TopologySpec};

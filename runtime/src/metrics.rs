@@ -13,8 +13,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use comfy_table::{Table, presets::UTF8_FULL_CONDENSED};
-use hdrhistogram::Histogram;
 use serde::{Deserialize, Serialize};
+
+use crate::toolkit::{Latency, lock};
 
 /// Live counters of one stage instance.
 #[derive(Debug)]
@@ -22,7 +23,7 @@ pub struct StageMetrics {
     handled: AtomicU64,
     ticks: AtomicU64,
     blocked_ns: AtomicU64,
-    busy_us: Mutex<Histogram<u64>>,
+    busy: Mutex<Latency>,
     report: Mutex<Option<serde_json::Value>>,
 }
 
@@ -32,7 +33,7 @@ impl Default for StageMetrics {
             handled: AtomicU64::new(0),
             ticks: AtomicU64::new(0),
             blocked_ns: AtomicU64::new(0),
-            busy_us: Mutex::new(Histogram::new(3).expect("3 significant digits is valid")),
+            busy: Mutex::new(Latency::new()),
             report: Mutex::new(None),
         }
     }
@@ -47,14 +48,11 @@ impl StageMetrics {
         }
         self.blocked_ns
             .fetch_add(blocked.as_nanos() as u64, Ordering::Relaxed);
-        let us = (busy.as_micros() as u64).max(1);
-        let mut h = self.busy_us.lock().unwrap_or_else(|e| e.into_inner());
-        // Auto-resizing histogram: recording cannot fail for a positive value.
-        let _ = h.record(us);
+        lock(&self.busy).record(busy);
     }
 
     pub(crate) fn set_report(&self, value: serde_json::Value) {
-        *self.report.lock().unwrap_or_else(|e| e.into_inner()) = Some(value);
+        *lock(&self.report) = Some(value);
     }
 
     /// Messages handled so far.
@@ -63,32 +61,18 @@ impl StageMetrics {
     }
 
     pub(crate) fn snapshot(&self, name: &str, kind: &str, node: &str) -> StageSnapshot {
-        let h = self.busy_us.lock().unwrap_or_else(|e| e.into_inner());
-        let ms = |us: u64| us as f64 / 1000.0;
-        let calls = h.len();
+        let h = lock(&self.busy);
         StageSnapshot {
             name: name.to_string(),
             kind: kind.to_string(),
             node: node.to_string(),
             handled: self.handled(),
             ticks: self.ticks.load(Ordering::Relaxed),
-            busy_p50_ms: if calls > 0 {
-                ms(h.value_at_quantile(0.5))
-            } else {
-                0.0
-            },
-            busy_p99_ms: if calls > 0 {
-                ms(h.value_at_quantile(0.99))
-            } else {
-                0.0
-            },
-            busy_mean_ms: if calls > 0 { h.mean() / 1000.0 } else { 0.0 },
+            busy_p50_ms: h.p50_ms(),
+            busy_p99_ms: h.p99_ms(),
+            busy_mean_ms: h.mean_ms(),
             blocked_s: self.blocked_ns.load(Ordering::Relaxed) as f64 * 1e-9,
-            report: self
-                .report
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .clone(),
+            report: lock(&self.report).clone(),
         }
     }
 }

@@ -58,19 +58,14 @@ pub(crate) struct PeerState {
 
 impl PeerBoard {
     pub(crate) fn get(&self, peer: &str) -> PeerState {
-        self.state
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
+        crate::toolkit::lock(&self.state)
             .get(peer)
             .cloned()
             .unwrap_or_default()
     }
 
     fn update(&self, peer: &str, f: impl FnOnce(&mut PeerState)) {
-        f(self
-            .state
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
+        f(crate::toolkit::lock(&self.state)
             .entry(peer.to_string())
             .or_default());
         self.changed.notify_waiters();
@@ -394,10 +389,7 @@ impl NodeNet {
                 .senders
                 .get(&id)
                 .map_or(0, |(_, s)| s.lost.load(Ordering::SeqCst)),
-            refused: self
-                .refused
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
+            refused: crate::toolkit::lock(&self.refused)
                 .get(&id)
                 .copied()
                 .unwrap_or(0),
@@ -579,11 +571,7 @@ async fn dispatch(
     let node = watch.node.clone();
     let refuse = |id: u32, why: String| {
         tracing::error!(%node, edge = id, "incoming message refused: {why}");
-        *refused
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(id)
-            .or_default() += 1;
+        *crate::toolkit::lock(&refused).entry(id).or_default() += 1;
         // Return its credit so that the producer is not stuck.
         if let Some(r) = returns.get(&id) {
             r.fetch_add(1, Ordering::SeqCst);
@@ -621,10 +609,7 @@ async fn dispatch(
         }
     }
     // The driver never closes its events while the node runs: its thread died.
-    let why = watch
-        .driver_failure
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
+    let why = crate::toolkit::lock(&watch.driver_failure)
         .clone()
         .unwrap_or_else(|| "stopped".into());
     watch.fail(format!(

@@ -18,6 +18,7 @@ use crate::control::RunControl;
 use crate::edge::{Delivery, Edge, EdgeClosed, EdgeSettings};
 use crate::message::{AnyMessage, Message, MessageType, Stamped};
 use crate::metrics::StageMetrics;
+use crate::toolkit::Port;
 
 /// When a stage wants its next [`Stage::on_tick`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -91,6 +92,23 @@ impl Input {
     /// Time the message waited in the edge's queue.
     pub fn waited(&self) -> Duration {
         self.delivery.waited()
+    }
+
+    /// The message on `port`; errors if it arrived on another port.
+    pub fn on<T: Message>(&self, port: Port<T>) -> anyhow::Result<Arc<Stamped<T>>> {
+        if &*self.port != port.name() {
+            anyhow::bail!(
+                "a message on input `{}`, where only `{}` was expected",
+                self.port,
+                port.name()
+            );
+        }
+        self.get()
+    }
+
+    /// Whether the message arrived on `port`.
+    pub fn is_on<T>(&self, port: Port<T>) -> bool {
+        &*self.port == port.name()
     }
 
     /// The message as a `Stamped<T>`; errors if the port carries another type.
@@ -202,20 +220,21 @@ impl StageCtx {
     }
 
     /// Whether output `port` has any consumer (a stage may skip work nobody receives).
-    pub fn has_consumers(&self, port: &str) -> bool {
+    pub fn has_consumers<T>(&self, port: Port<T>) -> bool {
         self.outputs
             .iter()
-            .any(|p| p.name == port && !p.edges.is_empty())
+            .any(|p| p.name == port.name() && !p.edges.is_empty())
     }
 
     /// Sends `body`, computed for `scene_time_s`, to every consumer of output `port`. Under
     /// `block` this waits for room; the wait is not counted as busy time.
     pub async fn send<T: Message>(
         &mut self,
-        port: &str,
+        port: Port<T>,
         scene_time_s: f64,
         body: T,
     ) -> Result<(), SendError> {
+        let port = port.name();
         let out = self
             .outputs
             .iter_mut()
@@ -381,9 +400,9 @@ impl StageKind {
     }
 
     /// Declares an input port carrying `T`, with the default settings of edges into it.
-    pub fn input<T: Message>(mut self, name: &'static str, default: EdgeSettings) -> Self {
+    pub fn input<T: Message>(mut self, port: Port<T>, default: EdgeSettings) -> Self {
         self.inputs.push(PortSpec {
-            name,
+            name: port.name(),
             ty: MessageType::of::<T>(),
             default: Some(default),
         });
@@ -391,9 +410,9 @@ impl StageKind {
     }
 
     /// Declares an output port carrying `T`.
-    pub fn output<T: Message>(mut self, name: &'static str) -> Self {
+    pub fn output<T: Message>(mut self, port: Port<T>) -> Self {
         self.outputs.push(PortSpec {
-            name,
+            name: port.name(),
             ty: MessageType::of::<T>(),
             default: None,
         });

@@ -8,8 +8,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use cloudlight::runtime::{
-    EdgeSettings, Input, NextTick, Plan, Policy, RunError, RunOptions, RunReport, Stage, StageCtx,
-    StageKind, StageRegistry,
+    EdgeSettings, Input, NextTick, Plan, Policy, Port, RunError, RunOptions, RunReport, Stage,
+    StageCtx, StageKind, StageRegistry,
 };
 use serde::{Deserialize, Serialize};
 
@@ -48,7 +48,7 @@ impl Stage for Producer {
             return Ok(NextTick::Never);
         }
         let t = ctx.scene_time_s();
-        ctx.send("out", t, Num(self.next)).await?;
+        ctx.send(NUM_OUT, t, Num(self.next)).await?;
         self.next += 1;
         self.shared.emitted.fetch_add(1, Ordering::SeqCst);
         Ok(NextTick::Now)
@@ -80,7 +80,7 @@ struct Consumer {
 #[async_trait::async_trait]
 impl Stage for Consumer {
     async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
-        let msg = input.get::<Num>()?;
+        let msg = input.on(NUM_IN)?;
         if self.p.fail_at == Some(msg.body.0) {
             anyhow::bail!("cannot handle message {}", msg.body.0);
         }
@@ -109,7 +109,8 @@ impl Stage for Consumer {
             self.shared.violations.fetch_add(1, Ordering::SeqCst);
         }
         if self.forward {
-            ctx.send("out", msg.scene_time_s, msg.body.clone()).await?;
+            ctx.send(NUM_OUT, msg.scene_time_s, msg.body.clone())
+                .await?;
         }
         self.handled += 1;
         Ok(())
@@ -129,6 +130,9 @@ impl Stage for FailsToStart {
     }
 }
 
+pub const NUM_IN: Port<Num> = Port::new("in");
+pub const NUM_OUT: Port<Num> = Port::new("out");
+
 const DEFAULT_IN: EdgeSettings = EdgeSettings {
     capacity: 4,
     policy: Policy::Block,
@@ -146,7 +150,7 @@ pub fn registry(shared: &Arc<Shared>) -> StageRegistry {
                 shared: s.clone(),
             }))
         })
-        .output::<Num>("out")
+        .output(NUM_OUT)
         .params::<ProducerParams>(),
     );
     for (name, forward) in [("consumer", false), ("relay", true)] {
@@ -159,10 +163,10 @@ pub fn registry(shared: &Arc<Shared>) -> StageRegistry {
                 forward,
             }))
         })
-        .input::<Num>("in", DEFAULT_IN)
+        .input(NUM_IN, DEFAULT_IN)
         .params::<ConsumerParams>();
         if forward {
-            kind = kind.output::<Num>("out");
+            kind = kind.output(NUM_OUT);
         }
         r.register(kind);
     }

@@ -18,28 +18,36 @@
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use cloudlight_render::raster::{
     FrameInputs, FrameRenderer, IndirectPass, Raster, RasterError, Readback, ShadowSettings,
 };
 use cloudlight_runtime::clock::now_unix_ns;
 use cloudlight_runtime::{
-    CheckParams, EdgeSettings, Input, Message, NextTick, Stage, StageCtx, StageKind, StageSetup,
-    Stamped, parse_params,
+    Cadence, CheckParams, EdgeSettings, Input, Latency, Message, NextTick, Port, Stage, StageCtx,
+    StageKind, StageSetup, Stamped, lock, parse_params,
 };
 
 use crate::the_scene;
 use crate::wire::FrameMsg;
 use cloudlight_scenes::glam::Vec3;
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
-use hdrhistogram::Histogram;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 mod params;
 
 pub use params::{CLIENT_KEYS, ClientParams, MAX_FRAME_PX, Params};
+
+/// The technique's messages.
+pub fn input_port<T: ClientTechnique>() -> Port<T::Msg> {
+    Port::new("in")
+}
+
+/// The frames a rendering client shows (when anything consumes them: a `video_encoder` of
+/// the full-frame baseline).
+pub const FRAMES: Port<FrameMsg> = Port::new("frames");
 
 /// What a technique brings to the client shell.
 pub trait ClientTechnique: Send + Sized + 'static {
@@ -125,6 +133,8 @@ pub struct ClientReport<R> {
     pub recording: Option<String>,
     /// Frames in it (known when the client stops).
     pub frames_recorded: u64,
+    /// Frames that ended after the next one was due (the client cannot keep its `fps`).
+    pub frames_late: u64,
     /// Frame time, p50, ms.
     pub frame_ms_p50: f64,
     /// Frame time, p99, ms.
@@ -166,18 +176,6 @@ struct Gpu<P> {
     raster: Arc<Raster>,
     frame: FrameRenderer,
     pass: P,
-}
-
-fn histogram() -> Histogram<u64> {
-    Histogram::new(3).expect("3 significant digits is valid")
-}
-
-fn ms(h: &Histogram<u64>, q: f64) -> f64 {
-    if h.is_empty() {
-        0.0
-    } else {
-        h.value_at_quantile(q) as f64 / 1000.0
-    }
 }
 
 /// Where a client writes: `OUT/<instance>/` with `frames.csv`.
@@ -228,8 +226,8 @@ struct Figures {
     frames: u64,
     frames_written: u64,
     frames_recorded: u64,
-    frame_us: Histogram<u64>,
-    age_us: Histogram<u64>,
+    frame: Latency,
+    age: Latency,
     age_max_s: f64,
     started: Instant,
     first_indirect_s: Option<f64>,
@@ -254,11 +252,7 @@ pub struct ClientShell<T: ClientTechnique> {
     /// The MP4 recording, made at the first frame shown.
     recorder: Option<cloudlight_render::video::Recorder>,
     figures: Figures,
-    next_due: Option<Instant>,
-}
-
-fn lock<P>(gpu: &Mutex<Gpu<P>>) -> std::sync::MutexGuard<'_, Gpu<P>> {
-    gpu.lock().unwrap_or_else(|p| p.into_inner())
+    cadence: Cadence,
 }
 
 impl<T: ClientTechnique> ClientShell<T> {
@@ -295,6 +289,7 @@ impl<T: ClientTechnique> ClientShell<T> {
         };
         let output = Output::open::<T>(setup, &params.client)?;
         let overview = scene.overview_camera();
+        let cadence = Cadence::hz(params.client.fps);
         Ok(ClientShell {
             params: params.client,
             technique,
@@ -311,30 +306,30 @@ impl<T: ClientTechnique> ClientShell<T> {
                 frames: 0,
                 frames_written: 0,
                 frames_recorded: 0,
-                frame_us: histogram(),
-                age_us: histogram(),
+                frame: Latency::new(),
+                age: Latency::new(),
                 age_max_s: 0.0,
                 started: Instant::now(),
                 first_indirect_s: None,
                 shadow_renders: 0,
             },
-            next_due: None,
+            cadence,
         })
     }
 
     fn report(&self) -> ClientReport<T::Report> {
         let f = &self.figures;
-        let age = if f.age_us.is_empty() {
+        let age = if f.age.is_empty() {
             "no indirect light shown yet".to_string()
         } else {
             format!(
                 "age of indirect light p50 {:.0} ms, max {:.0} ms",
-                ms(&f.age_us, 0.5),
+                f.age.p50_ms(),
                 f.age_max_s * 1000.0
             )
         };
         let frames = if self.gpu.is_some() || T::SHOWS_PICTURES {
-            format!("{} frames (p50 {:.0} ms), ", f.frames, ms(&f.frame_us, 0.5))
+            format!("{} frames (p50 {:.0} ms), ", f.frames, f.frame.p50_ms())
         } else {
             String::new()
         };
@@ -349,10 +344,11 @@ impl<T: ClientTechnique> ClientShell<T> {
                 .map(|d| d.display().to_string()),
             recording: self.output.record.as_ref().map(|p| p.display().to_string()),
             frames_recorded: f.frames_recorded,
-            frame_ms_p50: ms(&f.frame_us, 0.5),
-            frame_ms_p99: ms(&f.frame_us, 0.99),
-            age_ms_p50: ms(&f.age_us, 0.5),
-            age_ms_p99: ms(&f.age_us, 0.99),
+            frames_late: self.cadence.overruns(),
+            frame_ms_p50: f.frame.p50_ms(),
+            frame_ms_p99: f.frame.p99_ms(),
+            age_ms_p50: f.age.p50_ms(),
+            age_ms_p99: f.age.p99_ms(),
             age_ms_max: f.age_max_s * 1000.0,
             indirect_shown: self.technique.valid_as_of().is_some(),
             first_indirect_s: f.first_indirect_s,
@@ -371,7 +367,7 @@ impl<T: ClientTechnique> ClientShell<T> {
             let f = &mut self.figures;
             let age = (t - valid).max(0.0);
             f.age_max_s = f.age_max_s.max(age);
-            let _ = f.age_us.record(((age * 1e6) as u64).max(1));
+            f.age.record_s(age);
             if f.first_indirect_s.is_none() {
                 f.first_indirect_s = Some(f.started.elapsed().as_secs_f64());
             }
@@ -459,10 +455,7 @@ impl<T: ClientTechnique> ClientShell<T> {
         .await??;
         let frame_time = start.elapsed();
         self.figures.shadow_renders = shadow_renders;
-        let _ = self
-            .figures
-            .frame_us
-            .record(frame_time.as_micros().max(1) as u64);
+        self.figures.frame.record(frame_time);
         self.figures.frames += 1;
         let composed = images.composed.map(Arc::new);
         if let Some(image) = &composed {
@@ -506,9 +499,9 @@ impl<T: ClientTechnique> ClientShell<T> {
             self.figures.frames_written += 1;
         }
         self.figures.frames += 1;
-        let ms = start.elapsed().as_secs_f64() * 1000.0;
-        let _ = self.figures.frame_us.record((ms * 1000.0) as u64 + 1);
-        Ok(Some(ms))
+        let shown = start.elapsed();
+        self.figures.frame.record(shown);
+        Ok(Some(shown.as_secs_f64() * 1000.0))
     }
 
     /// Adds the picture shown at `t` to the MP4 recording (made at the first one).
@@ -560,7 +553,7 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
     }
 
     async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
-        let msg = input.get::<T::Msg>()?;
+        let msg = input.on(input_port::<T>())?;
         self.technique.on_message(ctx.name(), &msg);
         Ok(())
     }
@@ -569,7 +562,7 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
         if ctx.is_stopping() {
             return Ok(NextTick::Never);
         }
-        let due = *self.next_due.get_or_insert_with(Instant::now);
+        self.cadence.begin();
         let t = ctx.clock().scene_time_at_s(now_unix_ns());
         self.record_age(t);
         let recording = self.output.record.is_some();
@@ -580,7 +573,7 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
             }
             ms
         } else {
-            let send = ctx.has_consumers("frames");
+            let send = ctx.has_consumers(FRAMES);
             match self.render(t, send || recording).await? {
                 Some((ms, Some(image))) => {
                     let stops = self.exposure.unwrap_or(0.0);
@@ -605,7 +598,7 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
                             rgb,
                             light_s,
                         };
-                        ctx.send("frames", t, frame).await?;
+                        ctx.send(FRAMES, t, frame).await?;
                     }
                     Some(ms)
                 }
@@ -613,12 +606,9 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
             }
         };
         self.log_frame(t, frame_ms)?;
+        let next = self.cadence.end_tick();
         self.publish(ctx);
-        let interval = Duration::from_secs_f64(1.0 / self.params.fps);
-        let now = Instant::now();
-        let next = (due + interval).max(now);
-        self.next_due = Some(next);
-        Ok(NextTick::After(next - now))
+        Ok(next)
     }
 
     async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
@@ -648,8 +638,8 @@ pub fn register<T: ClientTechnique>(
         StageKind::new(name, technique, summary, |s| {
             Ok(Box::new(ClientShell::<T>::new(s)?))
         })
-        .input::<T::Msg>("in", edge)
-        .output::<FrameMsg>("frames")
+        .input(input_port::<T>(), edge)
+        .output(FRAMES)
         .checked_params::<Params<T::Params>>()
         .scene_check(|table, scene| {
             let params: Params<T::Params> = parse_params(table)?;

@@ -11,7 +11,8 @@
 //! 4. **Gather**: at each basis centre (or each texel, the paper's naive server), N
 //!    cosine-distributed rays from a Hammersley set, visited in a fixed coherent order;
 //!    E = (π/N) · Σ B(hit) over front-face hits (back faces and misses add nothing).
-//! 5. **Reconstruct**: per texel, E = Σ w_k E_k over its bases; dilate.
+//! 5. **Reconstruct**: per texel, E = Σ w_k E_k over its bases, made an [`HdrMap`] (dilated
+//!    once, there; the next bounce reads that map).
 //!
 //! While lights and geometry are static the update converges to a fixed point (a fixed
 //! sample set); once an update changes the map by less than [`CONVERGED`] relative, later
@@ -20,13 +21,13 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use glam::{Vec2, Vec3};
+use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::bvh::{BvhKind, SceneBvh};
 use crate::direct_light::DirectLight;
+use crate::hdr_map::{HdrMap, bilinear};
 use crate::sampling::{Rng, basis, cosine_hemisphere};
-use crate::video::HdrImage;
 
 use super::Lightmap;
 use super::texels::hammersley;
@@ -72,61 +73,13 @@ impl Default for GatherSettings {
     }
 }
 
-/// An indirect-irradiance map: E_indirect per texel, W·m⁻² per channel.
-#[derive(Clone, Debug, PartialEq)]
-pub struct IrradianceMap {
-    /// Width, texels.
-    pub width: u32,
-    /// Height, texels.
-    pub height: u32,
-    /// E_indirect per texel, row-major from the top, dilated into invalid texels.
-    pub texels: Vec<Vec3>,
-    /// Which texels stand for a surface point.
-    pub valid: Vec<bool>,
-    /// Scene time the map is valid for, seconds.
-    pub time_s: f64,
-}
-
-impl IrradianceMap {
-    /// The map as an HDR image (what the video encoder packs).
-    pub fn to_hdr(&self) -> HdrImage {
-        HdrImage {
-            width: self.width,
-            height: self.height,
-            texels: self.texels.clone(),
-            valid: self.valid.clone(),
-        }
-    }
-
-    /// Bilinear lookup at light-map UV `uv` in [0, 1]² (clamped at the edges).
-    pub fn sample(&self, uv: Vec2) -> Vec3 {
-        bilinear(&self.texels, self.width, self.height, uv)
-    }
-}
-
-/// Bilinear lookup at `uv` in a `w` × `h` map.
-pub fn bilinear(texels: &[Vec3], w: u32, h: u32, uv: Vec2) -> Vec3 {
-    if texels.is_empty() {
-        return Vec3::ZERO;
-    }
-    let p = uv * Vec2::new(w as f32, h as f32) - 0.5;
-    let p = if p.is_finite() { p } else { Vec2::ZERO };
-    let x0 = p.x.floor().clamp(0.0, (w - 1) as f32);
-    let y0 = p.y.floor().clamp(0.0, (h - 1) as f32);
-    let f = (p - Vec2::new(x0, y0)).clamp(Vec2::ZERO, Vec2::ONE);
-    let (x0, y0) = (x0 as u32, y0 as u32);
-    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-    let at = |x: u32, y: u32| texels[(y * w + x) as usize];
-    let top = at(x0, y0).lerp(at(x1, y0), f.x);
-    let bottom = at(x0, y1).lerp(at(x1, y1), f.x);
-    top.lerp(bottom, f.y)
-}
-
 /// What one update did.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Update {
-    /// The new map.
-    pub map: Arc<IrradianceMap>,
+    /// The new map: E_indirect per texel, W·m⁻² per channel, dilated into invalid texels.
+    pub map: Arc<HdrMap>,
+    /// Scene time the map is valid for, seconds.
+    pub time_s: f64,
     /// Gather rays traced (0 when converged).
     pub rays: u64,
     /// Shadow rays of texture-space direct light (0 when kept).
@@ -147,7 +100,10 @@ pub struct Gatherer {
     bvh: Option<SceneBvh>,
     frame: (Vec<Vec3>, Vec<Vec3>),
     direct: Option<Vec<Vec3>>,
-    previous: Arc<IrradianceMap>,
+    /// The last map's texels, which the next bounce reads.
+    previous: Vec<Vec3>,
+    /// The last map as handed out, and the scene time it is valid for.
+    map: (Arc<HdrMap>, f64),
     converged: bool,
     updates: u64,
 }
@@ -156,14 +112,11 @@ impl Gatherer {
     /// A gatherer over a baked light map, starting from a black map.
     pub fn new(lightmap: Arc<Lightmap>, settings: GatherSettings) -> Self {
         let t = &lightmap.texels;
-        let previous = Arc::new(IrradianceMap {
-            width: t.width,
-            height: t.height,
-            texels: vec![Vec3::ZERO; t.valid.len()],
-            valid: t.valid.clone(),
-            time_s: 0.0,
-        });
+        let previous = vec![Vec3::ZERO; t.valid.len()];
+        let map = HdrMap::new(t.width, t.height, &previous, &t.valid)
+            .expect("a baked light map's sides and coverage agree");
         Gatherer {
+            map: (Arc::new(map), 0.0),
             frame: (t.positions.clone(), t.normals.clone()),
             lightmap,
             settings,
@@ -181,8 +134,8 @@ impl Gatherer {
     }
 
     /// The latest map.
-    pub fn map(&self) -> &Arc<IrradianceMap> {
-        &self.previous
+    pub fn map(&self) -> &Arc<HdrMap> {
+        &self.map.0
     }
 
     /// Computes the map for scene time `t_s` (one more bounce than the last).
@@ -193,9 +146,7 @@ impl Gatherer {
         let moving_lights = scene.is_animated() && !moving_geometry;
         let is_static = !scene.is_animated();
         if is_static && self.converged {
-            let mut map = (*self.previous).clone();
-            map.time_s = t_s;
-            self.previous = Arc::new(map);
+            self.map.1 = t_s;
             return self.finish(start, 0, 0, 0, true);
         }
         // 1. Scene.
@@ -225,16 +176,15 @@ impl Gatherer {
         let radiosity = self.radiosity();
         // 4–5. Gather and reconstruct.
         let (texels, rays, points) = self.gather(bvh, &radiosity);
-        let map = Arc::new(IrradianceMap {
-            width: self.previous.width,
-            height: self.previous.height,
-            texels: self.lightmap.dilated(texels),
-            valid: self.previous.valid.clone(),
-            time_s: t_s,
-        });
-        let (old, new) = (energy(&self.previous), energy(&map));
+        let t = &self.lightmap.texels;
+        let map = HdrMap::new(t.width, t.height, &texels, &t.valid)
+            .expect("a baked light map's sides and coverage agree");
+        // The next bounce reads the map as clients get it (dilated once, in the map).
+        let texels = map.texels();
+        let (old, new) = (energy(&self.previous, &t.valid), energy(&texels, &t.valid));
         self.converged = is_static && (new - old).abs() <= CONVERGED * new.max(f32::MIN_POSITIVE);
-        self.previous = map;
+        self.previous = texels;
+        self.map = (Arc::new(map), t_s);
         self.finish(start, rays, direct_rays, points, false)
     }
 
@@ -248,7 +198,8 @@ impl Gatherer {
     ) -> Update {
         self.updates += 1;
         Update {
-            map: self.previous.clone(),
+            map: self.map.0.clone(),
+            time_s: self.map.1,
             rays,
             direct_rays,
             gather_points: points,
@@ -267,7 +218,7 @@ impl Gatherer {
                 if !lm.texels.valid[i] {
                     return Vec3::ZERO;
                 }
-                let e = direct.get(i).copied().unwrap_or_default() + self.previous.texels[i];
+                let e = direct.get(i).copied().unwrap_or_default() + self.previous[i];
                 lm.albedo[i] * e / std::f32::consts::PI
             })
             .collect();
@@ -335,11 +286,10 @@ impl Gatherer {
 }
 
 /// Mean of the valid texels' channel sums.
-fn energy(map: &IrradianceMap) -> f32 {
-    let (sum, n) = map
-        .texels
+fn energy(texels: &[Vec3], valid: &[bool]) -> f32 {
+    let (sum, n) = texels
         .iter()
-        .zip(&map.valid)
+        .zip(valid)
         .filter(|(_, v)| **v)
         .fold((0.0f64, 0u64), |(s, n), (e, _)| {
             (s + e.element_sum() as f64, n + 1)

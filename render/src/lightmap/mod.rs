@@ -19,8 +19,7 @@ use cloudlight_scenes::Scene;
 use glam::Vec3;
 
 use crate::bvh::{BvhKind, SceneBvh};
-use crate::video::HdrImage;
-use crate::video::hdr::dilate;
+use crate::hdr_map::{DILATE_RINGS, dilate};
 
 pub mod atlas;
 pub mod basis;
@@ -29,12 +28,8 @@ pub mod texels;
 
 pub use atlas::{Atlas, AtlasSettings, UvSource};
 pub use basis::{Bases, Basis, BasisSettings, MAX_BASES_PER_TEXEL};
-pub use gather::{GatherMode, GatherSettings, Gatherer, IrradianceMap, Update};
+pub use gather::{GatherMode, GatherSettings, Gatherer, Update};
 pub use texels::TexelSurface;
-
-/// Rings of texels filled around charts: more than the widest gutter (two paddings of 4,
-/// rounded up to 4×4 blocks).
-const DILATE_PASSES: usize = 16;
 
 /// Why a scene has no irradiance map (the paper's "n/a").
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -171,13 +166,8 @@ impl Lightmap {
 
     /// `values` (one per texel) with invalid texels filled from valid neighbours.
     pub fn dilated(&self, values: Vec<Vec3>) -> Vec<Vec3> {
-        let img = HdrImage {
-            width: self.texels.width,
-            height: self.texels.height,
-            texels: values,
-            valid: self.texels.valid.clone(),
-        };
-        dilate(&img, DILATE_PASSES)
+        let t = &self.texels;
+        dilate(t.width, t.height, &values, &t.valid, DILATE_RINGS)
     }
 
     /// Bytes a client holds for one map at f16 RGBA, 8 B a texel (the paper's "local device

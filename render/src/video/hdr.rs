@@ -12,9 +12,9 @@
 //! - U = round(255 · B/S), V = round(255 · R/S) (G/S follows from the two), each averaged
 //!   over the valid texels of its 2×2 block; chromaticity of a flat 2×2 block is kept within
 //!   1/510.
-//! - Texels outside every chart (`valid` false) are filled from their valid neighbours first
-//!   ([`dilate`]), so neither the 2×2 chroma average nor the codec's prediction pulls
-//!   garbage into a chart's edge.
+//! - Texels outside every chart (`valid` false) were filled from their valid neighbours when
+//!   the [`HdrMap`] was made, so neither the 2×2 chroma average nor the codec's prediction
+//!   pulls garbage into a chart's edge; packing does not dilate again.
 //!
 //! Unpacking inverts this: L from Y and the range, then S = L / (0.2126 r + 0.7152 g +
 //! 0.0722 b) with (r, g, b) the chromaticities, and RGB = S · (r, g, b).
@@ -22,6 +22,7 @@
 use glam::Vec3;
 
 use super::yuv::{FrameError, Yuv420};
+use crate::hdr_map::HdrMap;
 
 /// Widest range of a packed frame, stops (a factor of 65,536 between the darkest and the
 /// brightest texel kept apart).
@@ -85,25 +86,6 @@ impl HdrRange {
     }
 }
 
-/// A linear-RGB map (a light map's texels), row-major from the top.
-#[derive(Clone, Debug, PartialEq)]
-pub struct HdrImage {
-    /// Width, texels (even).
-    pub width: u32,
-    /// Height, texels (even).
-    pub height: u32,
-    /// Linear RGB per texel (non-negative; non-finite values are treated as black).
-    pub texels: Vec<Vec3>,
-    /// Which texels belong to a chart (empty: all).
-    pub valid: Vec<bool>,
-}
-
-impl HdrImage {
-    fn is_valid(&self, i: usize) -> bool {
-        self.valid.is_empty() || self.valid[i]
-    }
-}
-
 /// A packed frame and the texels that had to be clamped up to the range's bottom.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Packed {
@@ -115,83 +97,11 @@ pub struct Packed {
     pub clamped: usize,
 }
 
-fn clean(c: Vec3) -> Vec3 {
-    if c.is_finite() {
-        c.max(Vec3::ZERO)
-    } else {
-        Vec3::ZERO
-    }
-}
-
-/// Fills invalid texels from their valid 4-neighbours, ring by ring (at most `passes`); what
-/// is left (a map with no valid texel near) is set to the mean of the valid texels.
-pub fn dilate(img: &HdrImage, passes: usize) -> Vec<Vec3> {
-    let (w, h) = (img.width as usize, img.height as usize);
-    let mut texels: Vec<Vec3> = img.texels.iter().map(|&c| clean(c)).collect();
-    let mut known: Vec<bool> = (0..w * h).map(|i| img.is_valid(i)).collect();
-    for _ in 0..passes {
-        let mut filled = Vec::new();
-        for y in 0..h {
-            for x in 0..w {
-                let i = y * w + x;
-                if known[i] {
-                    continue;
-                }
-                let mut sum = Vec3::ZERO;
-                let mut n = 0;
-                let neighbours = [
-                    (x > 0).then(|| i - 1),
-                    (x + 1 < w).then(|| i + 1),
-                    (y > 0).then(|| i - w),
-                    (y + 1 < h).then(|| i + w),
-                ];
-                for j in neighbours.into_iter().flatten() {
-                    if known[j] {
-                        sum += texels[j];
-                        n += 1;
-                    }
-                }
-                if n > 0 {
-                    filled.push((i, sum / n as f32));
-                }
-            }
-        }
-        if filled.is_empty() {
-            break;
-        }
-        for (i, c) in filled {
-            texels[i] = c;
-            known[i] = true;
-        }
-    }
-    if known.iter().any(|k| !k) {
-        let valid: Vec<Vec3> = (0..w * h)
-            .filter(|&i| img.is_valid(i))
-            .map(|i| texels[i])
-            .collect();
-        let mean = valid.iter().copied().sum::<Vec3>() / valid.len().max(1) as f32;
-        for (t, k) in texels.iter_mut().zip(&known) {
-            if !k {
-                *t = mean;
-            }
-        }
-    }
-    texels
-}
-
 /// Packs an HDR map into 8-bit I420 and its range.
-pub fn pack(img: &HdrImage) -> Result<Packed, FrameError> {
-    let (w, h) = (img.width as usize, img.height as usize);
-    if img.texels.len() != w * h || !(img.valid.is_empty() || img.valid.len() == w * h) {
-        return Err(FrameError::Length {
-            width: img.width,
-            height: img.height,
-            got: img.texels.len(),
-            want: w * h,
-        });
-    }
-    let mut out = Yuv420::filled(img.width, img.height, [0, 85, 85])?;
-    let texels = dilate(img, 8);
+pub fn pack(img: &HdrMap) -> Result<Packed, FrameError> {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let mut out = Yuv420::filled(img.width(), img.height(), [0, 85, 85])?;
+    let texels = img.texels();
     let mut lit: Vec<f32> = (0..w * h)
         .filter(|&i| img.is_valid(i))
         .map(|i| LUMA.dot(texels[i]))
@@ -280,12 +190,11 @@ pub struct HdrError {
 }
 
 /// Compares `decoded` with the original map.
-pub fn error(original: &HdrImage, decoded: &[Vec3], range: HdrRange) -> HdrError {
+pub fn error(original: &HdrMap, decoded: &[Vec3], range: HdrRange) -> HdrError {
     let floor = range.log2_min.exp2();
     let mut lum = Vec::new();
     let mut chroma = Vec::new();
-    for (i, (&a, &b)) in original.texels.iter().zip(decoded).enumerate() {
-        let a = clean(a);
+    for (i, (a, &b)) in original.texels().into_iter().zip(decoded).enumerate() {
         let l = LUMA.dot(a);
         if !original.is_valid(i) || l < floor {
             continue;
@@ -314,9 +223,9 @@ pub fn error(original: &HdrImage, decoded: &[Vec3], range: HdrRange) -> HdrError
 mod tests {
     use super::*;
 
-    fn ramp(w: u32, h: u32) -> HdrImage {
+    fn ramp_texels(w: u32, h: u32) -> Vec<Vec3> {
         // Luminance over 12 stops across the map, a colour per 2×2 block.
-        let texels = (0..w * h)
+        (0..w * h)
             .map(|i| {
                 let (x, y) = (i % w, i / w);
                 let l = (x as f32 / w as f32 * 12.0 - 6.0).exp2();
@@ -327,13 +236,11 @@ mod tests {
                 };
                 tint * l
             })
-            .collect();
-        HdrImage {
-            width: w,
-            height: h,
-            texels,
-            valid: Vec::new(),
-        }
+            .collect()
+    }
+
+    fn ramp(w: u32, h: u32) -> HdrMap {
+        HdrMap::new(w, h, &ramp_texels(w, h), &[]).unwrap()
     }
 
     #[test]
@@ -351,10 +258,10 @@ mod tests {
 
     #[test]
     fn black_stays_black_and_a_wide_range_is_clamped_and_counted() {
-        let mut img = ramp(8, 8);
-        img.texels[0] = Vec3::ZERO;
-        img.texels[1] = Vec3::splat(1e-12); // 40 stops below the rest
-        let p = pack(&img).unwrap();
+        let mut texels = ramp_texels(8, 8);
+        texels[0] = Vec3::ZERO;
+        texels[1] = Vec3::splat(1e-7); // 23 stops below the rest
+        let p = pack(&HdrMap::new(8, 8, &texels, &[]).unwrap()).unwrap();
         assert_eq!(p.yuv.y[0], 0);
         assert_eq!(p.clamped, 1);
         assert_eq!(p.range.log2_max - p.range.log2_min, MAX_STOPS);
@@ -363,16 +270,14 @@ mod tests {
 
     #[test]
     fn invalid_texels_take_their_neighbours_so_charts_keep_their_edges() {
-        let mut img = ramp(8, 8);
-        img.valid = (0..64).map(|i| i % 8 < 4).collect();
-        for i in 0..64 {
-            if i % 8 >= 4 {
-                img.texels[i] = Vec3::new(1e6, 0.0, 0.0); // garbage outside the chart
-            }
+        let mut texels = ramp_texels(8, 8);
+        let valid: Vec<bool> = (0..64).map(|i| i % 8 < 4).collect();
+        for (t, _) in texels.iter_mut().zip(&valid).filter(|(_, v)| !**v) {
+            *t = Vec3::new(1e6, 0.0, 0.0); // garbage outside the chart
         }
-        let filled = dilate(&img, 8);
+        let img = HdrMap::new(8, 8, &texels, &valid).unwrap();
         assert!(
-            filled.iter().all(|c| c.x < 1e3),
+            img.texels().iter().all(|c| c.x < 1e3),
             "garbage survived dilation"
         );
         let p = pack(&img).unwrap();

@@ -4,13 +4,14 @@
 
 use std::time::Instant;
 
-use super::hdr::{self, HdrError, HdrImage};
+use super::hdr::{self, HdrError};
 use super::{Decoder, Encoder, EncoderSettings, RateControl, VideoError, Yuv420, psnr};
+use crate::hdr_map::HdrMap;
 
 /// An HDR map from the reference path tracer: the indirect light of `scene` seen from its
 /// first camera, `size`² texels at `spp` samples — a stand-in for a light map (the
 /// irradiance technique's texel maps do not exist yet) with a light map's dynamic range.
-pub fn reference_map(scene: &cloudlight_scenes::Scene, size: u32, spp: u32) -> HdrImage {
+pub fn reference_map(scene: &cloudlight_scenes::Scene, size: u32, spp: u32) -> HdrMap {
     let bvh = crate::SceneBvh::at(scene, 0.0, crate::BvhKind::default());
     let camera = scene
         .cameras
@@ -25,12 +26,7 @@ pub fn reference_map(scene: &cloudlight_scenes::Scene, size: u32, spp: u32) -> H
         max_bounces: 16,
     };
     let images = crate::render(scene, &bvh, settings, spp);
-    HdrImage {
-        width: size,
-        height: size,
-        texels: images.indirect(),
-        valid: Vec::new(),
-    }
+    HdrMap::new(size, size, &images.indirect(), &[]).expect("one texel per pixel")
 }
 
 /// One rate setting's figures for an HDR map: a key frame and the P frame after it.
@@ -51,12 +47,12 @@ pub struct HdrCodecFigures {
 }
 
 /// Packs, encodes and decodes `img` twice with `rate`.
-pub fn hdr_codec(img: &HdrImage, rate: RateControl) -> Result<HdrCodecFigures, VideoError> {
+pub fn hdr_codec(img: &HdrMap, rate: RateControl) -> Result<HdrCodecFigures, VideoError> {
     let packed = hdr::pack(img)?;
     let packing = hdr::error(img, &hdr::unpack(&packed.yuv, packed.range), packed.range);
     let mut enc = Encoder::new(EncoderSettings {
-        width: img.width,
-        height: img.height,
+        width: img.width(),
+        height: img.height(),
         fps: 30.0,
         rate,
         keyframe_s: 60.0,

@@ -23,7 +23,7 @@ mod tests;
 
 pub use decoder::{Decoder, DecoderStats, is_key_unit};
 pub use encoder::{EncodedFrame, Encoder, EncoderSettings, RateControl};
-pub use hdr::{HdrError, HdrImage, HdrRange, Packed};
+pub use hdr::{HdrError, HdrRange, Packed};
 pub use record::Recorder;
 pub use yuv::{FrameError, Yuv420, psnr};
 

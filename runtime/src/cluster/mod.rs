@@ -366,9 +366,7 @@ impl Cluster {
             .await;
             match spawned {
                 Ok((actor, handle)) => {
-                    names
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
+                    crate::toolkit::lock(&names)
                         .insert(actor.get_id(), Arc::from(inst.name.as_str()));
                     cluster.stages.push(Running {
                         name: inst.name.clone(),
