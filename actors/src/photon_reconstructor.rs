@@ -11,8 +11,9 @@
 
 use std::sync::Arc;
 
+use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings};
 use cloudlight_render::photon::{Inserted, Photon, PhotonSet};
-use cloudlight_render::raster::{PhotonSplatPass, Raster, RasterError, SplatSettings};
+use cloudlight_render::raster::{Raster, RasterError};
 use cloudlight_runtime::{StageSetup, Stamped};
 use cloudlight_scenes::Scene;
 use serde::{Deserialize, Serialize};
@@ -125,7 +126,7 @@ impl ClientTechnique for PhotonClient {
         self.set.valid_as_of()
     }
 
-    fn new_pass(raster: &Raster, params: &Self::Params) -> PhotonSplatPass {
+    fn new_pass(raster: &Raster, params: &Self::Params) -> Result<PhotonSplatPass, RasterError> {
         PhotonSplatPass::new(
             raster,
             SplatSettings {

@@ -125,8 +125,8 @@ impl ClientTechnique for VideoClient {
         self.valid_as_of
     }
 
-    fn new_pass(_: &Raster, _: &Self::Params) -> NoIndirect {
-        NoIndirect
+    fn new_pass(_: &Raster, _: &Self::Params) -> Result<NoIndirect, RasterError> {
+        Ok(NoIndirect)
     }
 
     fn update(&mut self) -> Option<()> {

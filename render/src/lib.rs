@@ -22,3 +22,10 @@ pub mod video;
 pub use bvh::{BvhKind, Hit, SceneBvh};
 pub use hdr_map::HdrMap;
 pub use reference::{ReferenceImages, ReferenceRenderer, RenderSettings, render};
+
+/// Locks `m`, taking the value even if a thread panicked while holding it (the caches this
+/// crate keeps stay consistent across a panic). The runtime's stages use `runtime::lock`;
+/// kernels do not depend on the runtime.
+pub(crate) fn lock<T: ?Sized>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}

@@ -11,8 +11,9 @@ use cloudlight_actors::photon_batcher::{BatcherParams, BatcherReport, Retrace};
 use cloudlight_actors::photon_reconstructor::{PhotonClientParams, PhotonClientReport};
 use cloudlight_actors::wire::PhotonMsg;
 use cloudlight_render::metrics::{ImageErrors, compare};
+use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings, photon_frame};
 use cloudlight_render::photon::{PackFormat, Photon, PhotonSettings, trace_iteration};
-use cloudlight_render::raster::{PhotonSplatPass, Raster, ShadowSettings, SplatSettings};
+use cloudlight_render::raster::{Raster, ShadowSettings};
 use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_scenes::glam::Vec3;
 use cloudlight_scenes::{Camera, Scene};
@@ -293,7 +294,7 @@ pub fn client_frame_with(
     splat: SplatSettings,
     options: ClientBenchOptions,
 ) -> anyhow::Result<ClientBench> {
-    let mut pass = PhotonSplatPass::new(raster, splat);
+    let mut pass = PhotonSplatPass::new(raster, splat)?;
     pass.set_photons(raster, photons)?;
     super::client::measure(raster, scene, &mut pass, options)
 }
@@ -413,7 +414,8 @@ impl QualityView {
             o.batch_size.min(photons as u32).max(1),
         );
         let it = trace_iteration(&self.scene, &self.bvh, 0.0, settings, o.seed, format);
-        let frame = raster.photon_frame(
+        let frame = photon_frame(
+            raster,
             &self.scene,
             self.bvh.triangles(),
             &[],

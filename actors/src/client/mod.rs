@@ -5,7 +5,9 @@
 //! its GPU state), read-back and PNG frames, `frames.csv`, the age of the indirect light
 //! shown and the stage report ([`ClientReport`]). A technique ([`ClientTechnique`]) supplies
 //! only what is its own: what it does with a received message, the scene time its indirect
-//! light is valid as of, and the [`IndirectPass`] that draws it.
+//! light is valid as of, the [`IndirectPass`] that draws it, and — when it needs vertex data
+//! the topology's scene lacks — the scene the G-buffer draws
+//! ([`ClientTechnique::drawn_scene`]: the light map's unwrapped scene with light-map UVs).
 //!
 //! Per frame: the scene time now; the age of the indirect light (scene time minus the time
 //! the technique's light is valid as of); then, when rendering, the technique's update to
@@ -73,7 +75,7 @@ pub trait ClientTechnique: Send + Sized + 'static {
     fn valid_as_of(&self) -> Option<f64>;
 
     /// A pass for frames on `raster`.
-    fn new_pass(raster: &Raster, params: &Self::Params) -> Self::Pass;
+    fn new_pass(raster: &Raster, params: &Self::Params) -> Result<Self::Pass, RasterError>;
 
     /// What the pass needs before the next frame, if anything changed.
     fn update(&mut self) -> Option<Self::Update>;
@@ -91,6 +93,14 @@ pub trait ClientTechnique: Send + Sized + 'static {
     /// True for techniques whose messages are whole pictures (video): the shell renders
     /// nothing itself (no GPU is used) and shows [`ClientTechnique::picture`] each frame.
     const SHOWS_PICTURES: bool = false;
+
+    /// The scene whose geometry the client draws, when the technique needs vertex data the
+    /// topology's scene lacks (the light map's unwrapped scene, whose triangles carry
+    /// light-map UVs for the G-buffer); `None`: the topology's scene. It must have the same
+    /// surfaces, materials and motion.
+    fn drawn_scene(&self) -> Option<Arc<Scene>> {
+        None
+    }
 
     /// The newest whole picture, for techniques that show pictures.
     fn picture(&self) -> Option<Arc<Picture>> {
@@ -239,6 +249,8 @@ pub struct ClientShell<T: ClientTechnique> {
     params: ClientParams,
     technique: T,
     scene: Arc<Scene>,
+    /// What the G-buffer draws: the technique's scene, else `scene`.
+    drawn: Arc<Scene>,
     camera: usize,
     gpu: Option<Arc<Mutex<Gpu<T::Pass>>>>,
     /// Static geometry is uploaded once; moving geometry every frame.
@@ -278,7 +290,7 @@ impl<T: ClientTechnique> ClientShell<T> {
                     ..Default::default()
                 },
             )?;
-            let pass = T::new_pass(&raster, &params.technique);
+            let pass = T::new_pass(&raster, &params.technique)?;
             Some(Arc::new(Mutex::new(Gpu {
                 raster,
                 frame,
@@ -289,11 +301,13 @@ impl<T: ClientTechnique> ClientShell<T> {
         };
         let output = Output::open::<T>(setup, &params.client)?;
         let overview = scene.overview_camera();
+        let drawn = technique.drawn_scene().unwrap_or_else(|| scene.clone());
         let cadence = Cadence::hz(params.client.fps);
         Ok(ClientShell {
             params: params.client,
             technique,
             scene,
+            drawn,
             camera,
             gpu,
             geometry_uploaded: false,
@@ -411,8 +425,8 @@ impl<T: ClientTechnique> ClientShell<T> {
             return Ok(None);
         };
         let geometry: Option<Arc<Vec<WorldTriangle>>> =
-            if !self.geometry_uploaded || self.scene.has_moving_geometry() {
-                let s = self.scene.clone();
+            if !self.geometry_uploaded || self.drawn.has_moving_geometry() {
+                let s = self.drawn.clone();
                 self.geometry_uploaded = true;
                 Some(Arc::new(
                     tokio::task::spawn_blocking(move || s.triangles_at(t)).await?,
@@ -425,7 +439,7 @@ impl<T: ClientTechnique> ClientShell<T> {
         let camera = self.camera_at(t);
         let write = self.output.frames_dir.is_some()
             && self.figures.frames.is_multiple_of(self.params.write_every);
-        let scene = self.scene.clone();
+        let scene = self.drawn.clone();
         let start = Instant::now();
         let (images, shadow_renders) = tokio::task::spawn_blocking(move || {
             let mut g = lock(&gpu);

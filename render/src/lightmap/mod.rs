@@ -153,14 +153,11 @@ impl Lightmap {
         static CACHE: OnceLock<Cache> = OnceLock::new();
         let key = fingerprint(scene, s);
         let cache = CACHE.get_or_init(Default::default);
-        if let Some(hit) = cache.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
+        if let Some(hit) = crate::lock(cache).get(&key) {
             return hit.clone();
         }
         let baked = Lightmap::bake(scene, s).map(Arc::new);
-        cache
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(key, baked.clone());
+        crate::lock(cache).insert(key, baked.clone());
         baked
     }
 

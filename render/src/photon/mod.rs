@@ -33,6 +33,7 @@ use crate::bvh::SceneBvh;
 use crate::sampling::{Rng, basis, cosine_hemisphere, uniform_sphere, uniform_triangle};
 
 pub mod pack;
+pub mod splat;
 pub mod store;
 pub mod stream;
 

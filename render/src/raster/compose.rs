@@ -1,7 +1,7 @@
 //! The compose pass: the frame's radiance, direct + the technique's indirect.
 
 use super::Raster;
-use super::frame::{Target, clear_pass};
+use super::targets::{Target, clear_pass};
 
 /// The compose pass of one client: its bind group over the direct and indirect targets.
 pub(crate) struct ComposePass {

@@ -30,6 +30,8 @@ pub struct Formats {
     pub exact4: wgpu::TextureFormat,
     /// Four `f16` values packed in two `u32` (normal, albedo).
     pub half4: wgpu::TextureFormat,
+    /// Exact two-component targets (light-map UV): `f32` bits.
+    pub exact2: wgpu::TextureFormat,
     /// The additive photon accumulation buffer (must blend).
     pub accum: wgpu::TextureFormat,
     /// Depth of the G-buffer and of shadow maps.
@@ -42,6 +44,11 @@ impl Formats {
         self.accum == wgpu::TextureFormat::Rgba16Float
     }
 }
+
+/// Colour targets of the G-buffer pass.
+const GBUFFER_TARGETS: u32 = 4;
+/// Bytes per sample of the G-buffer's colour targets.
+const GBUFFER_BYTES_PER_SAMPLE: u32 = 16 + 8 + 8 + 8;
 
 /// What the passes need of a format.
 fn supports(adapter: &wgpu::Adapter, format: wgpu::TextureFormat, blend: bool) -> bool {
@@ -70,6 +77,17 @@ pub(crate) fn choose_formats(
         if !supports(adapter, format, false) {
             return Err(missing(what.to_string()));
         }
+    }
+    // The G-buffer writes four targets: position (16 bytes), normal, albedo and light-map
+    // UV (8 each).
+    let limits = adapter.limits();
+    if limits.max_color_attachments < GBUFFER_TARGETS
+        || limits.max_color_attachment_bytes_per_sample < GBUFFER_BYTES_PER_SAMPLE
+    {
+        return Err(missing(format!(
+            "{GBUFFER_TARGETS} colour targets of {GBUFFER_BYTES_PER_SAMPLE} bytes per sample in all (it allows {} and {})",
+            limits.max_color_attachments, limits.max_color_attachment_bytes_per_sample
+        )));
     }
     let depth = wgpu::TextureFormat::Depth32Float;
     let d = adapter.get_texture_format_features(depth);
@@ -100,6 +118,7 @@ pub(crate) fn choose_formats(
         Formats {
             exact4: wgpu::TextureFormat::Rgba32Uint,
             half4: wgpu::TextureFormat::Rg32Uint,
+            exact2: wgpu::TextureFormat::Rg32Uint,
             accum,
             depth,
         },

@@ -3,12 +3,9 @@
 //! Emissive surfaces are not lights here; turn them into punctual lights first
 //! (`Scene::surface_light_samples`).
 
-use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
-use glam::Vec3;
-
-use super::frame::{GBufferTargets, NoIndirect, OneFrame, Readback};
+use super::Raster;
 use super::shadow::ShadowMaps;
-use super::{GBuffer, Raster, RasterError, ShadowSettings};
+use super::targets::GBufferTargets;
 
 /// The direct pass of one client: its bind group is made once per shadow-map generation.
 pub(crate) struct DirectPass {
@@ -78,40 +75,9 @@ impl DirectPass {
             self.bind = Some((shadows.generation, group));
         }
         let (_, group) = self.bind.as_ref().expect("just made");
-        let mut pass = super::frame::clear_pass(enc, "direct", out);
+        let mut pass = super::targets::clear_pass(enc, "direct", out);
         pass.set_pipeline(&raster.pipelines.direct);
         pass.set_bind_group(0, group, &[]);
         pass.draw(0..3, 0..1);
-    }
-}
-
-impl Raster {
-    /// The G-buffer and the direct radiance (ρ/π · E_direct, with shadow maps) of one view
-    /// (rendered once: [`Raster::render_once`]).
-    #[allow(clippy::too_many_arguments)]
-    pub fn direct(
-        &self,
-        scene: &Scene,
-        triangles: &[WorldTriangle],
-        lights: &[LightState],
-        camera: &Camera,
-        width: u32,
-        height: u32,
-        shadows: ShadowSettings,
-    ) -> Result<(GBuffer, Vec<Vec3>), RasterError> {
-        let view = OneFrame {
-            scene,
-            triangles,
-            lights,
-            camera: *camera,
-            width,
-            height,
-            shadows,
-        };
-        let images = self.render_once(&view, &mut NoIndirect, Readback::Everything)?;
-        match (images.gbuffer, images.direct) {
-            (Some(g), Some(d)) => Ok((g, d)),
-            _ => Err(RasterError::Readback("no direct light read back".into())),
-        }
     }
 }

@@ -1,6 +1,7 @@
 //! One client's frame, as named passes in order:
 //!
-//! 1. **G-buffer**: world position, normal, albedo and depth of the camera's view;
+//! 1. **G-buffer**: world position, normal, albedo, light-map UV and depth of the camera's
+//!    view;
 //! 2. **shadows**: the shadow maps of the frame's lights, only when a light or the geometry
 //!    changed since they were last rendered;
 //! 3. **direct**: the client's own light, ρ/π · E_direct;
@@ -23,59 +24,12 @@ use wgpu::util::DeviceExt;
 use super::compose::ComposePass;
 use super::direct::DirectPass;
 use super::gbuffer::{Chunks, GBufferPass, Geometry};
+use super::pass::{IndirectContext, IndirectPass, NoIndirect};
 use super::pipelines::GBufferVertex;
 use super::readback::{Layout, read_planes, rgb};
 use super::shadow::ShadowMaps;
+use super::targets::{GBufferTargets, Target};
 use super::{GBuffer, Raster, RasterError, ShadowSettings, camera_matrices};
-
-/// A texture and its default view.
-pub struct Target {
-    /// The texture.
-    pub texture: wgpu::Texture,
-    /// Its view.
-    pub view: wgpu::TextureView,
-}
-
-impl Target {
-    pub(crate) fn new(
-        raster: &Raster,
-        label: &str,
-        width: u32,
-        height: u32,
-        format: wgpu::TextureFormat,
-    ) -> Self {
-        let texture = raster.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some(label),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
-        let view = texture.create_view(&Default::default());
-        Target { texture, view }
-    }
-}
-
-/// The G-buffer's targets.
-pub struct GBufferTargets {
-    /// World position (m) and coverage (w = 1 where drawn), `f32` bits.
-    pub position: Target,
-    /// Unit shading normal facing the camera, four `f16`.
-    pub normal: Target,
-    /// Albedo, four `f16`.
-    pub albedo: Target,
-    /// Depth.
-    pub depth: Target,
-}
 
 /// Every target of a frame.
 struct FrameTargets {
@@ -146,99 +100,6 @@ pub struct PassTimes {
     pub shadows_rendered: bool,
 }
 
-/// What a technique's indirect pass sees of the frame.
-pub struct IndirectContext<'a> {
-    /// Identifies the frame renderer whose targets these are (passes cache bind groups by it).
-    pub renderer_id: u64,
-    /// Frame width, pixels.
-    pub width: u32,
-    /// Frame height, pixels.
-    pub height: u32,
-    /// The camera's clip_from_world.
-    pub clip_from_world: Mat4,
-    /// The camera's clip_from_view (a perspective projection).
-    pub clip_from_view: Mat4,
-    /// The camera's view_from_world.
-    pub view_from_world: Mat4,
-    /// Bounding diagonal of the geometry, meters.
-    pub scene_extent_m: f32,
-    /// The G-buffer.
-    pub gbuffer: &'a GBufferTargets,
-    /// The target to write indirect radiance to (`f32` bits, cleared by the pass).
-    pub indirect: &'a wgpu::TextureView,
-}
-
-/// A technique's pass producing indirect radiance ρ/π · E_indirect for each pixel.
-pub trait IndirectPass: Send {
-    /// Records the pass into `enc`: it must write (or clear) every pixel of `ctx.indirect`.
-    fn encode(
-        &mut self,
-        raster: &Raster,
-        ctx: &IndirectContext<'_>,
-        enc: &mut wgpu::CommandEncoder,
-    ) -> Result<(), RasterError>;
-}
-
-/// No indirect light (direct-only frames).
-pub struct NoIndirect;
-
-impl IndirectPass for NoIndirect {
-    fn encode(
-        &mut self,
-        _raster: &Raster,
-        ctx: &IndirectContext<'_>,
-        enc: &mut wgpu::CommandEncoder,
-    ) -> Result<(), RasterError> {
-        clear_pass(enc, "no indirect", ctx.indirect);
-        Ok(())
-    }
-}
-
-/// A colour attachment cleared to zero, then stored.
-pub(crate) fn cleared_colour(
-    view: &wgpu::TextureView,
-) -> Option<wgpu::RenderPassColorAttachment<'_>> {
-    Some(wgpu::RenderPassColorAttachment {
-        view,
-        depth_slice: None,
-        resolve_target: None,
-        ops: wgpu::Operations {
-            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-            store: wgpu::StoreOp::Store,
-        },
-    })
-}
-
-/// A depth attachment cleared to the far plane, then stored.
-pub(crate) fn cleared_depth(
-    view: &wgpu::TextureView,
-) -> Option<wgpu::RenderPassDepthStencilAttachment<'_>> {
-    Some(wgpu::RenderPassDepthStencilAttachment {
-        view,
-        depth_ops: Some(wgpu::Operations {
-            load: wgpu::LoadOp::Clear(1.0),
-            store: wgpu::StoreOp::Store,
-        }),
-        stencil_ops: None,
-    })
-}
-
-/// A render pass into one colour target, cleared first, without depth.
-pub(crate) fn clear_pass<'e>(
-    enc: &'e mut wgpu::CommandEncoder,
-    label: &str,
-    view: &wgpu::TextureView,
-) -> wgpu::RenderPass<'e> {
-    enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-        label: Some(label),
-        color_attachments: &[cleared_colour(view)],
-        depth_stencil_attachment: None,
-        timestamp_writes: None,
-        occlusion_query_set: None,
-        multiview_mask: None,
-    })
-}
-
 /// One view to render once, on a frame renderer made for it (tests, references and
 /// one-off measurements; a client keeps its [`FrameRenderer`]).
 #[derive(Clone, Copy)]
@@ -275,26 +136,6 @@ impl Raster {
         };
         frame.render(self, &inputs, indirect, readback, false)
     }
-}
-
-/// A bind group of the `view` layout over `buffer` (matrices at [`VIEW_STRIDE`]).
-pub(crate) fn view_bind_group(
-    raster: &Raster,
-    buffer: &wgpu::Buffer,
-    label: &str,
-) -> wgpu::BindGroup {
-    raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some(label),
-        layout: &raster.pipelines.view_layout,
-        entries: &[wgpu::BindGroupEntry {
-            binding: 0,
-            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                buffer,
-                offset: 0,
-                size: wgpu::BufferSize::new(64),
-            }),
-        }],
-    })
 }
 
 /// Times passes when asked: after each pass, submits what was recorded, waits, and starts a
@@ -361,6 +202,7 @@ impl FrameRenderer {
                     position: target("gbuffer position", f.exact4),
                     normal: target("gbuffer normal", f.half4),
                     albedo: target("gbuffer albedo", f.half4),
+                    lightmap_uv: target("gbuffer light-map uv", f.exact2),
                     depth: target("gbuffer depth", f.depth),
                 },
                 direct: target("direct radiance", f.exact4),
@@ -419,6 +261,9 @@ impl FrameRenderer {
                 .materials
                 .get(t.material as usize)
                 .map_or([0.0; 3], |m| m.albedo.to_array());
+            // A triangle whose three light-map UVs are all zero has none (WorldTriangle's
+            // convention for meshes without them).
+            let has_lightmap = t.lightmap_uv.iter().any(|uv| *uv != glam::Vec2::ZERO);
             for k in 0..3 {
                 lo = lo.min(t.v[k]);
                 hi = hi.max(t.v[k]);
@@ -426,6 +271,11 @@ impl FrameRenderer {
                     position: t.v[k].to_array(),
                     normal: t.n[k].to_array(),
                     albedo,
+                    lightmap: if has_lightmap {
+                        [t.lightmap_uv[k].x, t.lightmap_uv[k].y, 1.0]
+                    } else {
+                        [0.0; 3]
+                    },
                 });
                 positions.push(t.v[k].to_array());
             }
@@ -561,6 +411,7 @@ impl FrameRenderer {
             (&g.position.texture, Layout::Exact4),
             (&g.normal.texture, Layout::Half4),
             (&g.albedo.texture, Layout::Half4),
+            (&g.lightmap_uv.texture, Layout::Exact2),
         ];
         let radiance = [
             (&t.direct.texture, Layout::Exact4),
@@ -588,6 +439,7 @@ impl FrameRenderer {
                 position: next(),
                 normal: rgb(&next()),
                 albedo: rgb(&next()),
+                lightmap_uv: next().iter().map(|p| p.truncate().truncate()).collect(),
             });
         }
         if which == Readback::Everything {
@@ -596,5 +448,36 @@ impl FrameRenderer {
         }
         images.composed = planes.next().map(|p| rgb(&p));
         Ok(images)
+    }
+}
+
+impl Raster {
+    /// The G-buffer and the direct radiance (ρ/π · E_direct, with shadow maps) of one view
+    /// (rendered once: [`Raster::render_once`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn direct(
+        &self,
+        scene: &Scene,
+        triangles: &[WorldTriangle],
+        lights: &[LightState],
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        shadows: ShadowSettings,
+    ) -> Result<(GBuffer, Vec<Vec3>), RasterError> {
+        let view = OneFrame {
+            scene,
+            triangles,
+            lights,
+            camera: *camera,
+            width,
+            height,
+            shadows,
+        };
+        let images = self.render_once(&view, &mut NoIndirect, Readback::Everything)?;
+        match (images.gbuffer, images.direct) {
+            (Some(g), Some(d)) => Ok((g, d)),
+            _ => Err(RasterError::Readback("no direct light read back".into())),
+        }
     }
 }

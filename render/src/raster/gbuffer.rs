@@ -1,4 +1,5 @@
-//! The G-buffer pass: world position, normal and albedo of the nearest surface per pixel, from
+//! The G-buffer pass: world position, normal, albedo and light-map UV of the nearest surface
+//! per pixel, from
 //! the geometry uploaded once ([`Geometry`]), drawing only the chunks of triangles the view's
 //! frustum reaches ([`Chunks`]).
 
@@ -6,8 +7,8 @@ use cloudlight_scenes::WorldTriangle;
 use glam::{Mat4, Vec3};
 
 use super::Raster;
-use super::frame::{GBufferTargets, cleared_colour, cleared_depth, view_bind_group};
 use super::pipelines::VIEW_STRIDE;
+use super::targets::{GBufferTargets, cleared_colour, cleared_depth, view_bind_group};
 
 /// The geometry as the G-buffer and shadow passes draw it.
 #[derive(Default)]
@@ -133,6 +134,7 @@ impl GBufferPass {
                 cleared_colour(&g.position.view),
                 cleared_colour(&g.normal.view),
                 cleared_colour(&g.albedo.view),
+                cleared_colour(&g.lightmap_uv.view),
             ],
             depth_stencil_attachment: cleared_depth(&g.depth.view),
             timestamp_writes: None,

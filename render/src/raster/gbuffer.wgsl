@@ -1,6 +1,8 @@
-// G-buffer pass: world position, shading normal and albedo of the nearest surface per pixel.
-// Targets (see raster/frame.rs, `GBufferTargets`): position as f32 bits (Rgba32Uint), normal
-// and albedo as four f16 each (Rg32Uint). `Vertex` matches raster/frame.rs.
+// G-buffer pass: world position, shading normal, albedo and light-map UV of the nearest
+// surface per pixel. Targets (see raster/targets.rs, `GBufferTargets`): position as f32 bits
+// (Rgba32Uint), normal and albedo as four f16 each (Rg32Uint), light-map UV as two f32 bits
+// (Rg32Uint; NaN where the geometry has none). `VertexIn` matches `GBufferVertex` in
+// raster/pipelines.rs.
 
 struct View {
     clip_from_world: mat4x4<f32>,
@@ -12,6 +14,8 @@ struct VertexIn {
     @location(0) position: vec3<f32>,
     @location(1) normal: vec3<f32>,
     @location(2) albedo: vec3<f32>,
+    // xy: light-map UV; z: 1 where the triangle has light-map UVs, else 0.
+    @location(3) lightmap: vec3<f32>,
 };
 
 struct VertexOut {
@@ -19,6 +23,7 @@ struct VertexOut {
     @location(0) world: vec3<f32>,
     @location(1) normal: vec3<f32>,
     @location(2) albedo: vec3<f32>,
+    @location(3) lightmap: vec3<f32>,
 };
 
 @vertex
@@ -28,6 +33,7 @@ fn vs_main(v: VertexIn) -> VertexOut {
     out.world = v.position;
     out.normal = v.normal;
     out.albedo = v.albedo;
+    out.lightmap = v.lightmap;
     return out;
 }
 
@@ -38,6 +44,8 @@ struct GBufferOut {
     @location(1) normal: vec2<u32>,
     // rgb: albedo (f16 pairs).
     @location(2) albedo: vec2<u32>,
+    // Light-map UV in [0, 1]² as f32 bits; quiet NaN where the surface has none.
+    @location(3) lightmap: vec2<u32>,
 };
 
 @fragment
@@ -50,5 +58,10 @@ fn fs_main(in: VertexOut, @builtin(front_facing) front: bool) -> GBufferOut {
     g.position = bitcast<vec4<u32>>(vec4<f32>(in.world, 1.0));
     g.normal = vec2<u32>(pack2x16float(n.xy), pack2x16float(vec2<f32>(n.z, 0.0)));
     g.albedo = vec2<u32>(pack2x16float(in.albedo.rg), pack2x16float(vec2<f32>(in.albedo.b, 1.0)));
+    if (in.lightmap.z > 0.5) {
+        g.lightmap = bitcast<vec2<u32>>(in.lightmap.xy);
+    } else {
+        g.lightmap = vec2<u32>(0x7fc00000u, 0x7fc00000u);
+    }
     return g;
 }

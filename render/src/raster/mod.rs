@@ -1,7 +1,9 @@
 //! Raster on wgpu, headless: a client's frame as named passes in order — G-buffer
-//! (world position, normal, albedo), shadow maps, direct light, the technique's indirect
-//! pass, compose, read-back ([`frame`]) — with the photon technique's splatting as one such
-//! indirect pass ([`splat`]).
+//! (world position, normal, albedo, light-map UV), shadow maps, direct light, the technique's indirect
+//! pass, compose, read-back ([`frame`]). The raster owns the shared passes and the pass
+//! trait ([`IndirectPass`]); each technique's indirect pass lives beside its kernels and
+//! owns its pipelines (built once per device through [`Raster::pipelines_of`]). Imports run
+//! one way: [`targets`] ← the passes ← [`frame`].
 //!
 //! [`Raster`] is one device with every pipeline built once; a [`FrameRenderer`] holds one
 //! client's targets, geometry buffers and shadow maps and keeps them between frames.
@@ -11,25 +13,24 @@
 //! sockets.
 
 use cloudlight_scenes::Camera;
-use glam::{Mat4, Vec3, Vec4};
+use glam::{Mat4, Vec2, Vec3, Vec4};
 
 mod compose;
 pub mod device;
 pub mod direct;
 pub mod frame;
 mod gbuffer;
-mod pipelines;
+pub mod pass;
+pub(crate) mod pipelines;
 mod readback;
 pub mod shadow;
-pub mod splat;
+pub mod targets;
 
 pub use device::Formats;
-pub use frame::{
-    FrameImages, FrameInputs, FrameRenderer, GBufferTargets, IndirectContext, IndirectPass,
-    NoIndirect, OneFrame, PassTimes, Readback,
-};
+pub use frame::{FrameImages, FrameInputs, FrameRenderer, OneFrame, PassTimes, Readback};
+pub use pass::{IndirectContext, IndirectPass, NoIndirect};
 pub use shadow::ShadowSettings;
-pub use splat::{PhotonFrame, PhotonSplatPass, SplatSettings};
+pub use targets::{GBufferTargets, Target};
 
 /// Why the raster cannot run.
 #[derive(Debug, thiserror::Error)]
@@ -101,7 +102,12 @@ pub struct Raster {
     formats: Formats,
     errors: device::ErrorSink,
     pub(crate) pipelines: pipelines::Pipelines,
+    /// Technique passes' pipelines, one value per type, built at first use.
+    technique_pipelines: std::sync::Mutex<TechniquePipelines>,
 }
+
+type TechniquePipelines =
+    std::collections::HashMap<std::any::TypeId, std::sync::Arc<dyn std::any::Any + Send + Sync>>;
 
 /// The G-buffer of one view, on the CPU (row-major from the top).
 #[derive(Clone, Debug, PartialEq)]
@@ -116,12 +122,21 @@ pub struct GBuffer {
     pub normal: Vec<Vec3>,
     /// Albedo.
     pub albedo: Vec<Vec3>,
+    /// Light-map UV in [0, 1]² (NaN where the surface has none; see [`GBuffer::lightmap_uv_at`]).
+    pub lightmap_uv: Vec<Vec2>,
 }
 
 impl GBuffer {
     /// Whether pixel `i` sees a surface.
     pub fn covered(&self, i: usize) -> bool {
         self.position[i].w > 0.5
+    }
+
+    /// Light-map UV of pixel `i`: `None` where no surface was drawn or it has no light-map
+    /// UVs.
+    pub fn lightmap_uv_at(&self, i: usize) -> Option<Vec2> {
+        let uv = *self.lightmap_uv.get(i)?;
+        (self.covered(i) && uv.is_finite()).then_some(uv)
     }
 
     /// Indices of the pixels that see a surface.
@@ -198,7 +213,27 @@ impl Raster {
             formats,
             errors,
             pipelines,
+            technique_pipelines: Default::default(),
         })
+    }
+
+    /// A technique pass's pipelines `P`, built by `build` the first time any pass asks on this
+    /// device and shared from then on (every client of a process shares one device, so a
+    /// pipeline is compiled once, not once per client). A build that fails is not kept.
+    pub fn pipelines_of<P: Send + Sync + 'static>(
+        &self,
+        build: impl FnOnce(&Raster) -> P,
+    ) -> Result<std::sync::Arc<P>, RasterError> {
+        let key = std::any::TypeId::of::<P>();
+        if let Some(p) = crate::lock(&self.technique_pipelines).get(&key) {
+            return Ok(p.clone().downcast::<P>().expect("keyed by its type"));
+        }
+        let built =
+            std::sync::Arc::new(self.checked("building a pass's pipelines", || Ok(build(self)))?);
+        crate::lock(&self.technique_pipelines)
+            .entry(key)
+            .or_insert_with(|| built.clone());
+        Ok(built)
     }
 
     /// The adapter in use (name, backend, device type).
@@ -209,7 +244,7 @@ impl Raster {
     /// One line naming the adapter and its backend.
     pub fn describe(&self) -> String {
         format!(
-            "{} ({:?}, {:?}; photon accumulation {:?})",
+            "{} ({:?}, {:?}; accumulation {:?})",
             self.adapter_info.name,
             self.adapter_info.backend,
             self.adapter_info.device_type,
@@ -286,4 +321,4 @@ impl Raster {
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

@@ -1,6 +1,7 @@
-//! Every pipeline and bind-group layout of the raster, built once per device in the formats
-//! the adapter supports ([`Formats`]). Shader layouts are marked in the `.wgsl` files and in
-//! the Rust structs that fill them.
+//! The shared passes' pipelines and bind-group layouts (G-buffer, shadows, direct, compose),
+//! built once per device in the formats the adapter supports ([`Formats`]), and the helpers
+//! a technique's pass builds its own pipelines with. Shader layouts are marked in the
+//! `.wgsl` files and in the Rust structs that fill them.
 
 use super::Formats;
 
@@ -11,6 +12,8 @@ pub(crate) struct GBufferVertex {
     pub(crate) position: [f32; 3],
     pub(crate) normal: [f32; 3],
     pub(crate) albedo: [f32; 3],
+    /// Light-map UV, and 1 where the triangle has light-map UVs (else 0).
+    pub(crate) lightmap: [f32; 3],
 }
 
 /// Stride of one view matrix in the views uniform buffer (dynamic offsets are 256-aligned).
@@ -26,12 +29,9 @@ pub(crate) struct Pipelines {
     pub(crate) direct: wgpu::RenderPipeline,
     pub(crate) compose_layout: wgpu::BindGroupLayout,
     pub(crate) compose: wgpu::RenderPipeline,
-    pub(crate) splat_layout: wgpu::BindGroupLayout,
-    pub(crate) splat: wgpu::RenderPipeline,
-    pub(crate) upsample: wgpu::RenderPipeline,
 }
 
-fn texture_entry(
+pub(crate) fn texture_entry(
     binding: u32,
     visibility: wgpu::ShaderStages,
     sample_type: wgpu::TextureSampleType,
@@ -49,7 +49,7 @@ fn texture_entry(
     }
 }
 
-fn buffer_entry(
+pub(crate) fn buffer_entry(
     binding: u32,
     visibility: wgpu::ShaderStages,
     ty: wgpu::BufferBindingType,
@@ -66,11 +66,11 @@ fn buffer_entry(
     }
 }
 
-const UINT: wgpu::TextureSampleType = wgpu::TextureSampleType::Uint;
-const D2: wgpu::TextureViewDimension = wgpu::TextureViewDimension::D2;
-const FRAGMENT: wgpu::ShaderStages = wgpu::ShaderStages::FRAGMENT;
+pub(crate) const UINT: wgpu::TextureSampleType = wgpu::TextureSampleType::Uint;
+pub(crate) const D2: wgpu::TextureViewDimension = wgpu::TextureViewDimension::D2;
+pub(crate) const FRAGMENT: wgpu::ShaderStages = wgpu::ShaderStages::FRAGMENT;
 
-fn layout(
+pub(crate) fn layout(
     device: &wgpu::Device,
     label: &str,
     entries: &[wgpu::BindGroupLayoutEntry],
@@ -81,7 +81,7 @@ fn layout(
     })
 }
 
-fn pipeline_layout(
+pub(crate) fn pipeline_layout(
     device: &wgpu::Device,
     label: &str,
     group: &wgpu::BindGroupLayout,
@@ -95,7 +95,7 @@ fn pipeline_layout(
 
 /// A full-screen pass: vertex entry `vs` draws one triangle over the target, fragment entry
 /// `fs` writes one target of `format` without blending.
-fn fullscreen_pipeline(
+pub(crate) fn fullscreen_pipeline(
     device: &wgpu::Device,
     label: &str,
     layout: &wgpu::PipelineLayout,
@@ -130,7 +130,10 @@ fn fullscreen_pipeline(
     })
 }
 
-fn depth_state(format: wgpu::TextureFormat, bias: wgpu::DepthBiasState) -> wgpu::DepthStencilState {
+pub(crate) fn depth_state(
+    format: wgpu::TextureFormat,
+    bias: wgpu::DepthBiasState,
+) -> wgpu::DepthStencilState {
     wgpu::DepthStencilState {
         format,
         depth_write_enabled: Some(true),
@@ -176,7 +179,6 @@ impl Pipelines {
             ("vs_main", "fs_main"),
             formats.exact4,
         );
-        let (splat_layout, splat, upsample) = splat_pipelines(device, formats);
         Pipelines {
             view_layout,
             gbuffer,
@@ -185,9 +187,6 @@ impl Pipelines {
             direct,
             compose_layout,
             compose,
-            splat_layout,
-            splat,
-            upsample,
         }
     }
 }
@@ -265,7 +264,7 @@ fn geometry_pipelines(
             buffers: &[Some(wgpu::VertexBufferLayout {
                 array_stride: std::mem::size_of::<GBufferVertex>() as u64,
                 step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3],
+                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3, 3 => Float32x3],
             })],
         },
         primitive: wgpu::PrimitiveState {
@@ -282,6 +281,7 @@ fn geometry_pipelines(
                 target(formats.exact4),
                 target(formats.half4),
                 target(formats.half4),
+                target(formats.exact2),
             ],
         }),
         multiview_mask: None,
@@ -319,96 +319,4 @@ fn geometry_pipelines(
         cache: None,
     });
     (gbuffer, shadow)
-}
-
-/// Must match `PhotonIn` in splat.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-pub(crate) struct SplatPhoton {
-    pub(crate) position_radius: [f32; 4],
-    pub(crate) power: [f32; 4],
-    pub(crate) direction: [f32; 4],
-}
-
-/// The splat pipeline (instanced quads, additive into the accumulation buffer) and the
-/// upsample pipeline, sharing one layout.
-fn splat_pipelines(
-    device: &wgpu::Device,
-    formats: &Formats,
-) -> (
-    wgpu::BindGroupLayout,
-    wgpu::RenderPipeline,
-    wgpu::RenderPipeline,
-) {
-    let shader = device.create_shader_module(wgpu::include_wgsl!("splat.wgsl"));
-    let layout = layout(
-        device,
-        "splat",
-        &[
-            buffer_entry(
-                0,
-                wgpu::ShaderStages::VERTEX_FRAGMENT,
-                wgpu::BufferBindingType::Uniform,
-            ),
-            texture_entry(1, FRAGMENT, UINT, D2),
-            texture_entry(2, FRAGMENT, UINT, D2),
-            texture_entry(3, FRAGMENT, UINT, D2),
-            texture_entry(
-                4,
-                FRAGMENT,
-                wgpu::TextureSampleType::Float { filterable: false },
-                D2,
-            ),
-        ],
-    );
-    let pipeline_layout = pipeline_layout(device, "splat", &layout);
-    let additive = wgpu::BlendComponent {
-        src_factor: wgpu::BlendFactor::One,
-        dst_factor: wgpu::BlendFactor::One,
-        operation: wgpu::BlendOperation::Add,
-    };
-    let splat = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-        label: Some("splat"),
-        layout: Some(&pipeline_layout),
-        vertex: wgpu::VertexState {
-            module: &shader,
-            entry_point: Some("vs_splat"),
-            compilation_options: Default::default(),
-            buffers: &[Some(wgpu::VertexBufferLayout {
-                array_stride: std::mem::size_of::<SplatPhoton>() as u64,
-                step_mode: wgpu::VertexStepMode::Instance,
-                attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x4, 2 => Float32x4],
-            })],
-        },
-        primitive: wgpu::PrimitiveState {
-            cull_mode: None,
-            ..Default::default()
-        },
-        depth_stencil: None,
-        multisample: Default::default(),
-        fragment: Some(wgpu::FragmentState {
-            module: &shader,
-            entry_point: Some("fs_splat"),
-            compilation_options: Default::default(),
-            targets: &[Some(wgpu::ColorTargetState {
-                format: formats.accum,
-                blend: Some(wgpu::BlendState {
-                    color: additive,
-                    alpha: additive,
-                }),
-                write_mask: wgpu::ColorWrites::ALL,
-            })],
-        }),
-        multiview_mask: None,
-        cache: None,
-    });
-    let upsample = fullscreen_pipeline(
-        device,
-        "upsample",
-        &pipeline_layout,
-        &shader,
-        ("vs_full", "fs_upsample"),
-        formats.exact4,
-    );
-    (layout, splat, upsample)
 }

@@ -1,6 +1,6 @@
 //! Reading targets back to the CPU: copies into mappable buffers (rows padded to 256 bytes),
 //! one submit and one wait for all of them, then decoding the targets' bit layouts (`f32`
-//! bits in `Rgba32Uint`, four `f16` in `Rg32Uint`).
+//! bits in `Rgba32Uint`, four `f16` or two `f32` in `Rg32Uint`).
 
 use glam::{Vec3, Vec4};
 
@@ -13,13 +13,15 @@ pub(crate) enum Layout {
     Exact4,
     /// Four `f16` in two `u32` (8 bytes per pixel).
     Half4,
+    /// Two `f32` as bits (8 bytes per pixel), read into x and y.
+    Exact2,
 }
 
 impl Layout {
     fn bytes_per_px(self) -> u32 {
         match self {
             Layout::Exact4 => 16,
-            Layout::Half4 => 8,
+            Layout::Half4 | Layout::Exact2 => 8,
         }
     }
 }
@@ -87,6 +89,12 @@ pub(crate) fn read_planes(
                         f32::from_le_bytes([c[4 * i], c[4 * i + 1], c[4 * i + 2], c[4 * i + 3]])
                     };
                     Vec4::new(f(0), f(1), f(2), f(3))
+                })),
+                Layout::Exact2 => px.extend(r.chunks_exact(8).map(|c| {
+                    let f = |i: usize| {
+                        f32::from_le_bytes([c[4 * i], c[4 * i + 1], c[4 * i + 2], c[4 * i + 3]])
+                    };
+                    Vec4::new(f(0), f(1), 0.0, 0.0)
                 })),
                 Layout::Half4 => px.extend(r.chunks_exact(8).map(|c| {
                     let h = |i: usize| half::f16::from_le_bytes([c[2 * i], c[2 * i + 1]]).to_f32();

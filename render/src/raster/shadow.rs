@@ -6,9 +6,9 @@
 use cloudlight_scenes::LightState;
 use glam::{Mat4, Vec3};
 
-use super::frame::cleared_depth;
 use super::gbuffer::Chunks;
 use super::pipelines::VIEW_STRIDE;
+use super::targets::cleared_depth;
 use super::{Raster, RasterError};
 
 /// Shadow-map settings.
@@ -465,7 +465,7 @@ impl ShadowResources {
             VIEW_STRIDE * layers as u64,
             wgpu::BufferUsages::UNIFORM,
         );
-        let view_bind = super::frame::view_bind_group(raster, &view_uniforms, "shadow views");
+        let view_bind = super::targets::view_bind_group(raster, &view_uniforms, "shadow views");
         let lights = buffer(
             "lights",
             (std::mem::size_of::<LightGpu>() * light_slots) as u64,

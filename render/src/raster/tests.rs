@@ -5,6 +5,22 @@ use glam::{Vec2, Vec3};
 use super::*;
 use crate::bvh::{BvhKind, SceneBvh};
 
+/// The camera ray through the centre of each pixel of a `w` × `h` frame, row-major from the
+/// top.
+fn pixel_rays(camera: &cloudlight_scenes::Camera, w: u32, h: u32) -> Vec<Vec3> {
+    let aspect = w as f32 / h as f32;
+    (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let ndc = Vec2::new(
+                (x as f32 + 0.5) / w as f32 * 2.0 - 1.0,
+                1.0 - (y as f32 + 0.5) / h as f32 * 2.0,
+            );
+            camera.ray_direction(ndc, aspect)
+        })
+        .collect()
+}
+
 /// Runs `test` on the Vulkan and on the GL adapter, each where it exists: a backend without
 /// an adapter (or excluded by `WGPU_BACKEND`) is skipped with a printed reason; no adapter at
 /// all fails the test.
@@ -48,41 +64,29 @@ fn the_gbuffer_of_the_cornell_box_matches_ray_casting() {
         let (w, h) = (64u32, 64u32);
         let g = raster.gbuffer(&scene, &tris, &camera, w, h).unwrap();
         let bvh = SceneBvh::build(tris, BvhKind::default());
-        let aspect = w as f32 / h as f32;
         let (mut both, mut disagree) = (0, 0);
-        for y in 0..h {
-            for x in 0..w {
-                let i = (y * w + x) as usize;
-                let ndc = Vec2::new(
-                    (x as f32 + 0.5) / w as f32 * 2.0 - 1.0,
-                    1.0 - (y as f32 + 0.5) / h as f32 * 2.0,
-                );
-                let hit = bvh.closest_hit(
-                    camera.position,
-                    camera.ray_direction(ndc, aspect),
-                    f32::INFINITY,
-                );
-                let drawn = g.position[i].w > 0.5;
-                match hit {
-                    Some(hit) if drawn => {
-                        both += 1;
-                        let p = camera.position + camera.ray_direction(ndc, aspect) * hit.t;
-                        let tri = &bvh.triangles()[hit.triangle as usize];
-                        let albedo = scene.materials[tri.material as usize].albedo;
-                        let mut n = bvh.geometric_normal(hit.triangle);
-                        if n.dot(camera.ray_direction(ndc, aspect)) > 0.0 {
-                            n = -n;
-                        }
-                        let same = (g.position[i].truncate() - p).length() < 2e-3
-                            && g.normal[i].dot(n) > 0.99
-                            && (g.albedo[i] - albedo).abs().max_element() < 1e-2;
-                        if !same {
-                            disagree += 1; // a silhouette or a crease between two surfaces
-                        }
+        for (i, d) in pixel_rays(&camera, w, h).into_iter().enumerate() {
+            let hit = bvh.closest_hit(camera.position, d, f32::INFINITY);
+            let drawn = g.position[i].w > 0.5;
+            match hit {
+                Some(hit) if drawn => {
+                    both += 1;
+                    let p = camera.position + d * hit.t;
+                    let tri = &bvh.triangles()[hit.triangle as usize];
+                    let albedo = scene.materials[tri.material as usize].albedo;
+                    let mut n = bvh.geometric_normal(hit.triangle);
+                    if n.dot(d) > 0.0 {
+                        n = -n;
                     }
-                    None if !drawn => {}
-                    _ => disagree += 1,
+                    let same = (g.position[i].truncate() - p).length() < 2e-3
+                        && g.normal[i].dot(n) > 0.99
+                        && (g.albedo[i] - albedo).abs().max_element() < 1e-2;
+                    if !same {
+                        disagree += 1; // a silhouette or a crease between two surfaces
+                    }
                 }
+                None if !drawn => {}
+                _ => disagree += 1,
             }
         }
         eprintln!("{both} pixels covered by both, {disagree} disagree");
@@ -639,5 +643,71 @@ fn a_frame_renderer_keeps_its_shadow_maps_until_a_light_moves() {
             22,
             "new geometry: every view"
         );
+    });
+}
+
+#[test]
+fn a_technique_pass_builds_its_pipelines_once_per_device() {
+    struct Built(u32);
+    let raster = Raster::new().expect("an adapter");
+    let calls = std::sync::atomic::AtomicU32::new(0);
+    let build = |_: &Raster| Built(calls.fetch_add(1, std::sync::atomic::Ordering::SeqCst));
+    let a = raster.pipelines_of(build).unwrap();
+    let b = raster.pipelines_of(build).unwrap();
+    assert!(std::sync::Arc::ptr_eq(&a, &b));
+    assert_eq!((a.0, calls.into_inner()), (0, 1));
+    // Another device builds its own.
+    let other = Raster::new().expect("an adapter");
+    assert_eq!(other.pipelines_of(|_| Built(7)).unwrap().0, 7);
+}
+
+#[test]
+fn the_gbuffer_carries_light_map_uvs_where_the_geometry_has_them() {
+    // The Cornell box's light map: its scene carries the unwrapped UVs. Each pixel's UV must
+    // be what ray casting interpolates at the same hit (the gather's lookup).
+    let cornell = cloudlight_scenes::builtin("cornell").unwrap();
+    let lm = crate::lightmap::Lightmap::cached(&cornell, &Default::default()).unwrap();
+    let scene = &lm.scene;
+    let tris = scene.triangles_at(0.0);
+    assert!(
+        tris.iter()
+            .all(|t| t.lightmap_uv.iter().any(|uv| *uv != Vec2::ZERO))
+    );
+    let camera = cornell.cameras[0].camera;
+    let (w, h) = (64u32, 64u32);
+    let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
+    let texel = 1.0 / lm.texels.width as f32;
+    on_every_backend(|raster| {
+        let g = raster.gbuffer(scene, &tris, &camera, w, h).unwrap();
+        let (mut both, mut disagree) = (0, 0);
+        for (i, d) in pixel_rays(&camera, w, h).into_iter().enumerate() {
+            let (Some(hit), Some(uv)) = (
+                bvh.closest_hit(camera.position, d, f32::INFINITY),
+                g.lightmap_uv_at(i),
+            ) else {
+                assert_eq!(g.covered(i), g.lightmap_uv_at(i).is_some());
+                continue;
+            };
+            both += 1;
+            let tri = &bvh.triangles()[hit.triangle as usize];
+            let (u, v) = (hit.uv.x, hit.uv.y);
+            let want = tri.lightmap_uv[0] * (1.0 - u - v)
+                + tri.lightmap_uv[1] * u
+                + tri.lightmap_uv[2] * v;
+            // Within a quarter texel, but at silhouettes and chart seams.
+            if (uv - want).abs().max_element() > texel * 0.25 {
+                disagree += 1;
+            }
+        }
+        eprintln!("light-map UVs: {both} pixels, {disagree} disagree");
+        assert!(both > (w * h) as usize * 9 / 10, "only {both} pixels");
+        assert!(disagree <= (w * h) as usize / 50, "{disagree} disagree");
+        // The original scene has no light-map UVs: covered pixels read None.
+        let plain = raster
+            .gbuffer(&cornell, &cornell.triangles_at(0.0), &camera, w, h)
+            .unwrap();
+        let covered = plain.covered_pixels();
+        assert!(!covered.is_empty());
+        assert!(covered.iter().all(|&i| plain.lightmap_uv_at(i).is_none()));
     });
 }

@@ -90,7 +90,7 @@ pub fn run(a: Args) -> ExitCode {
             light_samples: a.light_samples,
             shadow_size: a.shadow_size,
         };
-        let splat = cloudlight::render::raster::SplatSettings {
+        let splat = cloudlight::render::photon::splat::SplatSettings {
             downsample: a.downsample,
             ..Default::default()
         };

@@ -4,9 +4,10 @@
 
 use glam::Vec3;
 
+use super::SplatSettings;
 use crate::bvh::{BvhKind, SceneBvh};
+use crate::raster::ShadowSettings;
 use crate::raster::tests::on_every_backend;
-use crate::raster::{ShadowSettings, SplatSettings};
 
 /// Photons on a jittered grid of spacing `h` over the floor (x, z in [−1.5, 1.5]), carrying
 /// irradiance (E0, E0/2, E0/4) downwards, each with a twin travelling up (away from it).
@@ -66,22 +67,22 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
         let photons = uniform_field(e0, h);
         let (w, hgt) = (64u32, 64u32);
         for downsample in [1, 2] {
-            let frame = raster
-                .photon_frame(
-                    &scene,
-                    &tris,
-                    &[],
-                    &camera,
-                    w,
-                    hgt,
-                    ShadowSettings::default(),
-                    &photons,
-                    SplatSettings {
-                        downsample,
-                        ..Default::default()
-                    },
-                )
-                .unwrap();
+            let frame = super::photon_frame(
+                raster,
+                &scene,
+                &tris,
+                &[],
+                &camera,
+                w,
+                hgt,
+                ShadowSettings::default(),
+                &photons,
+                SplatSettings {
+                    downsample,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
             let expect = Vec3::new(e0, e0 * 0.5, e0 * 0.25) * 0.5 / std::f32::consts::PI;
             let inner: Vec<Vec3> = (8..56)
                 .flat_map(|y| (8..56).map(move |x| (y, x)))
@@ -129,19 +130,19 @@ fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
         for photons in [2_500u64, 10_000, 40_000, 160_000] {
             let s = PhotonSettings::for_budget(&scene, photons, 10_000.min(photons as u32));
             let it = trace_iteration(&scene, &bvh, 0.0, s, 3, PackFormat::Compact12);
-            let frame = raster
-                .photon_frame(
-                    &scene,
-                    &tris,
-                    &[],
-                    &camera,
-                    w,
-                    h,
-                    ShadowSettings::default(),
-                    &it.unpacked(),
-                    SplatSettings::default(),
-                )
-                .unwrap();
+            let frame = super::photon_frame(
+                raster,
+                &scene,
+                &tris,
+                &[],
+                &camera,
+                w,
+                h,
+                ShadowSettings::default(),
+                &it.unpacked(),
+                SplatSettings::default(),
+            )
+            .unwrap();
             assert!(frame.indirect.iter().all(|v| v.is_finite()));
             // The scale-invariant figures (what benchmarks report) and, as before, relMSE
             // with an absolute ε (radiance in watts: it reads ~25× lower).
@@ -185,22 +186,22 @@ fn extreme_photon_sets_give_finite_frames() {
             let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
             let it = trace_iteration(scene, &bvh, 0.0, settings, 1, PackFormat::Compact12);
             let lights = scene.surface_light_samples(0.0, 1);
-            let f = raster
-                .photon_frame(
-                    scene,
-                    &tris,
-                    &lights,
-                    &camera,
-                    32,
-                    32,
-                    ShadowSettings {
-                        size: 128,
-                        ..Default::default()
-                    },
-                    &it.unpacked(),
-                    SplatSettings::default(),
-                )
-                .unwrap();
+            let f = super::photon_frame(
+                raster,
+                scene,
+                &tris,
+                &lights,
+                &camera,
+                32,
+                32,
+                ShadowSettings {
+                    size: 128,
+                    ..Default::default()
+                },
+                &it.unpacked(),
+                SplatSettings::default(),
+            )
+            .unwrap();
             assert!(
                 f.combined()
                     .iter()

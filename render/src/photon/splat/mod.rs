@@ -1,15 +1,119 @@
 //! The photon technique's indirect pass ([`PhotonSplatPass`]): photons splatted in screen
 //! space into a low-resolution additive buffer, then a joint-bilateral upsample to indirect
 //! radiance (see `splat.wgsl` for the kernel). The photons are uploaded once per set
-//! ([`PhotonSplatPass::set_photons`]), not once per frame.
+//! ([`PhotonSplatPass::set_photons`]), not once per frame. The pass owns its pipelines
+//! ([`SplatPipelines`], built once per device); the shared raster knows nothing of photons.
 
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use glam::Vec3;
 
-use super::frame::{IndirectContext, IndirectPass, OneFrame, Readback, Target};
-use super::pipelines::SplatPhoton;
-use super::{GBuffer, Raster, RasterError, ShadowSettings};
-use crate::photon::Photon;
+use super::Photon;
+use crate::raster::pipelines::{
+    D2, FRAGMENT, UINT, buffer_entry, fullscreen_pipeline, layout, pipeline_layout, texture_entry,
+};
+use crate::raster::targets::clear_pass;
+use crate::raster::{
+    GBuffer, IndirectContext, IndirectPass, OneFrame, Raster, RasterError, Readback,
+    ShadowSettings, Target,
+};
+
+/// Must match `PhotonIn` in splat.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct SplatPhoton {
+    position_radius: [f32; 4],
+    power: [f32; 4],
+    direction: [f32; 4],
+}
+
+/// The splat pipeline (instanced quads, additive into the accumulation buffer) and the
+/// upsample pipeline, sharing one layout.
+struct SplatPipelines {
+    layout: wgpu::BindGroupLayout,
+    splat: wgpu::RenderPipeline,
+    upsample: wgpu::RenderPipeline,
+}
+
+impl SplatPipelines {
+    fn new(raster: &Raster) -> Self {
+        let (device, formats) = (&raster.device, raster.formats());
+        let shader = device.create_shader_module(wgpu::include_wgsl!("splat.wgsl"));
+        let layout = layout(
+            device,
+            "splat",
+            &[
+                buffer_entry(
+                    0,
+                    wgpu::ShaderStages::VERTEX_FRAGMENT,
+                    wgpu::BufferBindingType::Uniform,
+                ),
+                texture_entry(1, FRAGMENT, UINT, D2),
+                texture_entry(2, FRAGMENT, UINT, D2),
+                texture_entry(3, FRAGMENT, UINT, D2),
+                texture_entry(
+                    4,
+                    FRAGMENT,
+                    wgpu::TextureSampleType::Float { filterable: false },
+                    D2,
+                ),
+            ],
+        );
+        let pipeline_layout = pipeline_layout(device, "splat", &layout);
+        let additive = wgpu::BlendComponent {
+            src_factor: wgpu::BlendFactor::One,
+            dst_factor: wgpu::BlendFactor::One,
+            operation: wgpu::BlendOperation::Add,
+        };
+        let splat = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("splat"),
+            layout: Some(&pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some("vs_splat"),
+                compilation_options: Default::default(),
+                buffers: &[Some(wgpu::VertexBufferLayout {
+                    array_stride: std::mem::size_of::<SplatPhoton>() as u64,
+                    step_mode: wgpu::VertexStepMode::Instance,
+                    attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x4, 2 => Float32x4],
+                })],
+            },
+            primitive: wgpu::PrimitiveState {
+                cull_mode: None,
+                ..Default::default()
+            },
+            depth_stencil: None,
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some("fs_splat"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: formats.accum,
+                    blend: Some(wgpu::BlendState {
+                        color: additive,
+                        alpha: additive,
+                    }),
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let upsample = fullscreen_pipeline(
+            device,
+            "upsample",
+            &pipeline_layout,
+            &shader,
+            ("vs_full", "fs_upsample"),
+            formats.exact4,
+        );
+        SplatPipelines {
+            layout,
+            splat,
+            upsample,
+        }
+    }
+}
 
 /// Splatting settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -83,6 +187,7 @@ struct SplatTargets {
 
 /// The photon client's indirect pass.
 pub struct PhotonSplatPass {
+    pipelines: std::sync::Arc<SplatPipelines>,
     settings: SplatSettings,
     photons: Option<wgpu::Buffer>,
     count: u32,
@@ -93,9 +198,11 @@ pub struct PhotonSplatPass {
 }
 
 impl PhotonSplatPass {
-    /// A pass without photons.
-    pub fn new(raster: &Raster, settings: SplatSettings) -> Self {
-        PhotonSplatPass {
+    /// A pass without photons (its pipelines are built at the first pass on `raster`'s
+    /// device).
+    pub fn new(raster: &Raster, settings: SplatSettings) -> Result<Self, RasterError> {
+        Ok(PhotonSplatPass {
+            pipelines: raster.pipelines_of(SplatPipelines::new)?,
             settings,
             photons: None,
             count: 0,
@@ -107,7 +214,7 @@ impl PhotonSplatPass {
                 mapped_at_creation: false,
             }),
             targets: None,
-        }
+        })
     }
 
     /// Photons splatted from now on (non-finite photons and those without a radius are
@@ -190,7 +297,7 @@ impl PhotonSplatPass {
                 };
                 raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
                     label: Some("splat"),
-                    layout: &raster.pipelines.splat_layout,
+                    layout: &self.pipelines.layout,
                     entries: &[
                         wgpu::BindGroupEntry {
                             binding: 0,
@@ -269,58 +376,56 @@ impl IndirectPass for PhotonSplatPass {
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         let t = self.targets.as_ref().expect("made above");
         {
-            let mut pass = super::frame::clear_pass(enc, "splat", &t.accum.view);
+            let mut pass = clear_pass(enc, "splat", &t.accum.view);
             if let (Some(buf), true) = (&self.photons, count > 0) {
-                pass.set_pipeline(&raster.pipelines.splat);
+                pass.set_pipeline(&self.pipelines.splat);
                 pass.set_bind_group(0, &t.splat, &[]);
                 pass.set_vertex_buffer(0, buf.slice(..));
                 pass.draw(0..6, 0..count);
             }
         }
-        let mut pass = super::frame::clear_pass(enc, "upsample", ctx.indirect);
-        pass.set_pipeline(&raster.pipelines.upsample);
+        let mut pass = clear_pass(enc, "upsample", ctx.indirect);
+        pass.set_pipeline(&self.pipelines.upsample);
         pass.set_bind_group(0, &t.upsample, &[]);
         pass.draw(0..3, 0..1);
         Ok(())
     }
 }
 
-impl Raster {
-    /// A one-frame photon client: direct light of `lights` plus the indirect light of
-    /// `photons` (a [`PhotonSplatPass`] rendered once, everything read back).
-    #[allow(clippy::too_many_arguments)]
-    pub fn photon_frame(
-        &self,
-        scene: &Scene,
-        triangles: &[WorldTriangle],
-        lights: &[LightState],
-        camera: &Camera,
-        width: u32,
-        height: u32,
-        shadows: ShadowSettings,
-        photons: &[Photon],
-        splat: SplatSettings,
-    ) -> Result<PhotonFrame, RasterError> {
-        let mut pass = PhotonSplatPass::new(self, splat);
-        pass.set_photons(self, photons)?;
-        let view = OneFrame {
-            scene,
-            triangles,
-            lights,
-            camera: *camera,
-            width,
-            height,
-            shadows,
-        };
-        let images = self.render_once(&view, &mut pass, Readback::Everything)?;
-        match (images.gbuffer, images.direct, images.indirect) {
-            (Some(gbuffer), Some(direct), Some(indirect)) => Ok(PhotonFrame {
-                gbuffer,
-                direct,
-                indirect,
-            }),
-            _ => Err(RasterError::Readback("the frame was not read back".into())),
-        }
+/// A one-frame photon client on `raster`: direct light of `lights` plus the indirect light
+/// of `photons` (a [`PhotonSplatPass`] rendered once, everything read back).
+#[allow(clippy::too_many_arguments)]
+pub fn photon_frame(
+    raster: &Raster,
+    scene: &Scene,
+    triangles: &[WorldTriangle],
+    lights: &[LightState],
+    camera: &Camera,
+    width: u32,
+    height: u32,
+    shadows: ShadowSettings,
+    photons: &[Photon],
+    splat: SplatSettings,
+) -> Result<PhotonFrame, RasterError> {
+    let mut pass = PhotonSplatPass::new(raster, splat)?;
+    pass.set_photons(raster, photons)?;
+    let view = OneFrame {
+        scene,
+        triangles,
+        lights,
+        camera: *camera,
+        width,
+        height,
+        shadows,
+    };
+    let images = raster.render_once(&view, &mut pass, Readback::Everything)?;
+    match (images.gbuffer, images.direct, images.indirect) {
+        (Some(gbuffer), Some(direct), Some(indirect)) => Ok(PhotonFrame {
+            gbuffer,
+            direct,
+            indirect,
+        }),
+        _ => Err(RasterError::Readback("the frame was not read back".into())),
     }
 }
 
