@@ -174,10 +174,12 @@ impl Lightmap {
     }
 }
 
-/// A hash of what a bake depends on: geometry, materials and settings.
+/// A hash of what a bake depends on and holds: the scene's name (the baked light map keeps
+/// its scene), geometry, materials with their textures' texels, lights and settings.
 fn fingerprint(scene: &Scene, s: &LightmapSettings) -> u64 {
     let mut h = std::collections::hash_map::DefaultHasher::new();
     format!("{s:?}").hash(&mut h);
+    scene.name.hash(&mut h);
     for o in &scene.objects {
         o.material.hash(&mut h);
         for p in o.mesh.positions.iter().chain(&o.mesh.normals) {
@@ -192,7 +194,12 @@ fn fingerprint(scene: &Scene, s: &LightmapSettings) -> u64 {
     for m in &scene.materials {
         m.albedo.to_array().map(f32::to_bits).hash(&mut h);
         m.emission.to_array().map(f32::to_bits).hash(&mut h);
-        m.texture.as_ref().map(|t| (t.width, t.height)).hash(&mut h);
+        if let Some(t) = &m.texture {
+            (t.width, t.height).hash(&mut h);
+            for c in &t.texels {
+                c.to_array().map(f32::to_bits).hash(&mut h);
+            }
+        }
     }
     format!("{:?}", scene.lights).hash(&mut h);
     h.finish()

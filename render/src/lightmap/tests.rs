@@ -337,3 +337,34 @@ fn a_gathered_cornell_map_survives_h264_within_the_video_bounds() {
         assert!(f.key.chroma_mean <= 0.03, "QP {qp}: {:?}", f.key);
     }
 }
+
+#[test]
+fn the_bake_cache_tells_scenes_apart_by_name_and_texture_contents() {
+    let cornell = cloudlight_scenes::builtin("cornell").unwrap();
+    let settings = LightmapSettings::default();
+    let key = |s: &Scene| fingerprint(s, &settings);
+    assert_eq!(key(&cornell), key(&cornell.clone()));
+    let mut renamed = cornell.clone();
+    renamed.name = "another box".into();
+    assert_ne!(key(&renamed), key(&cornell));
+    // Two textures of one size that differ in one texel.
+    let textured = |c: Vec3| {
+        let mut s = cornell.clone();
+        s.materials[0].texture = Some(cloudlight_scenes::model::Texture {
+            width: 2,
+            height: 2,
+            texels: vec![Vec3::ONE, Vec3::ONE, Vec3::ONE, c],
+        });
+        s
+    };
+    assert_ne!(key(&textured(Vec3::ONE)), key(&textured(Vec3::splat(0.5))));
+    assert_ne!(key(&textured(Vec3::ONE)), key(&cornell));
+    // And the cache hands each its own bake.
+    let (a, b) = (textured(Vec3::ONE), textured(Vec3::splat(0.5)));
+    let (la, lb) = (
+        Lightmap::cached(&a, &settings).unwrap(),
+        Lightmap::cached(&b, &settings).unwrap(),
+    );
+    assert!(!Arc::ptr_eq(&la, &lb));
+    assert!(Arc::ptr_eq(&la, &Lightmap::cached(&a, &settings).unwrap()));
+}
