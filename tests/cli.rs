@@ -522,15 +522,29 @@ fn benchmarks_of_missing_techniques_say_so() {
             "{bench}"
         );
     }
-    for bench in ["scaling", "quality", "client"] {
+    for bench in ["quality", "client"] {
         let out = cloudlight()
             .args(["bench", bench, "--technique", "photons-video"])
             .output()
             .unwrap();
         assert!(!out.status.success(), "{bench}");
+        let err = String::from_utf8_lossy(&out.stderr);
         assert!(
-            String::from_utf8_lossy(&out.stderr).contains("by `bench table2` only"),
-            "{bench}"
+            err.contains(&format!("`photons-video` has no {bench}")),
+            "{bench}: {err}"
+        );
+    }
+    // A knob the technique lacks is refused before anything runs, naming the known ones.
+    for bench in ["table2", "scaling", "quality", "client"] {
+        let out = cloudlight()
+            .args(["bench", bench, "--set", "bases=50"])
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{bench}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            err.contains("`photons` has no knob `bases`") && err.contains("batch_size = 10000"),
+            "{bench}: {err}"
         );
     }
 }

@@ -10,22 +10,25 @@
 
 use cloudlight_actors::client::{ClientParams, ClientReport, Params};
 use cloudlight_actors::photon_batcher::BatcherReport;
-use cloudlight_actors::photon_reconstructor::{PhotonClientParams, PhotonClientReport};
+use cloudlight_actors::photon_reconstructor::PhotonClientReport;
 use cloudlight_actors::video_client::{VideoClientParams, VideoClientReport};
 use cloudlight_actors::video_encoder::{EncoderParams, EncoderReport};
-use cloudlight_render::raster::Raster;
-use cloudlight_runtime::TopologySpec;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::photons::{PhotonColumn, PhotonOptions, Photons, table2_column};
 use super::table::Markdown;
-use super::{ClusterOptions, Technique, paper, stage_report};
+use super::{
+    Bench, CLIENT, ClusterOptions, ClusterRun, Placement, ScalingRow, Side, StageGraph, Technique,
+    mean, paper,
+};
 
-/// Name on the command line.
-pub const NAME: &str = "photons-video";
+/// The full-frame baseline: the photon technique with each client's frame rendered and
+/// encoded in the cloud.
+pub struct PhotonsVideo;
 
-/// The video cut's encoder and frame rate.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+/// The video cut's encoder, frame size and frame rate.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct VideoCutOptions {
     /// Encoder target bitrate, Mbit/s.
     pub bitrate_mbps: f64,
@@ -33,6 +36,10 @@ pub struct VideoCutOptions {
     pub keyframe_s: f64,
     /// Frames per second the cloud renders for the client (at most).
     pub fps: f64,
+    /// Frame width the cloud renders for the client (Table 2: its `--width`).
+    pub width: u32,
+    /// Frame height (Table 2: its `--height`).
+    pub height: u32,
 }
 
 impl Default for VideoCutOptions {
@@ -41,7 +48,148 @@ impl Default for VideoCutOptions {
             bitrate_mbps: 3.0,
             keyframe_s: 2.0,
             fps: 30.0,
+            width: 640,
+            height: 360,
         }
+    }
+}
+
+/// The baseline's knobs: the photon light's and the video cut's, side by side.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct BaselineOptions {
+    /// The photon light.
+    #[serde(flatten)]
+    pub photons: PhotonOptions,
+    /// The video cut.
+    #[serde(flatten)]
+    pub video: VideoCutOptions,
+}
+
+impl Technique for PhotonsVideo {
+    const NAME: &'static str = "photons-video";
+    type Options = BaselineOptions;
+    type Column = BaselineColumn;
+
+    /// `server` (photon batcher) shared on `cloud`; per client `render` (a photon
+    /// reconstructor rendering the client's frame) and `encode` on `cloud`, `client` (a
+    /// `video_client`) on `home`.
+    fn graph(o: &BaselineOptions) -> anyhow::Result<StageGraph> {
+        let v = &o.video;
+        let frame = ClientParams {
+            width: v.width,
+            height: v.height,
+            fps: v.fps,
+            ..ClientParams::default()
+        };
+        let encode = EncoderParams {
+            bitrate_mbps: v.bitrate_mbps,
+            keyframe_s: v.keyframe_s,
+            fps: v.fps,
+            ..EncoderParams::default()
+        };
+        let client = Params {
+            client: frame.clone(),
+            technique: VideoClientParams::default(),
+        };
+        Ok(StageGraph::new(&[Photons::NAME, "video"])
+            .stage(
+                "server",
+                Photons::SERVER_KIND,
+                Placement::Shared,
+                Photons::server_params(&o.photons)?,
+            )
+            .stage(
+                "render",
+                Photons::CLIENT_KIND,
+                Placement::PerClient(Side::Cloud),
+                Photons::client_params(&o.photons, frame)?,
+            )
+            .stage(
+                "encode",
+                "video_encoder",
+                Placement::PerClient(Side::Cloud),
+                toml::Table::try_from(encode)?,
+            )
+            .stage(
+                CLIENT,
+                "video_client",
+                Placement::PerClient(Side::Home),
+                client.to_table()?,
+            )
+            .edge("server", "render")
+            .edge("render.frames", "encode")
+            .edge("encode", CLIENT))
+    }
+
+    fn scaling_row(run: &ClusterRun, clients: usize) -> anyhow::Result<ScalingRow> {
+        let server: BatcherReport = run.report("server")?;
+        let render: Vec<ClientReport<PhotonClientReport>> = run.per_client("render")?;
+        let encode: Vec<EncoderReport> = run.per_client("encode")?;
+        let shown: Vec<ClientReport<VideoClientReport>> = run.per_client(CLIENT)?;
+        Ok(ScalingRow {
+            clients,
+            server_update_ms: server.iteration_ms_mean,
+            server_kernel_ms: server.trace_ms_mean * server.batches as f64,
+            server_per_client_ms: (clients > 0).then(|| {
+                mean(
+                    render
+                        .iter()
+                        .zip(&encode)
+                        .map(|(r, e)| r.frame_ms_p50 + e.encode_ms_p50),
+                )
+            }),
+            updates: server.iterations,
+            total_wire_mbps: run.wire_mbps(),
+            total_payload_mbps: run.payload_mbps(),
+            age_ms_p50_mean: mean(shown.iter().map(|c| c.age_ms_p50)),
+            age_ms_p99_max: shown.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
+            clients_showing_indirect: shown.iter().filter(|c| c.indirect_shown).count(),
+        })
+    }
+
+    fn scaling_figure() -> (&'static str, &'static str) {
+        paper::VIDEO_SCALING_FIGURE
+    }
+
+    fn table2_column(
+        bench: &Bench,
+        o: &BaselineOptions,
+        cluster: &ClusterOptions,
+        size: (u32, u32),
+    ) -> anyhow::Result<BaselineColumn> {
+        eprintln!(
+            "{}: the photon cut ({} photons per iteration) for {} s...",
+            cluster.scene, o.photons.photons, cluster.seconds
+        );
+        let photons = table2_column(bench, &o.photons, cluster, size)?;
+        eprintln!(
+            "{}: the video cut (frames rendered and encoded in the cloud) for {} s...",
+            cluster.scene, cluster.seconds
+        );
+        let at_size = BaselineOptions {
+            video: VideoCutOptions {
+                width: size.0,
+                height: size.1,
+                ..o.video.clone()
+            },
+            ..o.clone()
+        };
+        let video = video_cut(bench.runtime, &at_size, cluster)?;
+        Ok(BaselineColumn { photons, video })
+    }
+
+    fn table2_markdown(columns: &[BaselineColumn]) -> String {
+        markdown(columns)
+    }
+
+    fn table2_note(o: &BaselineOptions, (width, height): (u32, u32), adapter: &str) -> String {
+        format!(
+            "Per client, 1 client over loopback, {width}x{height}; photon iterations every {} ms; video at up to {} fps, {} Mbit/s target, \
+             openh264 on one core; raster on {adapter}. The photon cut's server cost is shared by every client, the video cut's \
+             frame and encode are paid once per client. Paper: GeForce Titan + Quadro K5000 with a hardware encoder.",
+            o.photons.interval_ms, o.video.fps, o.video.bitrate_mbps
+        )
     }
 }
 
@@ -100,93 +248,20 @@ pub struct BaselineColumn {
     pub video: VideoCut,
 }
 
-/// The video cut's topology: `server` (photon batcher), `render` (a photon reconstructor
-/// rendering the client's frame) and `encode` on `cloud`, `client` (a `video_client`) on
-/// `home`.
-pub fn video_topology(
-    photons: &PhotonOptions,
-    video: &VideoCutOptions,
-    cluster: &ClusterOptions,
-    (width, height): (u32, u32),
-) -> anyhow::Result<TopologySpec> {
-    let any_port = "127.0.0.1:0".parse().expect("a valid address");
-    let frame = ClientParams {
-        width,
-        height,
-        fps: video.fps,
-        ..ClientParams::default()
-    };
-    let render = Params {
-        client: frame.clone(),
-        technique: PhotonClientParams::default(),
-    };
-    let encode = EncoderParams {
-        bitrate_mbps: video.bitrate_mbps,
-        keyframe_s: video.keyframe_s,
-        fps: video.fps,
-        ..EncoderParams::default()
-    };
-    let client = Params {
-        client: frame,
-        technique: VideoClientParams::default(),
-    };
-    let mut spec = TopologySpec::new(&[Photons::NAME, "video"], &cluster.scene)
-        .node("cloud", any_port)
-        .node("home", any_port)
-        .stage(
-            "server",
-            Photons::SERVER_KIND,
-            &["cloud"],
-            Photons::server_params(photons)?,
-        )
-        .stage(
-            "render",
-            Photons::CLIENT_KIND,
-            &["cloud"],
-            render.to_table()?,
-        )
-        .stage(
-            "encode",
-            "video_encoder",
-            &["cloud"],
-            toml::Table::try_from(encode)?,
-        )
-        .stage("client", "video_client", &["home"], client.to_table()?)
-        .edge("server", "render", None, None)
-        .edge("render.frames", "encode", None, None)
-        .edge("encode", "client", None, None);
-    spec.seed = cluster.seed;
-    spec.duration_s = Some(cluster.seconds);
-    spec.cluster = format!("{NAME}-bench");
-    spec.secret = format!("{NAME}-bench");
-    if let Some(link) = cluster.link {
-        spec = spec.link("cloud", "home", link);
-    }
-    Ok(spec)
-}
-
 /// Runs the video cut for `cluster.seconds` and reads what its stages reported.
 pub fn video_cut(
     runtime: &tokio::runtime::Runtime,
-    photons: &PhotonOptions,
-    video: &VideoCutOptions,
+    o: &BaselineOptions,
     cluster: &ClusterOptions,
-    size: (u32, u32),
 ) -> anyhow::Result<VideoCut> {
-    let spec = video_topology(photons, video, cluster, size)?;
-    let m = super::run_spec(
-        runtime,
-        &spec,
-        &format!("<{NAME} benchmark>"),
-        cluster.seconds,
-    )?;
-    let server: BatcherReport = stage_report(&m, "server")?;
-    let render: ClientReport<PhotonClientReport> = stage_report(&m, "render")?;
-    let encode: EncoderReport = stage_report(&m, "encode")?;
-    let client: ClientReport<VideoClientReport> = stage_report(&m, "client")?;
+    let run = super::run_cluster::<PhotonsVideo>(runtime, o, cluster, 1)?;
+    let server: BatcherReport = run.report("server")?;
+    let render: ClientReport<PhotonClientReport> = run.report("render")?;
+    let encode: EncoderReport = run.report("encode")?;
+    let client: ClientReport<VideoClientReport> = run.report(CLIENT)?;
     let decoder = client.technique.decoder;
     Ok(VideoCut {
-        resolution: format!("{}x{}", size.0, size.1),
+        resolution: format!("{}x{}", o.video.width, o.video.height),
         iteration_ms: server.iteration_ms_mean,
         frame_ms_p50: render.frame_ms_p50,
         frame_ms_p99: render.frame_ms_p99,
@@ -196,8 +271,8 @@ pub fn video_cut(
         units: encode.units,
         key_frames: encode.key_frames,
         skipped: encode.skipped,
-        wire_mbps: super::wire_mbps(&m),
-        payload_mbps: super::payload_mbps(&m),
+        wire_mbps: run.wire_mbps(),
+        payload_mbps: run.payload_mbps(),
         decode_ms_p50: client.technique.decode_ms_p50,
         decode_ms_p99: client.technique.decode_ms_p99,
         pictures: decoder.pictures,
@@ -207,35 +282,6 @@ pub fn video_cut(
         age_ms_p50: client.age_ms_p50,
         age_ms_p99: client.age_ms_p99,
     })
-}
-
-/// Both cuts for each scene of [`super::photons::per_scene`].
-#[allow(clippy::too_many_arguments)]
-pub fn table2(
-    runtime: &tokio::runtime::Runtime,
-    raster: &Raster,
-    scenes: &[String],
-    budgets: &[u64],
-    photons: &PhotonOptions,
-    video: &VideoCutOptions,
-    cluster: &ClusterOptions,
-    size: (u32, u32),
-) -> anyhow::Result<Vec<BaselineColumn>> {
-    super::photons::per_scene(scenes, budgets, photons, cluster)
-        .map(|(o, c)| {
-            eprintln!(
-                "{}: the photon cut ({} photons per iteration) for {} s...",
-                c.scene, o.photons, c.seconds
-            );
-            let photons = table2_column(runtime, raster, &o, &c, size)?;
-            eprintln!(
-                "{}: the video cut (frames rendered and encoded in the cloud) for {} s...",
-                c.scene, c.seconds
-            );
-            let video = video_cut(runtime, &o, video, &c, size)?;
-            Ok(BaselineColumn { photons, video })
-        })
-        .collect()
 }
 
 /// Per scene, one row per placement and the paper's final-frame row, as Markdown.

@@ -65,6 +65,8 @@ pub struct ClientBench {
     pub lights: usize,
     /// The adapter.
     pub adapter: String,
+    /// What the technique's pass drew (e.g. `9,981 photons`), as the technique says it.
+    pub indirect: String,
     /// Settings.
     pub options: ClientBenchOptions,
     /// Whole frames (one submit, nothing read back): median, ms.
@@ -164,6 +166,7 @@ pub fn measure(
         triangles: triangles.len(),
         lights: lights_count,
         adapter: raster.describe(),
+        indirect: String::new(),
         options,
         frame_p50_ms: whole_stat.p50_ms,
         frame_p99_ms: whole_stat.p99_ms,

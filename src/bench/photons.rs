@@ -21,13 +21,17 @@ use serde::{Deserialize, Serialize};
 
 use super::client::{ClientBench, ClientBenchOptions};
 use super::table::{Markdown, bytes, count, short};
-use super::{ClusterOptions, ClusterRun, ScalingRow, Technique, paper};
+use super::{
+    Bench, CLIENT, ClusterOptions, ClusterRun, Placement, QualityCommon, Row, ScalingRow, Side,
+    StageGraph, Sweep, Technique, beside_paper, mean, paper,
+};
 
 /// The photon technique.
 pub struct Photons;
 
 /// The photon benchmarks' knobs.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct PhotonOptions {
     /// Photons per iteration over all lights.
     pub photons: u64,
@@ -37,6 +41,8 @@ pub struct PhotonOptions {
     pub interval_ms: f64,
     /// Packing.
     pub format: PackFormat,
+    /// The client's accumulation buffer downsampling per axis (1, 2 or 4).
+    pub downsample: u32,
 }
 
 impl Default for PhotonOptions {
@@ -46,19 +52,19 @@ impl Default for PhotonOptions {
             batch_size: 10_000,
             interval_ms: 33.0,
             format: PackFormat::Compact12,
+            downsample: PhotonClientParams::default().downsample,
         }
     }
 }
 
-impl Technique for Photons {
-    const NAME: &'static str = "photons";
-    const SERVER_KIND: &'static str = "photon_batcher";
-    const CLIENT_KIND: &'static str = "photon_reconstructor";
-    type ServerReport = BatcherReport;
-    type ClientReport = ClientReport<PhotonClientReport>;
-    type Options = PhotonOptions;
+impl Photons {
+    /// Stage kind computing the photons in the cloud.
+    pub const SERVER_KIND: &'static str = "photon_batcher";
+    /// Stage kind of a client.
+    pub const CLIENT_KIND: &'static str = "photon_reconstructor";
 
-    fn server_params(o: &PhotonOptions) -> anyhow::Result<toml::Table> {
+    /// The batcher's `params`.
+    pub fn server_params(o: &PhotonOptions) -> anyhow::Result<toml::Table> {
         let params = BatcherParams {
             photons: Some(o.photons),
             batch_size: o.batch_size,
@@ -75,31 +81,164 @@ impl Technique for Photons {
         Ok(toml::Table::try_from(params)?)
     }
 
-    fn client_params(_: &PhotonOptions) -> anyhow::Result<toml::Table> {
+    /// A client's `params`: `render` false for a cluster benchmark's clients (they measure,
+    /// they do not render); `frame` the shell's settings otherwise.
+    pub fn client_params(o: &PhotonOptions, frame: ClientParams) -> anyhow::Result<toml::Table> {
         let params = Params {
-            client: ClientParams {
-                render: false,
-                fps: 20.0,
-                ..ClientParams::default()
+            client: frame,
+            technique: PhotonClientParams {
+                downsample: o.downsample,
             },
-            technique: PhotonClientParams::default(),
         };
         Ok(params.to_table()?)
     }
 
-    fn scaling_row(run: &ClusterRun<Self>, clients: usize) -> ScalingRow {
-        let ages: Vec<f64> = run.clients.iter().map(|c| c.age_ms_p50).collect();
-        ScalingRow {
+    /// The shell settings of a cluster benchmark's clients: no rendering, 20 frames/s.
+    pub fn measuring_client() -> ClientParams {
+        ClientParams {
+            render: false,
+            fps: 20.0,
+            ..ClientParams::default()
+        }
+    }
+}
+
+impl Technique for Photons {
+    const NAME: &'static str = "photons";
+    type Options = PhotonOptions;
+    type Column = PhotonColumn;
+
+    fn graph(o: &PhotonOptions) -> anyhow::Result<StageGraph> {
+        Ok(StageGraph::new(&[Self::NAME])
+            .stage(
+                "server",
+                Self::SERVER_KIND,
+                Placement::Shared,
+                Self::server_params(o)?,
+            )
+            .stage(
+                CLIENT,
+                Self::CLIENT_KIND,
+                Placement::PerClient(Side::Home),
+                Self::client_params(o, Self::measuring_client())?,
+            )
+            .edge("server", CLIENT))
+    }
+
+    fn scaling_row(run: &ClusterRun, clients: usize) -> anyhow::Result<ScalingRow> {
+        let server: BatcherReport = run.report("server")?;
+        let reports: Vec<ClientReport<PhotonClientReport>> = run.per_client(CLIENT)?;
+        Ok(ScalingRow {
             clients,
-            server_update_ms: run.server.iteration_ms_mean,
-            server_kernel_ms: run.server.trace_ms_mean * run.server.batches as f64,
-            updates: run.server.iterations,
+            server_update_ms: server.iteration_ms_mean,
+            server_kernel_ms: server.trace_ms_mean * server.batches as f64,
+            server_per_client_ms: None,
+            updates: server.iterations,
             total_wire_mbps: run.wire_mbps(),
             total_payload_mbps: run.payload_mbps(),
-            age_ms_p50_mean: ages.iter().sum::<f64>() / ages.len().max(1) as f64,
-            age_ms_p99_max: run.clients.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
-            clients_showing_indirect: run.clients.iter().filter(|c| c.indirect_shown).count(),
+            age_ms_p50_mean: mean(reports.iter().map(|c| c.age_ms_p50)),
+            age_ms_p99_max: reports.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
+            clients_showing_indirect: reports.iter().filter(|c| c.indirect_shown).count(),
+        })
+    }
+
+    fn scaling_figure() -> (&'static str, &'static str) {
+        paper::SCALING_FIGURE
+    }
+
+    fn table2_column(
+        bench: &Bench,
+        options: &PhotonOptions,
+        cluster: &ClusterOptions,
+        size: (u32, u32),
+    ) -> anyhow::Result<PhotonColumn> {
+        eprintln!(
+            "{}: {} photons per iteration, running the cloud and a client for {} s...",
+            cluster.scene, options.photons, cluster.seconds
+        );
+        table2_column(bench, options, cluster, size)
+    }
+
+    fn table2_markdown(columns: &[PhotonColumn]) -> String {
+        table2_markdown(columns)
+    }
+
+    fn table2_note(o: &PhotonOptions, (width, height): (u32, u32), adapter: &str) -> String {
+        format!(
+            "Iterations every {} ms with every light re-traced (the paper's continuous stream), 1 client over loopback; \
+             client indirect at {width}x{height} on {adapter}. Paper: GeForce Titan cloud, GeForce 670 client.",
+            o.interval_ms
+        )
+    }
+
+    fn client_frame(
+        raster: &Raster,
+        scene: &Scene,
+        o: &PhotonOptions,
+        frame: ClientBenchOptions,
+    ) -> anyhow::Result<ClientBench> {
+        eprintln!("{}: tracing {} photons...", scene.name, o.photons);
+        let bvh = SceneBvh::at(scene, 0.0, BvhKind::default());
+        let settings =
+            PhotonSettings::for_budget(scene, o.photons, o.batch_size.min(o.photons.max(1) as u32));
+        let photons = trace_iteration(scene, &bvh, 0.0, settings, 1, o.format).unpacked();
+        let splat = SplatSettings {
+            downsample: o.downsample,
+            ..SplatSettings::default()
+        };
+        let mut bench = client_frame_with(raster, scene, &photons, splat, frame)?;
+        bench.indirect = format!("{} photons", photons.len());
+        Ok(bench)
+    }
+
+    fn default_sweep() -> Sweep {
+        vec![(
+            "photons".into(),
+            [2500, 5000, 10_000, 40_000, 160_000]
+                .into_iter()
+                .map(toml::Value::Integer)
+                .collect(),
+        )]
+    }
+
+    fn quality(
+        raster: &Raster,
+        scene: &str,
+        common: &QualityCommon,
+        options: &PhotonOptions,
+        sweep: &Sweep,
+        out: &Path,
+    ) -> anyhow::Result<serde_json::Value> {
+        let mut budgets = Vec::new();
+        for (key, values) in sweep {
+            if key != "photons" {
+                anyhow::bail!(
+                    "the photon quality sweep varies `photons` only (each budget in 12- and 20-byte packings), not `{key}`"
+                );
+            }
+            for v in values {
+                let n = v.as_integer().filter(|&n| n >= 1).with_context(|| {
+                    format!("photon budget `{v}` is not a whole number of at least 1")
+                })?;
+                budgets.push(n as u64);
+            }
         }
+        if budgets.is_empty() {
+            budgets.push(options.photons);
+        }
+        let o = QualityOptions {
+            budgets,
+            batch_size: options.batch_size,
+            spp: common.spp,
+            width: common.width,
+            height: common.height,
+            rate_hz: common.rate_hz,
+            seed: common.seed,
+        };
+        let rows = quality(raster, scene, &o, out)?;
+        Ok(
+            serde_json::json!({ "technique": Self::NAME, "scene": scene, "options": o, "rows": rows }),
+        )
     }
 }
 
@@ -155,14 +294,15 @@ pub struct PhotonColumn {
 /// Measures one Table 2 column: the cloud and one client over loopback for
 /// `cluster.seconds`, then the client's indirect pass at `width × height` on `raster`.
 pub fn table2_column(
-    runtime: &tokio::runtime::Runtime,
-    raster: &Raster,
+    bench: &Bench,
     options: &PhotonOptions,
     cluster: &ClusterOptions,
     (width, height): (u32, u32),
 ) -> anyhow::Result<PhotonColumn> {
-    let run = super::run_cluster::<Photons>(runtime, options, cluster, 1)?;
-    let (bt, client) = (&run.server, &run.clients[0]);
+    let raster = bench.raster;
+    let run = super::run_cluster::<Photons>(bench.runtime, options, cluster, 1)?;
+    let bt: BatcherReport = run.report("server")?;
+    let client: ClientReport<PhotonClientReport> = run.report(CLIENT)?;
     let scene = cloudlight_scenes::load(&cluster.scene)?;
     let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
     let settings = PhotonSettings::for_budget(&scene, options.photons, options.batch_size);
@@ -218,61 +358,70 @@ pub fn table2_column(
 /// The photon block of Table 2: our columns, each followed by the paper's column of the
 /// nearest scene.
 pub fn table2_markdown(columns: &[PhotonColumn]) -> String {
-    let mut header = vec!["Photons".to_string()];
-    for c in columns {
-        header.push(c.scene.clone());
-        header.push(format!("paper: {}", c.paper_scene));
-    }
-    let header_refs: Vec<&str> = header.iter().map(String::as_str).collect();
-    let mut t = Markdown::new(&header_refs);
-    type Cell = fn(&PhotonColumn) -> String;
-    let rows: [(&str, usize, Cell); 11] = [
-        ("Triangles", usize::MAX, |c| c.triangles.to_string()),
-        ("Number of batches", 0, |c| c.batches.to_string()),
-        ("Photons per batch", 1, |c| c.photons_per_batch.to_string()),
-        ("Memory footprint", 2, |c| {
-            bytes(c.memory_footprint_bytes as f64)
-        }),
-        ("Iteration interval (total)", 3, |c| {
-            format!("{:.1} ms", c.iteration_interval_ms)
-        }),
-        ("Photon trace", 4, |c| format!("{:.1} ms", c.trace_ms)),
-        ("Photon packing (paper: compaction)", 5, |c| {
-            format!("{:.2} ms ({} B/photon)", c.packing_ms, c.bytes_per_photon)
-        }),
-        (
-            "Send: encode + hand-off (paper: GPU to CPU to NIC)",
-            6,
-            |c| format!("{:.2} ms", c.send_ms),
-        ),
-        ("Server-to-client bandwidth (mean, wire)", 7, |c| {
-            format!("{:.1} Mbps", c.server_to_client_mbps)
-        }),
-        ("Local device stored photons", 8, |c| {
-            count(c.client_stored_photons as f64)
-        }),
-        (
-            "Client indirect: splat + upsample (paper: local device indirect time)",
-            9,
-            |c| format!("{:.1} ms at {}", c.client_indirect_ms, c.client_resolution),
-        ),
+    let rows: [Row<PhotonColumn>; 11] = [
+        Row {
+            label: "Triangles",
+            paper: None,
+            cell: |c| c.triangles.to_string(),
+        },
+        Row {
+            label: "Number of batches",
+            paper: Some(0),
+            cell: |c| c.batches.to_string(),
+        },
+        Row {
+            label: "Photons per batch",
+            paper: Some(1),
+            cell: |c| c.photons_per_batch.to_string(),
+        },
+        Row {
+            label: "Memory footprint",
+            paper: Some(2),
+            cell: |c| bytes(c.memory_footprint_bytes as f64),
+        },
+        Row {
+            label: "Iteration interval (total)",
+            paper: Some(3),
+            cell: |c| format!("{:.1} ms", c.iteration_interval_ms),
+        },
+        Row {
+            label: "Photon trace",
+            paper: Some(4),
+            cell: |c| format!("{:.1} ms", c.trace_ms),
+        },
+        Row {
+            label: "Photon packing (paper: compaction)",
+            paper: Some(5),
+            cell: |c| format!("{:.2} ms ({} B/photon)", c.packing_ms, c.bytes_per_photon),
+        },
+        Row {
+            label: "Send: encode + hand-off (paper: GPU to CPU to NIC)",
+            paper: Some(6),
+            cell: |c| format!("{:.2} ms", c.send_ms),
+        },
+        Row {
+            label: "Server-to-client bandwidth (mean, wire)",
+            paper: Some(7),
+            cell: |c| format!("{:.1} Mbps", c.server_to_client_mbps),
+        },
+        Row {
+            label: "Local device stored photons",
+            paper: Some(8),
+            cell: |c| count(c.client_stored_photons as f64),
+        },
+        Row {
+            label: "Client indirect: splat + upsample (paper: local device indirect time)",
+            paper: Some(9),
+            cell: |c| format!("{:.1} ms at {}", c.client_indirect_ms, c.client_resolution),
+        },
     ];
-    for (label, paper_row, cell) in rows {
-        let mut cells = vec![label.to_string()];
-        for c in columns {
-            cells.push(cell(c));
-            let scene = paper::SCENES
-                .iter()
-                .position(|s| s.name == c.paper_scene)
-                .unwrap_or(0);
-            cells.push(match paper_row {
-                usize::MAX => paper::SCENES[scene].polygons.to_string(),
-                r => paper::PHOTONS[r].1[scene].to_string(),
-            });
-        }
-        t.row(cells);
-    }
-    t.render()
+    beside_paper(
+        "Photons",
+        columns,
+        |c| (&c.scene, c.paper_scene),
+        &rows,
+        &paper::PHOTONS,
+    )
 }
 
 /// The client's frame with `photons` splatted at the default settings (see
@@ -613,52 +762,4 @@ fn quality_plot(
             },
         ],
     )
-}
-
-/// Scene `i` of `scenes` with its budget (`budgets[i]`, the last repeating, none: the
-/// options' own), as the photon options and cluster of one Table 2 column.
-pub fn per_scene<'a>(
-    scenes: &'a [String],
-    budgets: &'a [u64],
-    options: &'a PhotonOptions,
-    cluster: &'a ClusterOptions,
-) -> impl Iterator<Item = (PhotonOptions, ClusterOptions)> + 'a {
-    scenes.iter().enumerate().map(move |(i, scene)| {
-        let photons = budgets
-            .get(i)
-            .or(budgets.last())
-            .copied()
-            .unwrap_or(options.photons);
-        (
-            PhotonOptions {
-                photons,
-                ..options.clone()
-            },
-            ClusterOptions {
-                scene: scene.clone(),
-                ..cluster.clone()
-            },
-        )
-    })
-}
-
-/// The photon block of Table 2: one column per scene of [`per_scene`].
-pub fn table2(
-    runtime: &tokio::runtime::Runtime,
-    raster: &Raster,
-    scenes: &[String],
-    budgets: &[u64],
-    options: &PhotonOptions,
-    cluster: &ClusterOptions,
-    size: (u32, u32),
-) -> anyhow::Result<Vec<PhotonColumn>> {
-    per_scene(scenes, budgets, options, cluster)
-        .map(|(o, c)| {
-            eprintln!(
-                "{}: {} photons per iteration, running the cloud and a client for {} s...",
-                c.scene, o.photons, c.seconds
-            );
-            table2_column(runtime, raster, &o, &c, size)
-        })
-        .collect()
 }

@@ -6,14 +6,13 @@ use std::process::ExitCode;
 use crate::cli::ranges;
 
 use cloudlight::bench::client::ClientBenchOptions;
-use cloudlight::render::photon::{PackFormat, PhotonSettings, trace_iteration};
+use cloudlight::bench::{self, Technique, Visit};
 use cloudlight::render::raster::Raster;
-use cloudlight::render::{BvhKind, SceneBvh};
 
 /// Options of `bench client`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// Technique (`photons`).
+    /// Technique (`photons`; `voxels` and `irradiance` are not implemented yet).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.
@@ -31,20 +30,24 @@ pub struct Args {
     /// Scene time advances 1/fps per frame (lights move as the scene's animation says).
     #[arg(long, default_value_t = 30.0, value_parser = ranges::closed(1.0 / 3600.0, 1000.0, "frames/s"))]
     fps: f64,
-    /// Photons splatted (one iteration of this budget).
-    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
-    photons: u64,
+    /// Photons splatted: one iteration of this budget (the knob `photons`) [default: 10000].
+    #[arg(long, value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
+    photons: Option<u64>,
     /// Emissive surfaces become n² × 2 point emitters per triangle.
     #[arg(long, default_value_t = 2, value_parser = ranges::count::<u32>(1, 64))]
     light_samples: u32,
     /// Shadow-map side, texels.
     #[arg(long, default_value_t = 512, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     shadow_size: u32,
-    /// Photon accumulation buffer downsampling per axis (1, 2 or 4; the client's default 2).
-    #[arg(long, default_value_t = 2, value_parser = clap::builder::TypedValueParser::map(
+    /// Photon accumulation buffer downsampling per axis, 1, 2 or 4 (the knob `downsample`)
+    /// [default: 2, the client's].
+    #[arg(long, value_parser = clap::builder::TypedValueParser::map(
         clap::builder::PossibleValuesParser::new(["1", "2", "4"]),
         |s| s.parse::<u32>().expect("one of the listed values")))]
-    downsample: u32,
+    downsample: Option<u32>,
+    /// Sets a knob of the technique, `key=value` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE", value_parser = bench::parse_knob)]
+    set: Vec<(String, toml::Value)>,
     /// Also write the JSON report to this file.
     #[arg(long, value_name = "PATH")]
     json: Option<PathBuf>,
@@ -62,26 +65,23 @@ fn target_line(scene: &str, width: u32, height: u32) -> String {
     format!("{target}; paper: 8 ms local device indirect time (GeForce 670, Cornell box, photons)")
 }
 
-pub fn run(a: Args) -> ExitCode {
-    let go = || -> anyhow::Result<()> {
-        cloudlight::bench::require_technique(&a.technique)?;
+struct Frame(Args);
+
+impl Visit for Frame {
+    type Out = anyhow::Result<()>;
+    fn visit<T: Technique>(self) -> anyhow::Result<()> {
+        let a = self.0;
+        let mut knobs = toml::Table::new();
+        if let Some(n) = a.photons {
+            knobs.insert("photons".into(), (n as i64).into());
+        }
+        if let Some(d) = a.downsample {
+            knobs.insert("downsample".into(), i64::from(d).into());
+        }
+        knobs.extend(a.set.iter().cloned());
+        let technique = bench::options_from::<T>(&knobs)?;
         let scene = cloudlight::scenes::load(&a.scene)?;
         let raster = Raster::new()?;
-        eprintln!("{}: tracing {} photons...", scene.name, a.photons);
-        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
-        let settings =
-            PhotonSettings::for_budget(&scene, a.photons, 10_000.min(a.photons.max(1) as u32));
-        let photons =
-            trace_iteration(&scene, &bvh, 0.0, settings, 1, PackFormat::Compact12).unpacked();
-        eprintln!(
-            "{} photons stored; rendering {} + {} frames at {}x{} on {}...",
-            photons.len(),
-            a.frames,
-            a.frames,
-            a.width,
-            a.height,
-            raster.describe()
-        );
         let options = ClientBenchOptions {
             width: a.width,
             height: a.height,
@@ -90,19 +90,21 @@ pub fn run(a: Args) -> ExitCode {
             light_samples: a.light_samples,
             shadow_size: a.shadow_size,
         };
-        let splat = cloudlight::render::photon::splat::SplatSettings {
-            downsample: a.downsample,
-            ..Default::default()
-        };
-        let r = cloudlight::bench::photons::client_frame_with(
-            &raster, &scene, &photons, splat, options,
-        )?;
+        eprintln!(
+            "rendering {} + {} frames at {}x{} on {}...",
+            a.frames,
+            a.frames,
+            a.width,
+            a.height,
+            raster.describe()
+        );
+        let r = T::client_frame(&raster, &scene, &technique, options)?;
         println!(
-            "{}: {} triangles, {} lights, {} photons, {}x{} on {}; shadow maps rendered in {} of {} split frames",
+            "{}: {} triangles, {} lights, {}, {}x{} on {}; shadow maps rendered in {} of {} split frames",
             r.scene,
             r.triangles,
             r.lights,
-            photons.len(),
+            r.indirect,
             a.width,
             a.height,
             r.adapter,
@@ -114,6 +116,11 @@ pub fn run(a: Args) -> ExitCode {
         let json = serde_json::to_string_pretty(&r)?;
         println!("{json}");
         super::write_json(a.json.as_ref(), &json)
-    };
-    go().map_or_else(crate::cli::report_error, |()| ExitCode::SUCCESS)
+    }
+}
+
+pub fn run(a: Args) -> ExitCode {
+    bench::with_technique(&a.technique.clone(), Frame(a))
+        .and_then(|r| r)
+        .map_or_else(crate::cli::report_error, |()| ExitCode::SUCCESS)
 }

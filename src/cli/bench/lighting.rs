@@ -1,16 +1,49 @@
 //! `cloudlight bench table2|scaling|quality --technique T`: the paper's measurements for a
-//! technique, through the harness of `cloudlight::bench`.
+//! technique, through the harness of `cloudlight::bench` (one descriptor per technique).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use crate::cli::ranges;
 
-use cloudlight::bench::baseline::{self, VideoCutOptions};
-use cloudlight::bench::photons::{PhotonOptions, Photons, QualityOptions};
-use cloudlight::bench::{ClusterOptions, default_out, require_technique};
+use cloudlight::bench::{
+    self, Bench, ClusterOptions, QualityCommon, Sweep, Technique, Visit, default_out,
+    with_technique,
+};
 use cloudlight::render::raster::Raster;
 use cloudlight::transport::LinkProfile;
+
+/// A technique's knobs, by name, over its defaults: `--set key=value` and the shortcut flags.
+#[derive(clap::Args)]
+pub struct Knobs {
+    /// Sets a knob of the technique, `key=value` (repeatable); an unknown key is an error that
+    /// lists the technique's knobs and their defaults.
+    #[arg(long = "set", value_name = "KEY=VALUE", value_parser = bench::parse_knob)]
+    set: Vec<(String, toml::Value)>,
+    /// Photons per batch (the knob `batch_size`).
+    #[arg(long, value_parser = ranges::count::<u32>(1, ranges::MAX_BATCH))]
+    batch_size: Option<u32>,
+    /// Update (iteration) period, milliseconds (the knob `interval_ms`) [photons: 33].
+    #[arg(long, value_parser = ranges::closed(0.0, 3.6e6, "ms"))]
+    interval_ms: Option<f64>,
+}
+
+impl Knobs {
+    /// The knobs as a table, the shortcut flags first and `--set` over them.
+    pub fn table(&self) -> toml::Table {
+        let mut t = toml::Table::new();
+        if let Some(b) = self.batch_size {
+            t.insert("batch_size".into(), i64::from(b).into());
+        }
+        if let Some(ms) = self.interval_ms {
+            t.insert("interval_ms".into(), ms.into());
+        }
+        for (k, v) in &self.set {
+            t.insert(k.clone(), v.clone());
+        }
+        t
+    }
+}
 
 /// Options of `bench table2`.
 #[derive(clap::Args)]
@@ -23,15 +56,12 @@ pub struct Table2Args {
     /// Scenes, comma-separated: `cornell`, `city:N`, a .gltf/.glb file.
     #[arg(long, value_delimiter = ',', default_value = "cornell")]
     scene: Vec<String>,
-    /// Photons per iteration, one per scene (the last repeats).
-    #[arg(long, value_delimiter = ',', default_value = "10000", value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
+    /// Photons per iteration, one per scene (the last repeats; the knob `photons`) [default:
+    /// 10000].
+    #[arg(long, value_delimiter = ',', value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     photons: Vec<u64>,
-    /// Photons per batch.
-    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u32>(1, ranges::MAX_BATCH))]
-    batch_size: u32,
-    /// Iteration period, milliseconds.
-    #[arg(long, default_value_t = 33.0, value_parser = ranges::closed(0.0, 3.6e6, "ms"))]
-    interval_ms: f64,
+    #[command(flatten)]
+    knobs: Knobs,
     /// Seconds each scene runs.
     #[arg(long, default_value_t = 5.0, value_parser = ranges::above(0.0, 86_400.0, "seconds"))]
     seconds: f64,
@@ -41,12 +71,14 @@ pub struct Table2Args {
     /// Client frame height for the indirect time.
     #[arg(long, default_value_t = 720, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     height: u32,
-    /// `photons-video`: the encoder's target bitrate, Mbit/s.
-    #[arg(long, default_value_t = 3.0, value_parser = ranges::closed(0.01, 1000.0, "Mbit/s"))]
-    bitrate_mbps: f64,
-    /// `photons-video`: frames per second the cloud renders and encodes per client (at most).
-    #[arg(long, default_value_t = 30.0, value_parser = ranges::closed(0.1, 240.0, "fps"))]
-    fps: f64,
+    /// `photons-video`: the encoder's target bitrate, Mbit/s (the knob `bitrate_mbps`)
+    /// [default: 3].
+    #[arg(long, value_parser = ranges::closed(0.01, 1000.0, "Mbit/s"))]
+    bitrate_mbps: Option<f64>,
+    /// `photons-video`: frames per second the cloud renders and encodes per client, at most
+    /// (the knob `fps`) [default: 30].
+    #[arg(long, value_parser = ranges::closed(0.1, 240.0, "fps"))]
+    fps: Option<f64>,
     /// Also write the JSON report to this file.
     #[arg(long, value_name = "PATH")]
     json: Option<PathBuf>,
@@ -55,7 +87,8 @@ pub struct Table2Args {
 /// Options of `bench scaling`.
 #[derive(clap::Args)]
 pub struct ScalingArgs {
-    /// Technique (`photons`; `voxels` and `irradiance` are not implemented yet).
+    /// Technique (`photons`, `photons-video`; `voxels` and `irradiance` are not implemented
+    /// yet).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Client counts, comma-separated.
@@ -64,15 +97,11 @@ pub struct ScalingArgs {
     /// Scene.
     #[arg(long, default_value = "cornell-animated")]
     scene: String,
-    /// Photons per iteration.
-    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
-    photons: u64,
-    /// Photons per batch.
-    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u32>(1, ranges::MAX_BATCH))]
-    batch_size: u32,
-    /// Iteration period, milliseconds.
-    #[arg(long, default_value_t = 33.0, value_parser = ranges::closed(0.0, 3.6e6, "ms"))]
-    interval_ms: f64,
+    /// Photons per iteration (the knob `photons`) [default: 10000].
+    #[arg(long, value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
+    photons: Option<u64>,
+    #[command(flatten)]
+    knobs: Knobs,
     /// Seconds per client count.
     #[arg(long, default_value_t = 4.0, value_parser = ranges::above(0.0, 86_400.0, "seconds"))]
     seconds: f64,
@@ -94,17 +123,16 @@ pub struct QualityArgs {
     /// Scene.
     #[arg(long, default_value = "cornell")]
     scene: String,
-    /// Photon budgets per iteration, comma-separated.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "2500,5000,10000,40000,160000",
-        value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS)
-    )]
+    /// Photon budgets per iteration, comma-separated (the sweep `photons=...`) [default:
+    /// 2500,5000,10000,40000,160000].
+    #[arg(long, value_delimiter = ',', value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     budgets: Vec<u64>,
-    /// Photons per batch.
-    #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<u32>(1, ranges::MAX_BATCH))]
-    batch_size: u32,
+    /// Sweeps a knob, `key=v1,v2,...` (repeatable; the technique says how sweeps combine)
+    /// [default: the technique's own sweep].
+    #[arg(long, value_name = "KEY=V1,V2,...", value_parser = bench::parse_sweep)]
+    sweep: Vec<(String, Vec<toml::Value>)>,
+    #[command(flatten)]
+    knobs: Knobs,
     /// Reference samples per pixel.
     #[arg(long, default_value_t = 4096, value_parser = ranges::count::<u32>(1, ranges::MAX_SPP))]
     spp: u32,
@@ -122,119 +150,81 @@ pub struct QualityArgs {
     out: Option<PathBuf>,
 }
 
-pub fn table2(a: Table2Args) -> ExitCode {
-    if a.technique == baseline::NAME {
-        return table2_baseline(a);
-    }
-    let go = || -> anyhow::Result<()> {
-        require_technique(&a.technique)?;
-        let rt = crate::cli::async_runtime()?;
-        let raster = Raster::new()?;
-        let options = PhotonOptions {
-            batch_size: a.batch_size,
-            interval_ms: a.interval_ms,
-            ..PhotonOptions::default()
-        };
-        let cluster = ClusterOptions {
-            scene: String::new(),
-            seconds: a.seconds,
-            link: None,
-            seed: 1,
-        };
-        let columns = cloudlight::bench::photons::table2(
-            &rt,
-            &raster,
-            &a.scene,
-            &a.photons,
-            &options,
-            &cluster,
-            (a.width, a.height),
-        )?;
-        println!("{}", cloudlight::bench::photons::table2_markdown(&columns));
-        println!(
-            "Iterations every {} ms with every light re-traced (the paper's continuous stream), 1 client over loopback; \
-             client indirect at {}x{} on {}. Paper: GeForce Titan cloud, GeForce 670 client.",
-            a.interval_ms,
-            a.width,
-            a.height,
-            raster.describe()
-        );
-        let json = serde_json::to_string_pretty(
-            &serde_json::json!({ "technique": "photons", "columns": columns }),
-        )?;
-        println!("{json}");
-        super::write_json(a.json.as_ref(), &json)
-    };
-    go().map_or_else(crate::cli::report_error, |()| ExitCode::SUCCESS)
+/// Runs `f` for the technique named `name`: an unknown or unimplemented technique, or
+/// anything `f` fails at, is reported and exits 1.
+fn dispatch<V: Visit<Out = anyhow::Result<()>>>(name: &str, v: V) -> ExitCode {
+    with_technique(name, v)
+        .and_then(|r| r)
+        .map_or_else(crate::cli::report_error, |()| ExitCode::SUCCESS)
 }
 
-/// `bench table2 --technique photons-video`.
-fn table2_baseline(a: Table2Args) -> ExitCode {
-    let go = || -> anyhow::Result<()> {
+struct Table2(Table2Args);
+
+impl Visit for Table2 {
+    type Out = anyhow::Result<()>;
+    fn visit<T: Technique>(self) -> anyhow::Result<()> {
+        let a = self.0;
+        let mut knobs = a.knobs.table();
+        for (key, value) in [("bitrate_mbps", a.bitrate_mbps), ("fps", a.fps)] {
+            if let Some(v) = value {
+                knobs.entry(key).or_insert(v.into());
+            }
+        }
+        let mut per_scene: Sweep = Vec::new();
+        if !a.photons.is_empty() {
+            let values = a.photons.iter().map(|&n| (n as i64).into()).collect();
+            per_scene.push(("photons".into(), values));
+        }
+        // Every scene's options are checked before the first one runs.
+        for i in 0..a.scene.len() {
+            bench::options_from::<T>(&bench::knobs_for_scene(&knobs, &per_scene, i))?;
+        }
         let rt = crate::cli::async_runtime()?;
         let raster = Raster::new()?;
-        let photons = PhotonOptions {
-            batch_size: a.batch_size,
-            interval_ms: a.interval_ms,
-            ..PhotonOptions::default()
-        };
-        let video = VideoCutOptions {
-            bitrate_mbps: a.bitrate_mbps,
-            fps: a.fps,
-            ..VideoCutOptions::default()
-        };
         let cluster = ClusterOptions {
             scene: String::new(),
             seconds: a.seconds,
             link: None,
             seed: 1,
         };
-        let columns = baseline::table2(
-            &rt,
-            &raster,
-            &a.scene,
-            &a.photons,
-            &photons,
-            &video,
-            &cluster,
-            (a.width, a.height),
-        )?;
-        println!("{}", baseline::markdown(&columns));
-        println!(
-            "Per client, 1 client over loopback, {}x{}; photon iterations every {} ms; video at up to {} fps, {} Mbit/s target, \
-             openh264 on one core; raster on {}. The photon cut's server cost is shared by every client, the video cut's \
-             frame and encode are paid once per client. Paper: GeForce Titan + Quadro K5000 with a hardware encoder.",
-            a.width,
-            a.height,
-            a.interval_ms,
-            a.fps,
-            a.bitrate_mbps,
-            raster.describe()
-        );
+        let bench = Bench {
+            runtime: &rt,
+            raster: &raster,
+        };
+        let size = (a.width, a.height);
+        let columns = bench::table2::<T>(&bench, &a.scene, &knobs, &per_scene, &cluster, size)?;
+        println!("{}", T::table2_markdown(&columns));
+        let options = bench::options_from::<T>(&knobs)?;
+        println!("{}", T::table2_note(&options, size, &raster.describe()));
         let json = serde_json::to_string_pretty(&serde_json::json!({
-            "technique": baseline::NAME,
-            "video": video,
+            "technique": T::NAME,
+            "options": options,
             "columns": columns,
         }))?;
         println!("{json}");
         super::write_json(a.json.as_ref(), &json)
-    };
-    go().map_or_else(crate::cli::report_error, |()| ExitCode::SUCCESS)
+    }
 }
 
-pub fn scaling(a: ScalingArgs) -> ExitCode {
-    let go = || -> anyhow::Result<()> {
-        require_technique(&a.technique)?;
+pub fn table2(a: Table2Args) -> ExitCode {
+    dispatch(&a.technique.clone(), Table2(a))
+}
+
+struct Scaling(ScalingArgs);
+
+impl Visit for Scaling {
+    type Out = anyhow::Result<()>;
+    fn visit<T: Technique>(self) -> anyhow::Result<()> {
+        let a = self.0;
         if a.clients.is_empty() {
             anyhow::bail!("--clients lists no count");
         }
+        let mut knobs = a.knobs.table();
+        if let Some(n) = a.photons {
+            knobs.entry("photons").or_insert((n as i64).into());
+        }
+        let options = bench::options_from::<T>(&knobs)?;
         let rt = crate::cli::async_runtime()?;
-        let options = PhotonOptions {
-            photons: a.photons,
-            batch_size: a.batch_size,
-            interval_ms: a.interval_ms,
-            ..PhotonOptions::default()
-        };
         let cluster = ClusterOptions {
             scene: a.scene.clone(),
             seconds: a.seconds,
@@ -242,22 +232,32 @@ pub fn scaling(a: ScalingArgs) -> ExitCode {
             seed: 1,
         };
         let out = a.out.clone().unwrap_or_else(|| default_out("scaling"));
-        cloudlight::bench::scaling::<Photons>(&rt, &options, &cluster, &a.clients, &out)?;
+        bench::scaling::<T>(&rt, &options, &cluster, &a.clients, &out)?;
         Ok(())
-    };
-    go().map_or_else(crate::cli::report_error, |()| ExitCode::SUCCESS)
+    }
 }
 
-pub fn quality(a: QualityArgs) -> ExitCode {
-    let go = || -> anyhow::Result<()> {
-        require_technique(&a.technique)?;
-        if a.budgets.is_empty() {
-            anyhow::bail!("--budgets lists no budget");
+pub fn scaling(a: ScalingArgs) -> ExitCode {
+    dispatch(&a.technique.clone(), Scaling(a))
+}
+
+struct Quality(QualityArgs);
+
+impl Visit for Quality {
+    type Out = anyhow::Result<()>;
+    fn visit<T: Technique>(self) -> anyhow::Result<()> {
+        let a = self.0;
+        let options = bench::options_from::<T>(&a.knobs.table())?;
+        let mut sweep: Sweep = a.sweep.clone();
+        if !a.budgets.is_empty() {
+            let values = a.budgets.iter().map(|&n| (n as i64).into()).collect();
+            sweep.insert(0, ("photons".into(), values));
+        }
+        if sweep.is_empty() {
+            sweep = T::default_sweep();
         }
         let raster = Raster::new()?;
-        let options = QualityOptions {
-            budgets: a.budgets.clone(),
-            batch_size: a.batch_size,
+        let common = QualityCommon {
             spp: a.spp,
             width: a.width,
             height: a.height,
@@ -265,8 +265,11 @@ pub fn quality(a: QualityArgs) -> ExitCode {
             seed: 5,
         };
         let out = a.out.clone().unwrap_or_else(|| default_out("quality"));
-        cloudlight::bench::photons::quality(&raster, &a.scene, &options, &out)?;
+        T::quality(&raster, &a.scene, &common, &options, &sweep, &out)?;
         Ok(())
-    };
-    go().map_or_else(crate::cli::report_error, |()| ExitCode::SUCCESS)
+    }
+}
+
+pub fn quality(a: QualityArgs) -> ExitCode {
+    dispatch(&a.technique.clone(), Quality(a))
 }
