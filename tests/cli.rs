@@ -639,6 +639,63 @@ fn the_photon_example_topologies_run_with_the_batcher_anywhere() {
 }
 
 #[test]
+fn the_irradiance_example_topologies_validate_run_and_write_frames_with_light() {
+    // H.264 maps to two clients, the raw f16 map across the cut, and one node.
+    for (file, clients) in [
+        ("irradiance-cloud.toml", vec!["client[0]", "client[1]"]),
+        ("irradiance-raw.toml", vec!["client"]),
+        ("irradiance-local.toml", vec!["client"]),
+    ] {
+        let valid = cloudlight()
+            .arg("validate")
+            .arg(example(file))
+            .output()
+            .unwrap();
+        assert!(
+            valid.status.success(),
+            "{file}: {}",
+            String::from_utf8_lossy(&valid.stderr)
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let out = cloudlight()
+            .arg("run")
+            .arg(example(file))
+            .args(["--duration", "2", "--out"])
+            .arg(dir.path())
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{file}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let json = read_json(dir.path().join("metrics.json"));
+        for client in clients {
+            let stage = json["stages"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|s| s["name"] == client)
+                .unwrap();
+            let r = &stage["report"];
+            assert!(
+                r["maps_blended"].as_u64().unwrap() >= 1,
+                "{file} {client}: {r}"
+            );
+            assert_eq!(r["decode_errors"], 0, "{file} {client}: {r}");
+            assert_eq!(r["indirect_shown"], true, "{file} {client}: {r}");
+            let folder = dir.path().join(client.replace('[', "-").replace(']', ""));
+            let csv = std::fs::read_to_string(folder.join("frames.csv")).unwrap();
+            assert!(
+                csv.starts_with("frame,scene_time_s,frame_ms,age_ms,maps_blended"),
+                "{csv}"
+            );
+            assert!(folder.join("frame_00000.png").exists(), "{file} {client}");
+        }
+    }
+}
+
+#[test]
 fn run_flags_that_cannot_be_durations_are_refused_before_anything_runs() {
     for (flag, value) in [
         ("--duration", "nan"),

@@ -18,7 +18,6 @@ use serde::Deserialize;
 
 const PICTURES: Port<FrameMsg> = Port::new("out");
 const UNITS_IN: Port<VideoMsg> = Port::new("in");
-const UNITS_OUT: Port<VideoMsg> = Port::new("out");
 
 const W: u32 = 96;
 const H: u32 = 64;
@@ -160,30 +159,6 @@ impl Stage for Sink {
     }
 }
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct GateParams {
-    /// First unit passed on: the client behind the gate joins the stream here.
-    open_at: u64,
-}
-
-/// Passes units on from `open_at`: what a client joining a running stream receives.
-struct Gate {
-    p: GateParams,
-}
-
-#[async_trait::async_trait]
-impl Stage for Gate {
-    async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
-        let msg = input.on(UNITS_IN)?;
-        if msg.body.index >= self.p.open_at {
-            ctx.send(UNITS_OUT, msg.scene_time_s, msg.body.clone())
-                .await?;
-        }
-        Ok(())
-    }
-}
-
 fn registry(seen: &Arc<Seen>) -> StageRegistry {
     let mut r = cloudlight::actors::registry();
     let edge = EdgeSettings {
@@ -200,14 +175,7 @@ fn registry(seen: &Arc<Seen>) -> StageRegistry {
         .output(PICTURES)
         .params::<SourceParams>(),
     );
-    r.register(
-        StageKind::new("join_gate", "test", "a client joining late", |s| {
-            Ok(Box::new(Gate { p: s.params()? }))
-        })
-        .input(UNITS_IN, edge)
-        .output(UNITS_OUT)
-        .params::<GateParams>(),
-    );
+    common::register_unit_gate(&mut r);
     let seen = seen.clone();
     r.register(
         StageKind::new("video_sink", "test", "decodes and scores", move |s| {
@@ -343,8 +311,8 @@ async fn a_video_client_joining_late_shows_pictures_within_one_key_frame_interva
     let seen = Arc::new(Seen::default());
     let client = "kind = \"video_client\"\nnode = \"home\"\n\
         params = { width = 96, height = 64, fps = 30.0 }\n\
-        [[stage]]\nname = \"gate\"\nkind = \"join_gate\"\nnode = \"cloud\"\n\
-        params = { open_at = 10 }\n";
+        [[stage]]\nname = \"gate\"\nkind = \"unit_gate\"\nnode = \"cloud\"\n\
+        params = { drop_until = 10 }\n";
     let text = topology(
         "cloud",
         "count = 45, live_light_lag_s = 0.25",

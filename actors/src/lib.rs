@@ -3,13 +3,15 @@
 //! A stage is a thin shell over a kernel of `cloudlight-render`: receive → compute → send.
 //! Stages never open sockets or look at placement; the runtime moves their messages.
 //! Techniques: `photons` (photon_batcher → photon_reconstructor), `irradiance`
-//! (basis_gatherer → video_encoder; the client reconstructor is still to come), `video` (video_encoder:
+//! (basis_gatherer → video_encoder → irradiance_reconstructor, or basis_gatherer →
+//! irradiance_raw_reconstructor for the raw f16 map), `video` (video_encoder:
 //! pictures to H.264 access units; video_client: decode and show) and `probe`, the diagnostic used to qualify topologies and
 //! links. Every technique's client runs on the shared client
 //! shell ([`client`]).
 
 pub mod basis_gatherer;
 pub mod client;
+pub mod irradiance_reconstructor;
 pub mod photon_batcher;
 pub mod photon_reconstructor;
 pub mod probe;
@@ -31,6 +33,7 @@ pub(crate) fn the_scene(scene: &AnyScene) -> Result<&Scene, String> {
 pub fn registry() -> StageRegistry {
     let mut r = StageRegistry::new();
     basis_gatherer::register(&mut r);
+    irradiance_reconstructor::register(&mut r);
     photon_batcher::register(&mut r);
     photon_reconstructor::register(&mut r);
     probe::register(&mut r);

@@ -2,8 +2,9 @@
 //! H.264 access units ([`VideoMsg`]) and shows the pictures — the client of the voxel
 //! technique's final frames and of the full-frame streaming baseline.
 //!
-//! What is its own: decoding (openh264, counted errors, pictures resume at the next key frame;
-//! a client that joins late shows its first picture at the next key frame), the scene time of
+//! What is its own: decoding (openh264, counted errors, pictures resume at the next key frame
+//! after an error or a gap in the unit indices; a client that joins late shows its first
+//! picture at the next key frame), the scene time of
 //! the newest picture (its light is valid as of then, so the shell's age of indirect light is
 //! the age of the picture shown), decode time, bytes, and pictures dropped or undecodable. It
 //! renders nothing: the shell shows its pictures (and writes them when asked).
@@ -64,6 +65,9 @@ pub struct VideoClient {
     bytes: u64,
     hdr_ignored: u64,
     decode: cloudlight_runtime::Latency,
+    /// Index of the unit expected next: after a gap (units lost upstream) the decoder waits
+    /// for a key frame instead of showing broken pictures.
+    next_index: Option<u64>,
 }
 
 impl ClientTechnique for VideoClient {
@@ -82,6 +86,7 @@ impl ClientTechnique for VideoClient {
             bytes: 0,
             hdr_ignored: 0,
             decode: cloudlight_runtime::Latency::new(),
+            next_index: None,
         })
     }
 
@@ -92,6 +97,10 @@ impl ClientTechnique for VideoClient {
             self.hdr_ignored += 1;
             return;
         }
+        if self.next_index.is_some_and(|n| n != unit.index) {
+            self.decoder.lose_sync();
+        }
+        self.next_index = Some(unit.index + 1);
         let start = Instant::now();
         match self.decoder.decode(&unit.data) {
             Ok(Some(yuv)) => {

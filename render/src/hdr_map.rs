@@ -234,6 +234,26 @@ impl HdrMap {
         sum / n.max(1) as f32
     }
 
+    /// What a stored `f16` is multiplied by to give the texel's value.
+    pub fn scale(&self) -> f32 {
+        self.scale
+    }
+
+    /// The texels as `f16` RGBA of value / [`HdrMap::scale`] (alpha 1), little-endian, 8
+    /// bytes a texel: an `Rgba16Float` texture's bytes.
+    pub fn rgba16_bytes(&self) -> Vec<u8> {
+        const ONE: [u8; 2] = half::f16::ONE.to_bits().to_le_bytes();
+        self.texels
+            .chunks_exact(6)
+            .flat_map(|rgb| {
+                let mut t = [0u8; 8];
+                t[..6].copy_from_slice(rgb);
+                t[6..].copy_from_slice(&ONE);
+                t
+            })
+            .collect()
+    }
+
     /// Bilinear lookup at light-map UV `uv` in [0, 1]² (clamped at the edges).
     pub fn sample(&self, uv: Vec2) -> Vec3 {
         bilinear_with(self.width, self.height, uv, |x, y| self.at(x, y))

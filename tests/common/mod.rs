@@ -229,3 +229,52 @@ pub fn f(v: &serde_json::Value, key: &str) -> f64 {
         .as_f64()
         .unwrap_or_else(|| panic!("{key} missing in {v}"))
 }
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct GateParams {
+    /// First unit index dropped.
+    #[serde(default)]
+    drop_from: u64,
+    /// First unit index passed on again.
+    drop_until: u64,
+}
+
+/// Drops the access units of indices `drop_from..drop_until` and passes the others on: a
+/// client joining a running stream late (`drop_from = 0`) or an outage in the middle.
+struct UnitGate {
+    p: GateParams,
+}
+
+const UNITS_IN: Port<cloudlight::actors::wire::VideoMsg> = Port::new("in");
+const UNITS_OUT: Port<cloudlight::actors::wire::VideoMsg> = Port::new("out");
+
+#[async_trait::async_trait]
+impl Stage for UnitGate {
+    async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
+        let msg = input.on(UNITS_IN)?;
+        if !(self.p.drop_from..self.p.drop_until).contains(&msg.body.index) {
+            ctx.send(UNITS_OUT, msg.scene_time_s, msg.body.clone())
+                .await?;
+        }
+        Ok(())
+    }
+}
+
+/// Registers `unit_gate` (technique `test`): see [`UnitGate`].
+pub fn register_unit_gate(r: &mut StageRegistry) {
+    r.register(
+        StageKind::new("unit_gate", "test", "drops a window of access units", |s| {
+            Ok(Box::new(UnitGate { p: s.params()? }))
+        })
+        .input(
+            UNITS_IN,
+            EdgeSettings {
+                capacity: 16,
+                policy: Policy::Block,
+            },
+        )
+        .output(UNITS_OUT)
+        .params::<GateParams>(),
+    );
+}

@@ -107,6 +107,13 @@ pub trait ClientTechnique: Send + Sized + 'static {
         None
     }
 
+    /// Checks the technique's parameters against the scene at validation (e.g. that the
+    /// scene has a light map); the default accepts every scene.
+    fn check_scene(params: &Self::Params, scene: &Scene) -> Result<(), String> {
+        let _ = (params, scene);
+        Ok(())
+    }
+
     /// The technique's part of the one-line summary.
     fn summary(&self) -> String;
 
@@ -657,7 +664,9 @@ pub fn register<T: ClientTechnique>(
         .checked_params::<Params<T::Params>>()
         .scene_check(|table, scene| {
             let params: Params<T::Params> = parse_params(table)?;
-            params.client.camera_index(0, the_scene(scene)?).map(|_| ())
+            let scene = the_scene(scene)?;
+            params.client.camera_index(0, scene)?;
+            T::check_scene(&params.technique, scene)
         }),
     );
 }

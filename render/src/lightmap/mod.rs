@@ -24,11 +24,13 @@ use crate::hdr_map::{DILATE_RINGS, dilate};
 pub mod atlas;
 pub mod basis;
 pub mod gather;
+pub mod pass;
 pub mod texels;
 
 pub use atlas::{Atlas, AtlasSettings, UvSource};
 pub use basis::{Bases, Basis, BasisSettings, MAX_BASES_PER_TEXEL};
 pub use gather::{GatherMode, GatherSettings, Gatherer, Update};
+pub use pass::{LightmapPass, lightmap_frame};
 pub use texels::TexelSurface;
 
 /// Why a scene has no irradiance map (the paper's "n/a").
@@ -111,7 +113,8 @@ pub struct Lightmap {
 impl Lightmap {
     /// Runs the offline phases on `scene`.
     pub fn bake(scene: &Scene, s: &LightmapSettings) -> Result<Lightmap, NotParametrizable> {
-        let (scene, atlas) = atlas::build(scene, &s.atlas)?;
+        let (scene, atlas) = unwrapped(scene, &s.atlas)?;
+        let scene = Scene::clone(&scene);
         let start = Instant::now();
         let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
         let texel_m = 1.0 / atlas.texels_per_m.max(1e-12);
@@ -174,9 +177,28 @@ impl Lightmap {
     }
 }
 
+/// `scene` with light-map UVs on every mesh and its atlas ([`atlas::build`]), once per
+/// (scene content, atlas settings) in this process: what a client needs to draw a light map
+/// made with the same atlas settings (a gatherer's bake in the process shares it).
+pub fn unwrapped(
+    scene: &Scene,
+    s: &AtlasSettings,
+) -> Result<(Arc<Scene>, Atlas), NotParametrizable> {
+    type Cache = Mutex<HashMap<u64, Result<(Arc<Scene>, Atlas), NotParametrizable>>>;
+    static CACHE: OnceLock<Cache> = OnceLock::new();
+    let key = fingerprint(scene, s);
+    let cache = CACHE.get_or_init(Default::default);
+    if let Some(hit) = crate::lock(cache).get(&key) {
+        return hit.clone();
+    }
+    let built = atlas::build(scene, s).map(|(scene, atlas)| (Arc::new(scene), atlas));
+    crate::lock(cache).insert(key, built.clone());
+    built
+}
+
 /// A hash of what a bake depends on and holds: the scene's name (the baked light map keeps
 /// its scene), geometry, materials with their textures' texels, lights and settings.
-fn fingerprint(scene: &Scene, s: &LightmapSettings) -> u64 {
+fn fingerprint(scene: &Scene, s: &impl std::fmt::Debug) -> u64 {
     let mut h = std::collections::hash_map::DefaultHasher::new();
     format!("{s:?}").hash(&mut h);
     scene.name.hash(&mut h);

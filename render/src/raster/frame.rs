@@ -452,6 +452,23 @@ impl FrameRenderer {
 }
 
 impl Raster {
+    /// One view rendered once with `indirect` as the technique's pass, everything read back.
+    pub fn read_frame(
+        &self,
+        view: &OneFrame<'_>,
+        indirect: &mut dyn IndirectPass,
+    ) -> Result<ReadFrame, RasterError> {
+        let images = self.render_once(view, indirect, Readback::Everything)?;
+        match (images.gbuffer, images.direct, images.indirect) {
+            (Some(gbuffer), Some(direct), Some(indirect)) => Ok(ReadFrame {
+                gbuffer,
+                direct,
+                indirect,
+            }),
+            _ => Err(RasterError::Readback("the frame was not read back".into())),
+        }
+    }
+
     /// The G-buffer and the direct radiance (ρ/π · E_direct, with shadow maps) of one view
     /// (rendered once: [`Raster::render_once`]).
     #[allow(clippy::too_many_arguments)]
@@ -474,10 +491,29 @@ impl Raster {
             height,
             shadows,
         };
-        let images = self.render_once(&view, &mut NoIndirect, Readback::Everything)?;
-        match (images.gbuffer, images.direct) {
-            (Some(g), Some(d)) => Ok((g, d)),
-            _ => Err(RasterError::Readback("no direct light read back".into())),
-        }
+        let f = self.read_frame(&view, &mut NoIndirect)?;
+        Ok((f.gbuffer, f.direct))
+    }
+}
+
+/// A client frame read back ([`Raster::read_frame`]).
+#[derive(Clone, Debug)]
+pub struct ReadFrame {
+    /// The G-buffer.
+    pub gbuffer: GBuffer,
+    /// Direct radiance (the client's own lights).
+    pub direct: Vec<Vec3>,
+    /// Indirect radiance from the technique's pass (ρ/π · E_indirect).
+    pub indirect: Vec<Vec3>,
+}
+
+impl ReadFrame {
+    /// Direct + indirect radiance.
+    pub fn combined(&self) -> Vec<Vec3> {
+        self.direct
+            .iter()
+            .zip(&self.indirect)
+            .map(|(d, i)| *d + *i)
+            .collect()
     }
 }

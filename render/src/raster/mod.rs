@@ -27,7 +27,9 @@ pub mod shadow;
 pub mod targets;
 
 pub use device::Formats;
-pub use frame::{FrameImages, FrameInputs, FrameRenderer, OneFrame, PassTimes, Readback};
+pub use frame::{
+    FrameImages, FrameInputs, FrameRenderer, OneFrame, PassTimes, ReadFrame, Readback,
+};
 pub use pass::{IndirectContext, IndirectPass, NoIndirect};
 pub use shadow::ShadowSettings;
 pub use targets::{GBufferTargets, Target};
@@ -89,6 +91,10 @@ pub enum RasterError {
         /// Device limit per side.
         max: u32,
     },
+    /// A light map the lookup pass cannot show (inconsistent, or larger than the device's
+    /// textures).
+    #[error("the light map cannot be shown: {0}")]
+    BadMap(String),
     /// Reading results back failed.
     #[error("reading back from the GPU failed: {0}")]
     Readback(String),

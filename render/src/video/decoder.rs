@@ -66,6 +66,12 @@ impl Decoder {
         self.stats
     }
 
+    /// Units were lost upstream (a gap in the stream): what follows is undecodable until the
+    /// next key frame, so units are dropped (counted as waiting) until one arrives.
+    pub fn lose_sync(&mut self) {
+        self.synced = false;
+    }
+
     /// Decodes one access unit: `Ok(Some(picture))` when it completes one, `Ok(None)` when it
     /// needs more data or is waiting for a key frame, `Err` (counted) when the unit is bad.
     ///

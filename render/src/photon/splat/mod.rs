@@ -5,7 +5,6 @@
 //! ([`SplatPipelines`], built once per device); the shared raster knows nothing of photons.
 
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
-use glam::Vec3;
 
 use super::Photon;
 use crate::raster::pipelines::{
@@ -13,8 +12,7 @@ use crate::raster::pipelines::{
 };
 use crate::raster::targets::clear_pass;
 use crate::raster::{
-    GBuffer, IndirectContext, IndirectPass, OneFrame, Raster, RasterError, Readback,
-    ShadowSettings, Target,
+    IndirectContext, IndirectPass, OneFrame, Raster, RasterError, ShadowSettings, Target,
 };
 
 /// Must match `PhotonIn` in splat.wgsl.
@@ -141,27 +139,8 @@ impl Default for SplatSettings {
     }
 }
 
-/// One client frame.
-#[derive(Clone, Debug)]
-pub struct PhotonFrame {
-    /// The G-buffer.
-    pub gbuffer: GBuffer,
-    /// Direct radiance (the client's own lights).
-    pub direct: Vec<Vec3>,
-    /// Indirect radiance from the photons (ρ/π · E_indirect).
-    pub indirect: Vec<Vec3>,
-}
-
-impl PhotonFrame {
-    /// Direct + indirect radiance.
-    pub fn combined(&self) -> Vec<Vec3> {
-        self.direct
-            .iter()
-            .zip(&self.indirect)
-            .map(|(d, i)| *d + *i)
-            .collect()
-    }
-}
+/// One photon client frame.
+pub type PhotonFrame = crate::raster::ReadFrame;
 
 /// Must match `SplatParams` in splat.wgsl.
 #[repr(C)]
@@ -418,15 +397,7 @@ pub fn photon_frame(
         height,
         shadows,
     };
-    let images = raster.render_once(&view, &mut pass, Readback::Everything)?;
-    match (images.gbuffer, images.direct, images.indirect) {
-        (Some(gbuffer), Some(direct), Some(indirect)) => Ok(PhotonFrame {
-            gbuffer,
-            direct,
-            indirect,
-        }),
-        _ => Err(RasterError::Readback("the frame was not read back".into())),
-    }
+    raster.read_frame(&view, &mut pass)
 }
 
 #[cfg(test)]
