@@ -510,6 +510,154 @@ fn table2_puts_the_full_frame_baseline_beside_the_photon_cut() {
 }
 
 #[test]
+fn irradiance_benchmarks_print_the_papers_rows_scale_sweep_and_split_the_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    // Table 2: the Cornell box beside the paper's, a scene without a light map as n/a.
+    let json = dir.path().join("table2.json");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "table2",
+            "--technique",
+            "irradiance",
+            "--scene",
+            "cornell-animated,cornell",
+            "--seconds",
+            "1.5",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--set",
+            "unwrap_limit_s=0",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    ok(&out);
+    for row in [
+        "| Number of basis functions | n/a | 50 |",
+        "| Rays per update | n/a | 26k |",
+        "TEXCOORD_1",
+    ] {
+        assert!(text.contains(row), "{row} missing: {text}");
+    }
+    let out = cloudlight()
+        .args([
+            "bench",
+            "table2",
+            "--technique",
+            "irradiance",
+            "--scene",
+            "cornell-animated",
+            "--seconds",
+            "1.5",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    ok(&out);
+    let col = &read_json(&json)["columns"][0];
+    assert_eq!(col["na"], serde_json::Value::Null, "{col}");
+    assert!((30..=80).contains(&col["bases"].as_u64().unwrap()), "{col}");
+    assert_eq!(col["resolution"], 128, "{col}");
+    assert!(
+        col["server_to_client_mbps"].as_f64().unwrap() > 0.0,
+        "{col}"
+    );
+    assert!(col["maps_blended"].as_u64().unwrap() >= 3, "{col}");
+    assert!(col["client_indirect_ms"].as_f64().unwrap() > 0.0, "{col}");
+    // Scaling: one gatherer and encoder for every client.
+    let scaling = dir.path().join("scaling");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "scaling",
+            "--technique",
+            "irradiance",
+            "--clients",
+            "1,3",
+            "--seconds",
+            "1.5",
+            "--out",
+        ])
+        .arg(&scaling)
+        .output()
+        .unwrap();
+    ok(&out);
+    let rows = read_json(scaling.join("scaling.json"))["rows"].clone();
+    assert_eq!(rows[1]["clients_showing_indirect"], 3, "{rows}");
+    // Quality: raw and H.264 errors of each point, and the per-texel point.
+    let quality = dir.path().join("quality");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "quality",
+            "--technique",
+            "irradiance",
+            "--spp",
+            "16",
+            "--width",
+            "24",
+            "--height",
+            "24",
+            "--sweep",
+            "rays_per_basis=128",
+            "--sweep",
+            "qp=16,28",
+            "--out",
+        ])
+        .arg(&quality)
+        .output()
+        .unwrap();
+    ok(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("per basis (") && text.contains("fewer rays"),
+        "{text}"
+    );
+    let points = read_json(quality.join("quality.json"))["points"].clone();
+    let points = points.as_array().unwrap();
+    assert_eq!(points.len(), 3, "two QPs per basis, one per texel");
+    for p in points {
+        for e in [&p["raw"], &p["h264"]] {
+            assert!(e["relmse"].as_f64().unwrap().is_finite(), "{p}");
+        }
+    }
+    assert!(quality.join("quality.png").metadata().unwrap().len() > 1000);
+    assert!(quality.join("reference_indirect.exr").exists());
+    // The client's frame, split by pass.
+    let out = cloudlight()
+        .args([
+            "bench",
+            "client",
+            "--technique",
+            "irradiance",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--frames",
+            "2",
+        ])
+        .output()
+        .unwrap();
+    ok(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("| indirect |") && text.contains("light map"),
+        "{text}"
+    );
+}
+
+#[test]
 fn benchmarks_of_missing_techniques_say_so() {
     for bench in ["table2", "scaling", "quality", "client"] {
         let out = cloudlight()

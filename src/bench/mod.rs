@@ -19,13 +19,15 @@
 //! The CLI only parses options and prints; everything measured is here, so tests link it.
 
 use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use cloudlight_render::raster::Raster;
+use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_runtime::metrics::EdgeSnapshot;
 use cloudlight_runtime::{MetricsSnapshot, RunOptions, TopologySpec};
-use cloudlight_scenes::Scene;
+use cloudlight_scenes::glam::Vec3;
+use cloudlight_scenes::{Camera, Scene};
 use cloudlight_transport::LinkProfile;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -34,6 +36,7 @@ use client::{ClientBench, ClientBenchOptions};
 
 pub mod baseline;
 pub mod client;
+pub mod irradiance;
 pub mod paper;
 pub mod photons;
 pub mod table;
@@ -44,7 +47,7 @@ pub mod video;
 pub const TECHNIQUES: [&str; 4] = [
     photons::Photons::NAME,
     baseline::PhotonsVideo::NAME,
-    "irradiance",
+    irradiance::Irradiance::NAME,
     "voxels",
 ];
 
@@ -62,10 +65,12 @@ pub fn with_technique<V: Visit>(name: &str, v: V) -> anyhow::Result<V::Out> {
     match name {
         photons::Photons::NAME => Ok(v.visit::<photons::Photons>()),
         baseline::PhotonsVideo::NAME => Ok(v.visit::<baseline::PhotonsVideo>()),
+        irradiance::Irradiance::NAME => Ok(v.visit::<irradiance::Irradiance>()),
         n if TECHNIQUES.contains(&n) => anyhow::bail!(
-            "technique `{n}` is not implemented yet; benchmarks exist for `{}` and `{}`",
+            "technique `{n}` is not implemented yet; benchmarks exist for `{}`, `{}` and `{}`",
             photons::Photons::NAME,
-            baseline::PhotonsVideo::NAME
+            baseline::PhotonsVideo::NAME,
+            irradiance::Irradiance::NAME
         ),
         other => anyhow::bail!(
             "unknown technique `{other}` (one of: {})",
@@ -765,6 +770,50 @@ pub fn beside_paper<C>(
         t.row(cells);
     }
     t.render()
+}
+
+/// The view a quality sweep measures (any technique): the scene's first camera at time 0, the reference's
+/// indirect light.
+pub struct QualityView {
+    /// The scene.
+    pub scene: Scene,
+    /// Its BVH at time 0.
+    pub bvh: SceneBvh,
+    /// The camera.
+    pub camera: Camera,
+    /// The path tracer's indirect-only radiance.
+    pub reference: Vec<Vec3>,
+    /// Seconds the reference took.
+    pub reference_s: f64,
+}
+
+impl QualityView {
+    /// Renders the reference of `scene` at `width × height`, `spp` samples per pixel.
+    pub fn new(scene: Scene, width: u32, height: u32, spp: u32) -> anyhow::Result<Self> {
+        let camera = scene
+            .cameras
+            .first()
+            .map(|c| c.at(0.0))
+            .with_context(|| format!("scene `{}` has no camera", scene.name))?;
+        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+        let start = Instant::now();
+        let settings = cloudlight_render::RenderSettings {
+            width,
+            height,
+            camera,
+            time_s: 0.0,
+            seed: 77,
+            max_bounces: 64,
+        };
+        let reference = cloudlight_render::render(&scene, &bvh, settings, spp).indirect();
+        Ok(QualityView {
+            scene,
+            bvh,
+            camera,
+            reference,
+            reference_s: start.elapsed().as_secs_f64(),
+        })
+    }
 }
 
 /// Default output folder of a benchmark: `runs/bench-<name>-<unix time>`.

@@ -97,6 +97,45 @@ pub const PHOTONS: [(&str, [&str; 6]); 10] = [
     ),
 ];
 
+/// Table 2's irradiance-map block: (row, one cell per scene of [`SCENES`]); "n/a" where the
+/// paper could not parametrise the scene.
+pub const IRRADIANCE: [(&str, [&str; 6]); 7] = [
+    (
+        "Number of basis functions",
+        ["50", "39,000", "6,300", "n/a", "n/a", "n/a"],
+    ),
+    (
+        "Rays per update",
+        ["26k", "20.0M", "1.6M", "n/a", "n/a", "n/a"],
+    ),
+    (
+        "Cloud update time",
+        ["7.5 ms", "214 ms", "40 ms", "n/a", "n/a", "n/a"],
+    ),
+    (
+        "Irradiance map texels",
+        ["128²", "1024²", "1024²", "n/a", "n/a", "n/a"],
+    ),
+    (
+        "H.264 encode",
+        ["≈0.5 ms", "3 ms", "3 ms", "n/a", "n/a", "n/a"],
+    ),
+    (
+        "Server-to-client bandwidth",
+        ["0.16 Mbps", "1.5 Mbps", "1.7 Mbps", "n/a", "n/a", "n/a"],
+    ),
+    (
+        "Local device indirect light size",
+        ["768 kB", "48 MB", "48 MB", "n/a", "n/a", "n/a"],
+    ),
+];
+
+/// The paper's Figure 4 (irradiance-map scaling on Ironworks), in words.
+pub const IRRADIANCE_SCALING_FIGURE: (&str, &str) = (
+    "Figure 4, irradiance maps on Ironworks",
+    "per-user latency essentially constant up to 50 users (new users need no server computation); the server's bandwidth grows linearly with users; the network was never saturated",
+);
+
 /// Table 2's voxel block, the rows of its final frames streamed as video (the server renders
 /// and encodes each client's frame; the client only decodes, about 1 ms at 1080p).
 pub const VIDEO_FRAMES: [(&str, [&str; 6]); 3] = [

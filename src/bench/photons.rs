@@ -15,8 +15,8 @@ use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings, photon_fr
 use cloudlight_render::photon::{PackFormat, Photon, PhotonSettings, trace_iteration};
 use cloudlight_render::raster::{Raster, ShadowSettings};
 use cloudlight_render::{BvhKind, SceneBvh};
+use cloudlight_scenes::Scene;
 use cloudlight_scenes::glam::Vec3;
-use cloudlight_scenes::{Camera, Scene};
 use serde::{Deserialize, Serialize};
 
 use super::client::{ClientBench, ClientBenchOptions};
@@ -503,49 +503,9 @@ pub struct QualityRow {
     pub twenty_same_bytes: QualityPoint,
 }
 
-/// The view a quality sweep measures: the scene's first camera at time 0, the reference's
-/// indirect light.
-pub struct QualityView {
-    /// The scene.
-    pub scene: Scene,
-    /// Its BVH at time 0.
-    pub bvh: SceneBvh,
-    /// The camera.
-    pub camera: Camera,
-    /// The path tracer's indirect-only radiance.
-    pub reference: Vec<Vec3>,
-    /// Seconds the reference took.
-    pub reference_s: f64,
-}
+pub use super::QualityView;
 
 impl QualityView {
-    /// Renders the reference of `scene` at `width × height`, `spp` samples per pixel.
-    pub fn new(scene: Scene, width: u32, height: u32, spp: u32) -> anyhow::Result<Self> {
-        let camera = scene
-            .cameras
-            .first()
-            .map(|c| c.at(0.0))
-            .with_context(|| format!("scene `{}` has no camera", scene.name))?;
-        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
-        let start = Instant::now();
-        let settings = cloudlight_render::RenderSettings {
-            width,
-            height,
-            camera,
-            time_s: 0.0,
-            seed: 77,
-            max_bounces: 64,
-        };
-        let reference = cloudlight_render::render(&scene, &bvh, settings, spp).indirect();
-        Ok(QualityView {
-            scene,
-            bvh,
-            camera,
-            reference,
-            reference_s: start.elapsed().as_secs_f64(),
-        })
-    }
-
     /// One update of `photons` in `format`, splatted and compared with the reference;
     /// returns the point and the client's indirect image.
     #[allow(clippy::too_many_arguments)]

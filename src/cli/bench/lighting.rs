@@ -48,9 +48,10 @@ impl Knobs {
 /// Options of `bench table2`.
 #[derive(clap::Args)]
 pub struct Table2Args {
-    /// Technique: `photons`, or `photons-video` (the photon cut beside the full-frame
-    /// baseline: each client's frame rendered and H.264-encoded in the cloud, a thin client
-    /// decoding it); `voxels` and `irradiance` are not implemented yet.
+    /// Technique: `photons`, `irradiance` (a scene without a light map reads "n/a" with its
+    /// reason), or `photons-video` (the photon cut beside the full-frame baseline: each
+    /// client's frame rendered and H.264-encoded in the cloud, a thin client decoding it);
+    /// `voxels` is not implemented yet.
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Scenes, comma-separated: `cornell`, `city:N`, a .gltf/.glb file.
@@ -87,8 +88,7 @@ pub struct Table2Args {
 /// Options of `bench scaling`.
 #[derive(clap::Args)]
 pub struct ScalingArgs {
-    /// Technique (`photons`, `photons-video`; `voxels` and `irradiance` are not implemented
-    /// yet).
+    /// Technique (`photons`, `irradiance`, `photons-video`; `voxels` is not implemented yet).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Client counts, comma-separated.
@@ -117,7 +117,8 @@ pub struct ScalingArgs {
 /// Options of `bench quality`.
 #[derive(clap::Args)]
 pub struct QualityArgs {
-    /// Technique (`photons`; `voxels` and `irradiance` are not implemented yet).
+    /// Technique (`photons`: budgets in two packings; `irradiance`: bases, rays per basis and
+    /// QP, and per-texel gathering; `voxels` is not implemented yet).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Scene.
@@ -127,8 +128,9 @@ pub struct QualityArgs {
     /// 2500,5000,10000,40000,160000].
     #[arg(long, value_delimiter = ',', value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     budgets: Vec<u64>,
-    /// Sweeps a knob, `key=v1,v2,...` (repeatable; the technique says how sweeps combine)
-    /// [default: the technique's own sweep].
+    /// Sweeps a knob, `key=v1,v2,...` (repeatable; the technique says how sweeps combine;
+    /// irradiance: `texels_per_basis`, `rays_per_basis`, `qp`, every combination) [default:
+    /// the technique's own sweep].
     #[arg(long, value_name = "KEY=V1,V2,...", value_parser = bench::parse_sweep)]
     sweep: Vec<(String, Vec<toml::Value>)>,
     #[command(flatten)]
