@@ -128,6 +128,40 @@ to = "raw.in"
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_converged_static_map_is_current_light_between_its_re_sends() {
+    // The static box converges within about a second of 50 ms updates; from then on the
+    // gatherer re-sends its map once a second, marked steady: the light a client holds is
+    // current (age 0), not as old as the last re-send.
+    let raw = r#"[[stage]]
+name = "raw"
+kind = "irradiance_raw_reconstructor"
+node = "home"
+params = { width = 64, height = 48, fps = 10.0, render = false }
+[[edge]]
+from = "gather.out"
+to = "raw.in"
+"#;
+    let text = cluster("cornell", "interval_ms = 50.0, resend_s = 1.0", 4.0, raw);
+    let registry = cloudlight::actors::registry();
+    let run = run_plan(
+        &plan_text(&text, &registry),
+        &registry,
+        RunOptions::default(),
+    )
+    .await
+    .unwrap();
+    let g = report(&run.metrics, "gather");
+    let v = report(&run.metrics, "raw");
+    println!("gather: {g}\nraw: {v}");
+    assert!(f(g, "converged_updates") > 0.0, "{g}");
+    assert_eq!(v["indirect_shown"], true, "{v}");
+    // Most frames show the steady map: the median age is 0 and none climbs towards the 1 s
+    // between re-sends.
+    assert!(f(v, "age_ms_p50") < 1.0, "{v}");
+    assert!(f(v, "age_ms_max") < 700.0, "{v}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn zero_and_fifty_irradiance_clients_run_cleanly() {
     let registry = cloudlight::actors::registry();
     // None: the gatherer and encoder run alone.
@@ -265,4 +299,20 @@ fn scenes_that_cannot_be_parametrised_are_refused_with_the_reason() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("rays_per_basis"), "{err}");
+    // Map sides the H.264 encoder cannot take are refused before anything runs.
+    for (params, key) in [
+        ("resolution = 129", "resolution"),
+        ("resolution = 4096", "resolution"),
+        ("max_resolution = 2159", "max_resolution"),
+        ("max_resolution = 2162", "max_resolution"),
+    ] {
+        let err = Plan::from_str("t.toml", &topology("cornell", params, 1), &registry)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains(key), "{params}: {err}");
+        assert!(
+            params.ends_with("2162") || err.contains("even"),
+            "{params}: {err}"
+        );
+    }
 }

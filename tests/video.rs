@@ -74,7 +74,10 @@ impl Stage for Source {
             return Ok(NextTick::Never);
         }
         let frame = if self.p.hdr {
-            FrameMsg::Hdr(HdrMap::new(W, H, &map(self.next), &[])?)
+            FrameMsg::Hdr {
+                map: HdrMap::new(W, H, &map(self.next), &[])?,
+                steady: false,
+            }
         } else {
             FrameMsg::Sdr {
                 width: W,

@@ -8,7 +8,8 @@
 //! [`FrameMsg::Hdr`] (E_indirect in W·m⁻², valid texels marked), stamped with the scene time
 //! it is valid for. One gatherer feeds every client (through one `video_encoder`, or raw).
 //! A static scene that has converged is not gathered again; its map is re-sent every
-//! `resend_s` so late clients get it.
+//! `resend_s` so late clients get it, marked `steady` (valid until superseded, so a client
+//! holding it reports its light as current rather than as old as the last re-send).
 //!
 //! Ports: [`OUT`] (FrameMsg::Hdr). What `latest` drops on `out`: older maps (each map is
 //! complete; the newest supersedes them).
@@ -86,8 +87,23 @@ impl Default for GathererParams {
     }
 }
 
-/// Largest map side (texels): a 4096² map is 100 MB of f16 texels per message.
-pub const MAX_RESOLUTION: u32 = 4096;
+/// Largest map side (texels): the largest square picture H.264 level 5.2 holds (its short
+/// side is at most 2160), so that every map the gatherer makes can be encoded.
+pub const MAX_RESOLUTION: u32 = 2160;
+
+/// Checks a map side `value` of knob `key` against what the video encoder takes (even, at
+/// most [`MAX_RESOLUTION`]); `allow_zero` for "from the surface area".
+pub fn check_map_side(key: &str, value: u32, allow_zero: bool) -> Result<(), String> {
+    if allow_zero && value == 0 {
+        return Ok(());
+    }
+    cloudlight_render::video::yuv::check_size(value, value).map_err(|_| {
+        format!(
+            "`{key}` = {value}: a light map's side must be even and 2 to {MAX_RESOLUTION} texels (what H.264 encodes){}",
+            if allow_zero { ", or 0 (from the surface area)" } else { "" }
+        )
+    })
+}
 
 impl GathererParams {
     /// The kernel's offline settings.
@@ -151,13 +167,7 @@ impl CheckParams for GathererParams {
             1e7,
             "texels",
         )?;
-        check_range(
-            "resolution",
-            self.resolution as f64,
-            0.0,
-            MAX_RESOLUTION as f64,
-            "texels",
-        )?;
+        check_map_side("resolution", self.resolution, true)?;
         check_range(
             "texels_per_m2",
             self.texels_per_m2,
@@ -172,6 +182,7 @@ impl CheckParams for GathererParams {
             MAX_RESOLUTION as f64,
             "texels",
         )?;
+        check_map_side("max_resolution", self.max_resolution, false)?;
         check_range("max_texel_m", self.max_texel_m as f64, 1e-6, 1e4, "m")?;
         check_range("unwrap_limit_s", self.unwrap_limit_s, 0.0, 86_400.0, "s")?;
         check_range("interval_ms", self.interval_ms, 0.0, 3.6e6, "ms")?;
@@ -224,6 +235,8 @@ pub struct BasisGatherer {
     gatherer: Arc<Mutex<Gatherer>>,
     cadence: Cadence,
     last_sent: Option<Instant>,
+    /// Whether the newest map sent was marked steady.
+    sent_steady: bool,
     report: GathererReport,
     update: Latency,
 }
@@ -258,6 +271,7 @@ impl BasisGatherer {
             gatherer: Arc::new(Mutex::new(gatherer)),
             cadence,
             last_sent: None,
+            sent_steady: false,
             report,
             update: Latency::new(),
             params,
@@ -294,15 +308,23 @@ impl BasisGatherer {
             self.report.converged_updates += 1;
             let resend = Duration::from_secs_f64(self.params.resend_s);
             let recent = self.last_sent.is_some_and(|s| s.elapsed() < resend);
-            if recent || self.params.resend_s == 0.0 {
+            // The first converged map goes out at once, marked steady: clients then know
+            // their light is current. Later ones only as re-sends.
+            if self.sent_steady && (recent || self.params.resend_s == 0.0) {
                 return Ok(());
             }
+            self.sent_steady = true;
         } else {
+            self.sent_steady = false;
             self.update.record_s(u.seconds);
             self.report.rays_per_update = u.rays;
         }
         let bytes = u.map.data_bytes() as u64;
-        let msg = FrameMsg::Hdr((*u.map).clone());
+        // A converged static map is valid until superseded: clients show it as current.
+        let msg = FrameMsg::Hdr {
+            map: (*u.map).clone(),
+            steady: u.converged,
+        };
         ctx.send(OUT, u.time_s, msg).await?;
         self.last_sent = Some(Instant::now());
         self.report.maps_sent += 1;

@@ -14,6 +14,9 @@
 //!   blended with the same weight, `valid += blend × (t_new − valid)`: a mixture of maps is as
 //!   old as the weighted mean of their ages, so the age the shell reports (scene time now
 //!   minus that) counts the filter's lag. `blend = 1` shows each map as it arrives.
+//! - **Steady maps**: a map marked steady (a static scene whose map converged; the gatherer
+//!   re-sends it every `resend_s`) stays valid until superseded, so while it is the newest
+//!   map blended in the age of the light shown is 0, not the time since the last re-send.
 //! - **Outage and late join**: the last map stays shown for as long as nothing arrives; the
 //!   next map that arrives is blended in. A client joining an H.264 stream late shows light
 //!   at its first key frame (at most the encoder's `keyframe_s` later).
@@ -112,7 +115,8 @@ impl CheckParams for IrradianceClientParams {
             1e9,
             "texels per m²",
         )?;
-        check_range("resolution", self.resolution as f64, 0.0, max, "texels")?;
+        use crate::basis_gatherer::check_map_side;
+        check_map_side("resolution", self.resolution, true)?;
         check_range(
             "max_resolution",
             self.max_resolution as f64,
@@ -120,6 +124,7 @@ impl CheckParams for IrradianceClientParams {
             max,
             "texels",
         )?;
+        check_map_side("max_resolution", self.max_resolution, false)?;
         check_range("max_texel_m", self.max_texel_m as f64, 1e-6, 1e4, "m")?;
         check_range("unwrap_limit_s", self.unwrap_limit_s, 0.0, 86_400.0, "s")
     }
@@ -178,6 +183,8 @@ pub trait MapSource: Send + Sized + 'static {
     fn new() -> anyhow::Result<Self>;
     /// Payload bytes of a message.
     fn bytes(msg: &Self::Msg) -> usize;
+    /// Whether the message's map stays valid until superseded (a converged static map).
+    fn steady(msg: &Self::Msg) -> bool;
     /// The map `msg` completes (`None`: nothing to show yet), or why it cannot be used.
     fn decode(&mut self, msg: &Self::Msg) -> Result<Option<DecodedMap>, String>;
     /// Units dropped waiting for a key frame.
@@ -204,6 +211,10 @@ impl MapSource for H264Maps {
 
     fn bytes(msg: &VideoMsg) -> usize {
         msg.data.len()
+    }
+
+    fn steady(msg: &VideoMsg) -> bool {
+        msg.steady
     }
 
     fn decode(&mut self, msg: &VideoMsg) -> Result<Option<DecodedMap>, String> {
@@ -245,14 +256,18 @@ impl MapSource for RawMaps {
 
     fn bytes(msg: &FrameMsg) -> usize {
         match msg {
-            FrameMsg::Hdr(map) => map.data_bytes(),
+            FrameMsg::Hdr { map, .. } => map.data_bytes(),
             FrameMsg::Sdr { rgb, .. } => rgb.len(),
         }
     }
 
+    fn steady(msg: &FrameMsg) -> bool {
+        matches!(msg, FrameMsg::Hdr { steady: true, .. })
+    }
+
     fn decode(&mut self, msg: &FrameMsg) -> Result<Option<DecodedMap>, String> {
         match msg {
-            FrameMsg::Hdr(map) => {
+            FrameMsg::Hdr { map, .. } => {
                 map.check().map_err(|e| e.to_string())?;
                 Ok(Some(DecodedMap {
                     width: map.width(),
@@ -270,6 +285,8 @@ impl MapSource for RawMaps {
 struct Shared {
     /// The map shown (blended) and the scene time it is valid as of.
     shown: Option<(Arc<HdrMap>, f64)>,
+    /// The newest map blended in stays valid until superseded (a converged static map).
+    steady: bool,
     /// Bumped at each new blend.
     version: u64,
     maps_decoded: u64,
@@ -340,6 +357,7 @@ fn decode_loop<S: MapSource>(
     while let Ok(job) = jobs.recv() {
         let start = Instant::now();
         let decoded = source.decode(&job.body);
+        let steady = S::steady(&job.body);
         let decode_time = start.elapsed();
         let waiting = source.waiting_for_key();
         let map = match decoded {
@@ -396,6 +414,7 @@ fn decode_loop<S: MapSource>(
             }
         };
         s.shown = Some((shown, blender.time_s));
+        s.steady = steady;
         s.version += 1;
         s.maps_blended += 1;
     }
@@ -466,6 +485,10 @@ impl<S: MapSource> ClientTechnique for IrradianceClient<S> {
 
     fn valid_as_of(&self) -> Option<f64> {
         lock(&self.shared).shown.as_ref().map(|(_, t)| *t)
+    }
+
+    fn is_current(&self) -> bool {
+        lock(&self.shared).steady
     }
 
     fn new_pass(raster: &Raster, _: &Self::Params) -> Result<LightmapPass, RasterError> {
@@ -638,6 +661,7 @@ mod tests {
                     height: h,
                     hdr: Some(packed.range),
                     light_s: None,
+                    steady: false,
                     data: u.data,
                 }
             })

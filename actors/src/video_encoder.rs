@@ -198,7 +198,7 @@ impl Stage for VideoEncoder {
         self.started.get_or_insert_with(Instant::now);
         self.report.pictures += 1;
         let t = Instant::now();
-        let (width, height, yuv, range, light_s) = match &msg.body {
+        let (width, height, yuv, range, light_s, steady) = match &msg.body {
             FrameMsg::Sdr {
                 width,
                 height,
@@ -210,13 +210,14 @@ impl Stage for VideoEncoder {
                 Yuv420::from_rgb8(*width, *height, rgb)?,
                 None,
                 *light_s,
+                false,
             ),
-            FrameMsg::Hdr(map) => {
+            FrameMsg::Hdr { map, steady } => {
                 map.check()
                     .map_err(|e| anyhow::anyhow!("a light map that does not add up: {e}"))?;
                 let packed = hdr::pack(map)?;
                 let (w, h) = (map.width(), map.height());
-                (w, h, packed.yuv, Some(packed.range), None)
+                (w, h, packed.yuv, Some(packed.range), None, *steady)
             }
         };
         let unit = self
@@ -238,6 +239,7 @@ impl Stage for VideoEncoder {
             height,
             hdr: range,
             light_s,
+            steady,
             data: unit.data,
         };
         ctx.send(OUT, msg.scene_time_s, out).await?;

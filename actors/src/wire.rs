@@ -61,7 +61,13 @@ pub enum FrameMsg {
     },
     /// An HDR light map (f16 texels and coverage bits: the same bits in process and on the
     /// wire; check it with [`HdrMap::check`] before use).
-    Hdr(HdrMap),
+    Hdr {
+        /// The map.
+        map: HdrMap,
+        /// The scene is static and the map has converged: it stays valid until a newer map
+        /// supersedes it (a client holding it shows current light, whatever its stamp).
+        steady: bool,
+    },
 }
 
 /// One H.264 access unit from a `video_encoder` (the runtime's stamp carries the scene time
@@ -83,6 +89,8 @@ pub struct VideoMsg {
     /// Scene time of the indirect light the picture shows, when its producer said
     /// ([`FrameMsg::Sdr::light_s`]); a light map is its own light (the stamp).
     pub light_s: Option<f64>,
+    /// A light map that stays valid until superseded ([`FrameMsg::Hdr::steady`]).
+    pub steady: bool,
     /// Annex-B NAL units.
     #[serde(with = "serde_bytes")]
     pub data: Vec<u8>,
@@ -131,9 +139,13 @@ mod tests {
         )
         .unwrap();
         // 6 bytes a texel and one coverage byte, beside a few bytes of framing.
-        let len = codec::encoded_len(&FrameMsg::Hdr(map.clone())).unwrap();
+        let len = codec::encoded_len(&FrameMsg::Hdr {
+            map: map.clone(),
+            steady: true,
+        })
+        .unwrap();
         assert!(len <= 4 * 6 + 1 + 24, "{len} bytes for a 2×2 map");
-        round_trip(FrameMsg::Hdr(map));
+        round_trip(FrameMsg::Hdr { map, steady: false });
         round_trip(VideoMsg {
             index: 4,
             key: true,
@@ -145,6 +157,7 @@ mod tests {
                 log2_max: 5.0,
             }),
             light_s: None,
+            steady: true,
             data: vec![0, 0, 0, 1, 0x65, 7],
         });
     }

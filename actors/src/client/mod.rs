@@ -74,6 +74,12 @@ pub trait ClientTechnique: Send + Sized + 'static {
     /// Scene time the indirect light held is valid as of (`None`: none yet).
     fn valid_as_of(&self) -> Option<f64>;
 
+    /// Whether the light held stays valid until superseded (a converged map of a static
+    /// scene): its age is 0 whatever [`ClientTechnique::valid_as_of`] says.
+    fn is_current(&self) -> bool {
+        false
+    }
+
     /// A pass for frames on `raster`.
     fn new_pass(raster: &Raster, params: &Self::Params) -> Result<Self::Pass, RasterError>;
 
@@ -382,9 +388,20 @@ impl<T: ClientTechnique> ClientShell<T> {
         ctx.report(serde_json::to_value(self.report()).unwrap_or_default());
     }
 
+    /// The scene time the indirect light shown at `t` is valid as of: `t` itself while it
+    /// stays valid until superseded ([`ClientTechnique::is_current`]).
+    fn light_time(&self, t: f64) -> Option<f64> {
+        let valid = self.technique.valid_as_of()?;
+        Some(if self.technique.is_current() {
+            t
+        } else {
+            valid
+        })
+    }
+
     /// Samples the age of the indirect light at scene time `t`.
     fn record_age(&mut self, t: f64) {
-        if let Some(valid) = self.technique.valid_as_of() {
+        if let Some(valid) = self.light_time(t) {
             let f = &mut self.figures;
             let age = (t - valid).max(0.0);
             f.age_max_s = f.age_max_s.max(age);
@@ -548,12 +565,12 @@ impl<T: ClientTechnique> ClientShell<T> {
     }
 
     fn log_frame(&mut self, t: f64, frame_ms: Option<f64>) -> anyhow::Result<()> {
+        let age = self.light_time(t).map_or(String::new(), |v| {
+            format!("{:.3}", (t - v).max(0.0) * 1000.0)
+        });
         let Some(log) = &mut self.output.log else {
             return Ok(());
         };
-        let age = self.technique.valid_as_of().map_or(String::new(), |v| {
-            format!("{:.3}", (t - v).max(0.0) * 1000.0)
-        });
         let ms = frame_ms.map_or(String::new(), |m| format!("{m:.3}"));
         writeln!(
             log,
@@ -612,7 +629,7 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
                     }
                     if send {
                         let Picture { width, height, rgb } = picture;
-                        let light_s = self.technique.valid_as_of();
+                        let light_s = self.light_time(t);
                         let frame = FrameMsg::Sdr {
                             width,
                             height,

@@ -125,31 +125,46 @@ fn a_thin_wall_leaves_the_dark_side_dark() {
         g.update(0.0);
     }
     let map = g.map().clone();
+    // Every valid texel by side, the band next to the wall included: the wall's faces sit at
+    // x = 1.95 (lit) and 2.05 (dark); texels inside its thickness are buried or outside.
     let (mut lit, mut dark) = ((Vec3::ZERO, 0), (Vec3::ZERO, 0));
+    let (mut dark_max, mut near_wall) = (0.0f32, 0);
     for i in 0..map.len() {
         if !map.is_valid(i) {
             continue;
         }
         let x = lm.texels.positions[i].x;
-        let side = if x < 1.9 {
-            &mut lit
-        } else if x > 2.1 {
-            &mut dark
-        } else {
-            continue;
-        };
-        side.0 += map.texel(i);
-        side.1 += 1;
+        if x < 1.95 - 1e-3 {
+            lit.0 += map.texel(i);
+            lit.1 += 1;
+        } else if x > 2.05 - 1e-3 {
+            dark.0 += map.texel(i);
+            dark.1 += 1;
+            dark_max = dark_max.max(map.texel(i).max_element());
+            near_wall += usize::from(x < 2.15);
+        }
     }
-    let (lit, dark) = (lit.0 / lit.1 as f32, dark.0 / dark.1.max(1) as f32);
+    let (lit_mean, dark_mean) = (lit.0 / lit.1.max(1) as f32, dark.0 / dark.1.max(1) as f32);
     println!(
-        "thin wall: lit {lit}, dark {dark}; moved {} buried {}",
-        lm.texels.moved, lm.texels.buried
+        "thin wall: lit {lit_mean} ({} texels), dark {dark_mean} (max {dark_max}, {} texels, {near_wall} within 10 cm of the wall); moved {} buried {}",
+        lit.1, dark.1, lm.texels.moved, lm.texels.buried
     );
-    assert!(lit.x > 0.0);
+    // Both rooms are mapped (the dark one about as densely as the lit one), the band next
+    // to the wall too.
     assert!(
-        dark.x <= 1e-3 * lit.x,
-        "dark side {dark} against lit side {lit}: light leaks through the wall"
+        lit.1 > 1000 && dark.1 * 2 > lit.1,
+        "{} lit, {} dark texels",
+        lit.1,
+        dark.1
+    );
+    assert!(
+        near_wall > 50,
+        "{near_wall} dark texels within 10 cm of the wall"
+    );
+    assert!(lit_mean.x > 0.0);
+    assert!(
+        dark_max <= 1e-3 * lit_mean.x,
+        "the brightest dark texel {dark_max} against the lit side's mean {lit_mean}: light leaks through the wall"
     );
 }
 
@@ -217,6 +232,27 @@ fn the_same_seed_gives_the_same_map() {
     for _ in 0..2 {
         assert_eq!(ga.update(0.5).map, gb.update(0.5).map);
     }
+    // The seed matters: another one gives another map (of about the same light).
+    let lm = Arc::new(Lightmap::bake(&scene, &LightmapSettings::default()).unwrap());
+    let mut other = Gatherer::new(
+        lm,
+        GatherSettings {
+            seed: GatherSettings::default().seed + 1,
+            ..Default::default()
+        },
+    );
+    let (one, two) = (ga.update(0.5).map, {
+        for _ in 0..2 {
+            other.update(0.5);
+        }
+        other.update(0.5).map
+    });
+    assert_ne!(one, two, "a different seed gave the same map");
+    let (m1, m2) = (one.mean_valid(), two.mean_valid());
+    assert!(
+        (m1 - m2).abs().max_element() < 0.05 * m1.max_element(),
+        "{m1} vs {m2}"
+    );
 }
 
 #[test]
@@ -317,8 +353,8 @@ fn one_triangle_bakes_and_gathers_without_nan() {
 
 #[test]
 fn a_gathered_cornell_map_survives_h264_within_the_video_bounds() {
-    // The bounds of the video layer's light-map test (a path-traced stand-in map): the
-    // gathered map is smoother, so it must do at least as well.
+    // Measured: 0.47 / 0.74 / 1.31 % mean luminance error, chroma 0.35–0.69 %; the bounds
+    // allow half as much again.
     let scene = cloudlight_scenes::builtin("cornell").unwrap();
     let lm = Arc::new(Lightmap::bake(&scene, &LightmapSettings::default()).unwrap());
     let mut g = Gatherer::new(lm, GatherSettings::default());
@@ -326,7 +362,7 @@ fn a_gathered_cornell_map_survives_h264_within_the_video_bounds() {
         g.update(0.0);
     }
     let img = g.map().clone();
-    for (qp, bound) in [(12u8, 0.025), (20, 0.05), (28, 0.11)] {
+    for (qp, bound) in [(12u8, 0.007), (20, 0.011), (28, 0.02)] {
         let f =
             crate::video::measure::hdr_codec(&img, crate::video::RateControl::FixedQp(qp)).unwrap();
         println!(
@@ -334,7 +370,7 @@ fn a_gathered_cornell_map_survives_h264_within_the_video_bounds() {
             f.key.luminance_mean, f.key.chroma_mean, f.key_bytes, f.next_bytes
         );
         assert!(f.key.luminance_mean <= bound, "QP {qp}: {:?}", f.key);
-        assert!(f.key.chroma_mean <= 0.03, "QP {qp}: {:?}", f.key);
+        assert!(f.key.chroma_mean <= 0.011, "QP {qp}: {:?}", f.key);
     }
 }
 
