@@ -104,7 +104,37 @@ impl HdrMap {
         if !valid.is_empty() && valid.len() != n {
             return Err(length("coverage flags", valid.len()));
         }
-        let filled = dilate(width, height, texels, valid, DILATE_RINGS);
+        let plan = DilationPlan::new(width, height, valid, DILATE_RINGS);
+        Ok(Self::filled(&plan, &plan.apply(texels), valid))
+    }
+
+    /// A map of `texels` (one per texel of `plan`'s mask) dilated by `plan` (a plan of
+    /// [`DILATE_RINGS`] rings: [`HdrMap::new`]'s dilation, made once for a mask that does not
+    /// change), with the plan's mask as its coverage.
+    pub fn from_plan(plan: &DilationPlan, texels: &[Vec3]) -> Result<Self, HdrMapError> {
+        let (width, height) = (plan.width, plan.height);
+        check_size(width, height)?;
+        let n = width as usize * height as usize;
+        if texels.len() != n {
+            return Err(HdrMapError::Length {
+                what: "texels",
+                width,
+                height,
+                got: texels.len(),
+                want: n,
+            });
+        }
+        let mut valid = vec![false; if plan.valid.is_some() { n } else { 0 }];
+        for &i in plan.valid.iter().flatten() {
+            valid[i as usize] = true;
+        }
+        Ok(Self::filled(plan, &plan.apply(texels), &valid))
+    }
+
+    /// The map of already dilated texels `filled` with coverage `valid`.
+    fn filled(plan: &DilationPlan, filled: &[Vec3], valid: &[bool]) -> Self {
+        let (width, height) = (plan.width, plan.height);
+        let n = width as usize * height as usize;
         let max = filled
             .iter()
             .map(|t| t.max_element())
@@ -123,13 +153,13 @@ impl HdrMap {
         for (i, _) in valid.iter().enumerate().filter(|(_, v)| **v) {
             bits[i / 8] |= 1 << (i % 8);
         }
-        Ok(HdrMap {
+        HdrMap {
             width,
             height,
             scale,
             texels: bytes,
             valid: bits,
-        })
+        }
     }
 
     /// A black map with every texel valid.
@@ -297,56 +327,112 @@ fn bilinear_with(w: u32, h: u32, uv: Vec2, at: impl Fn(u32, u32) -> Vec3) -> Vec
 /// texels outside `valid` (empty: all valid) filled from their valid 4-neighbours, ring by
 /// ring (at most `rings`); what is left takes the mean of the valid texels.
 pub fn dilate(width: u32, height: u32, texels: &[Vec3], valid: &[bool], rings: usize) -> Vec<Vec3> {
-    let (w, h) = (width as usize, height as usize);
-    let mut out: Vec<Vec3> = texels.iter().map(|&c| clean(c)).collect();
-    if valid.is_empty() || out.len() != w * h || valid.len() != w * h {
-        return out;
-    }
-    let mut known = valid.to_vec();
-    for _ in 0..rings {
-        let mut filled = Vec::new();
-        for y in 0..h {
-            for x in 0..w {
-                let i = y * w + x;
-                if known[i] {
-                    continue;
-                }
+    DilationPlan::new(width, height, valid, rings).apply(texels)
+}
+
+/// How [`dilate`] fills one coverage mask: which invalid texel takes the mean of which known
+/// 4-neighbours, ring by ring. A light map's mask never changes, so its plan is made once and
+/// applied to every update in one pass over the invalid texels, instead of scanning the whole
+/// map once per ring.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DilationPlan {
+    width: u32,
+    height: u32,
+    /// (texel, its known neighbours, how many), in fill order. A texel filled in one ring is
+    /// read only by later rings, so applying the steps in order, in place, is the ring-by-ring
+    /// fill.
+    steps: Vec<(u32, [u32; 4], u8)>,
+    /// Texels no ring reached: they take the mean of the valid texels.
+    rest: Vec<u32>,
+    /// The valid texels (`None`: no mask, nothing to fill).
+    valid: Option<Vec<u32>>,
+}
+
+impl DilationPlan {
+    /// The plan of `rings` rings for a `width` × `height` mask `valid` (empty, or of another
+    /// length: nothing is filled).
+    pub fn new(width: u32, height: u32, valid: &[bool], rings: usize) -> Self {
+        let (w, h) = (width as usize, height as usize);
+        let mut plan = DilationPlan {
+            width,
+            height,
+            steps: Vec::new(),
+            rest: Vec::new(),
+            valid: None,
+        };
+        if valid.is_empty() || valid.len() != w * h {
+            return plan;
+        }
+        plan.valid = Some((0..w * h).filter(|&i| valid[i]).map(|i| i as u32).collect());
+        let mut known = valid.to_vec();
+        let mut frontier: Vec<usize> = (0..w * h).filter(|&i| !valid[i]).collect();
+        for _ in 0..rings {
+            let mut ring = Vec::new();
+            for &i in &frontier {
+                let (x, y) = (i % w, i / w);
                 let neighbours = [
                     (x > 0).then(|| i - 1),
                     (x + 1 < w).then(|| i + 1),
                     (y > 0).then(|| i - w),
                     (y + 1 < h).then(|| i + w),
                 ];
-                let (sum, n) = neighbours
-                    .into_iter()
-                    .flatten()
-                    .filter(|&j| known[j])
-                    .fold((Vec3::ZERO, 0), |(s, n), j| (s + out[j], n + 1));
+                let mut sources = [0u32; 4];
+                let mut n = 0u8;
+                for j in neighbours.into_iter().flatten().filter(|&j| known[j]) {
+                    sources[n as usize] = j as u32;
+                    n += 1;
+                }
                 if n > 0 {
-                    filled.push((i, sum / n as f32));
+                    ring.push((i as u32, sources, n));
                 }
             }
+            if ring.is_empty() {
+                break;
+            }
+            for &(i, ..) in &ring {
+                known[i as usize] = true;
+            }
+            frontier.retain(|&i| !known[i]);
+            plan.steps.extend(ring);
         }
-        if filled.is_empty() {
-            break;
-        }
-        for (i, c) in filled {
-            out[i] = c;
-            known[i] = true;
-        }
+        plan.rest = frontier.into_iter().map(|i| i as u32).collect();
+        plan
     }
-    if known.iter().any(|k| !k) {
-        let (sum, n) = (0..w * h)
-            .filter(|&i| valid[i])
-            .fold((Vec3::ZERO, 0), |(s, n), i| (s + out[i], n + 1));
-        let mean = sum / (n as f32).max(1.0);
-        for (t, k) in out.iter_mut().zip(&known) {
-            if !k {
-                *t = mean;
+
+    /// Width of the mask, texels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height of the mask, texels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// `texels` (negative and non-finite values as 0) with the plan's texels filled.
+    pub fn apply(&self, texels: &[Vec3]) -> Vec<Vec3> {
+        let mut out: Vec<Vec3> = texels.iter().map(|&c| clean(c)).collect();
+        let Some(valid) = &self.valid else {
+            return out;
+        };
+        if out.len() != self.width as usize * self.height as usize {
+            return out;
+        }
+        for &(i, sources, n) in &self.steps {
+            let sum = sources[..n as usize]
+                .iter()
+                .fold(Vec3::ZERO, |s, &j| s + out[j as usize]);
+            out[i as usize] = sum / f32::from(n);
+        }
+        if !self.rest.is_empty() {
+            let sum = valid.iter().fold(Vec3::ZERO, |s, &i| s + out[i as usize]);
+            let mean = sum / (valid.len() as f32).max(1.0);
+            for &i in &self.rest {
+                out[i as usize] = mean;
             }
         }
+        out
     }
-    out
 }
 
 #[cfg(test)]
@@ -410,6 +496,74 @@ mod tests {
         let far = dilate(w, h, &texels, &valid, 1);
         assert_eq!(far[4], Vec3::splat(4.0));
         assert_eq!((far[5], far[7]), (Vec3::splat(2.5), Vec3::splat(2.5)));
+    }
+
+    /// The ring-by-ring scan the plan replaces, kept as the reference it must match.
+    fn scan_dilate(w: usize, h: usize, texels: &[Vec3], valid: &[bool], rings: usize) -> Vec<Vec3> {
+        let mut out: Vec<Vec3> = texels.iter().map(|&c| clean(c)).collect();
+        let mut known = valid.to_vec();
+        for _ in 0..rings {
+            let mut filled = Vec::new();
+            for i in (0..w * h).filter(|&i| !known[i]) {
+                let (x, y) = (i % w, i / w);
+                let (sum, n) = [
+                    (x > 0).then(|| i - 1),
+                    (x + 1 < w).then(|| i + 1),
+                    (y > 0).then(|| i - w),
+                    (y + 1 < h).then(|| i + w),
+                ]
+                .into_iter()
+                .flatten()
+                .filter(|&j| known[j])
+                .fold((Vec3::ZERO, 0), |(s, n), j| (s + out[j], n + 1));
+                if n > 0 {
+                    filled.push((i, sum / n as f32));
+                }
+            }
+            for (i, c) in filled {
+                out[i] = c;
+                known[i] = true;
+            }
+        }
+        let (sum, n) = (0..w * h)
+            .filter(|&i| valid[i])
+            .fold((Vec3::ZERO, 0), |(s, n), i| (s + out[i], n + 1));
+        for i in (0..w * h).filter(|&i| !known[i]) {
+            out[i] = sum / (n as f32).max(1.0);
+        }
+        out
+    }
+
+    #[test]
+    fn a_dilation_plan_fills_exactly_as_the_ring_scan_and_a_map_from_it_is_the_same_map() {
+        let (w, h) = (37usize, 23usize);
+        let mut rng = crate::sampling::Rng::new(9, 0);
+        for density in [0.0f32, 0.02, 0.3, 0.9, 1.0] {
+            let valid: Vec<bool> = (0..w * h).map(|_| rng.next_f32() < density).collect();
+            let texels: Vec<Vec3> = (0..w * h)
+                .map(|_| Vec3::new(rng.next_f32(), rng.next_f32() * 4.0, -0.1))
+                .collect();
+            for rings in [0, 1, 3, DILATE_RINGS] {
+                let plan = DilationPlan::new(w as u32, h as u32, &valid, rings);
+                let want = scan_dilate(w, h, &texels, &valid, rings);
+                assert_eq!(
+                    plan.apply(&texels),
+                    want,
+                    "density {density}, {rings} rings"
+                );
+            }
+            let plan = DilationPlan::new(w as u32, h as u32, &valid, DILATE_RINGS);
+            let a = HdrMap::new(w as u32, h as u32, &texels, &valid).unwrap();
+            assert_eq!(
+                HdrMap::from_plan(&plan, &texels).unwrap(),
+                a,
+                "density {density}"
+            );
+        }
+        // No mask: nothing filled, only cleaned.
+        let plan = DilationPlan::new(2, 1, &[], DILATE_RINGS);
+        assert_eq!(plan.apply(&[Vec3::NAN, Vec3::ONE]), [Vec3::ZERO, Vec3::ONE]);
+        assert!(HdrMap::from_plan(&plan, &[Vec3::ONE]).is_err());
     }
 
     #[test]

@@ -177,7 +177,7 @@ impl Gatherer {
         // 4–5. Gather and reconstruct.
         let (texels, rays, points) = self.gather(bvh, &radiosity);
         let t = &self.lightmap.texels;
-        let map = HdrMap::new(t.width, t.height, &texels, &t.valid)
+        let map = HdrMap::from_plan(&self.lightmap.dilation, &texels)
             .expect("a baked light map's sides and coverage agree");
         // The next bounce reads the map as clients get it (dilated once, in the map).
         let texels = map.texels();

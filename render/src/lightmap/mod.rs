@@ -19,7 +19,7 @@ use cloudlight_scenes::Scene;
 use glam::Vec3;
 
 use crate::bvh::{BvhKind, SceneBvh};
-use crate::hdr_map::{DILATE_RINGS, dilate};
+use crate::hdr_map::{DILATE_RINGS, DilationPlan};
 
 pub mod atlas;
 pub mod basis;
@@ -106,6 +106,8 @@ pub struct Lightmap {
     pub bases: Bases,
     /// Albedo per texel (material × texture; zero where invalid).
     pub albedo: Vec<Vec3>,
+    /// How the texels outside the charts are filled (the coverage never changes).
+    pub dilation: DilationPlan,
     /// Time of the texel G-buffer and basis phases, seconds (the atlas's is its own).
     pub bake_s: f64,
 }
@@ -140,12 +142,14 @@ impl Lightmap {
                 _ => Vec3::ZERO,
             })
             .collect();
+        let dilation = DilationPlan::new(texels.width, texels.height, &texels.valid, DILATE_RINGS);
         Ok(Lightmap {
             scene,
             atlas,
             texels,
             bases,
             albedo,
+            dilation,
             bake_s: start.elapsed().as_secs_f64(),
         })
     }
@@ -166,8 +170,7 @@ impl Lightmap {
 
     /// `values` (one per texel) with invalid texels filled from valid neighbours.
     pub fn dilated(&self, values: Vec<Vec3>) -> Vec<Vec3> {
-        let t = &self.texels;
-        dilate(t.width, t.height, &values, &t.valid, DILATE_RINGS)
+        self.dilation.apply(&values)
     }
 
     /// Bytes a client holds for one map at f16 RGBA, 8 B a texel (the paper's "local device
