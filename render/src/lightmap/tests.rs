@@ -404,3 +404,28 @@ fn the_bake_cache_tells_scenes_apart_by_name_and_texture_contents() {
     assert!(!Arc::ptr_eq(&la, &lb));
     assert!(Arc::ptr_eq(&la, &Lightmap::cached(&a, &settings).unwrap()));
 }
+
+#[test]
+fn the_gather_traces_each_point_s_sample_set_in_coherent_order() {
+    // The same Hammersley set, reordered: consecutive samples are neighbours on the square.
+    let n = 512;
+    let s = gather::coherent_samples(n);
+    let mut plain: Vec<(f32, f32)> = (0..n).map(|i| texels::hammersley(i, n)).collect();
+    let mut sorted = s.clone();
+    let key = |p: &(f32, f32)| (p.0.to_bits(), p.1.to_bits());
+    plain.sort_by_key(key);
+    sorted.sort_by_key(key);
+    assert_eq!(plain, sorted);
+    let step = |v: &[(f32, f32)]| {
+        v.windows(2)
+            .map(|w| ((w[1].0 - w[0].0).powi(2) + (w[1].1 - w[0].1).powi(2)).sqrt())
+            .sum::<f32>()
+            / (v.len() - 1) as f32
+    };
+    let index_order: Vec<(f32, f32)> = (0..n).map(|i| texels::hammersley(i, n)).collect();
+    let (coherent, plain) = (step(&s), step(&index_order));
+    assert!(
+        coherent * 4.0 < plain,
+        "mean step {coherent} against {plain} in index order"
+    );
+}
