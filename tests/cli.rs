@@ -741,6 +741,44 @@ fn bench_client_splits_the_frame_by_pass() {
     assert!(!bad.status.success());
 }
 
+/// Runs an example topology for `seconds`; its output folder and each client's (named in
+/// `clients`) stage report and `frames.csv`.
+fn run_example(
+    file: &str,
+    seconds: &str,
+    clients: &[&str],
+) -> (tempfile::TempDir, Vec<(serde_json::Value, String)>) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = cloudlight()
+        .arg("run")
+        .arg(example(file))
+        .args(["--duration", seconds, "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{file}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json = read_json(dir.path().join("metrics.json"));
+    let found = clients
+        .iter()
+        .map(|client| {
+            let stage = json["stages"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|s| s["name"] == *client)
+                .unwrap_or_else(|| panic!("{file}: no stage {client}"));
+            let folder = dir.path().join(client.replace('[', "-").replace(']', ""));
+            let csv = std::fs::read_to_string(folder.join("frames.csv")).unwrap();
+            (stage["report"].clone(), csv)
+        })
+        .collect();
+    (dir, found)
+}
+
 #[test]
 fn the_photon_example_topologies_run_with_the_batcher_anywhere() {
     // Local (one node) and client-side tracing (a batcher on each client's node): the same
@@ -749,33 +787,11 @@ fn the_photon_example_topologies_run_with_the_batcher_anywhere() {
         ("photons-local.toml", vec!["client"]),
         ("photons-client-traces.toml", vec!["client[0]", "client[1]"]),
     ] {
-        let dir = tempfile::tempdir().unwrap();
-        let out = cloudlight()
-            .arg("run")
-            .arg(example(file))
-            .args(["--duration", "1.5", "--out"])
-            .arg(dir.path())
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{file}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let json = read_json(dir.path().join("metrics.json"));
-        for client in clients {
-            let stage = json["stages"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .find(|s| s["name"] == client)
-                .unwrap();
+        for (client, (report, csv)) in clients.iter().zip(run_example(file, "1.5", &clients).1) {
             assert!(
-                stage["report"]["photons_stored"].as_u64().unwrap() > 1000,
-                "{file} {client}: {stage}"
+                report["photons_stored"].as_u64().unwrap() > 1000,
+                "{file} {client}: {report}"
             );
-            let folder = client.replace('[', "-").replace(']', "");
-            let csv = std::fs::read_to_string(dir.path().join(folder).join("frames.csv")).unwrap();
             let mut lines = csv.lines();
             assert_eq!(
                 lines.next(),
@@ -804,40 +820,19 @@ fn the_irradiance_example_topologies_validate_run_and_write_frames_with_light() 
             "{file}: {}",
             String::from_utf8_lossy(&valid.stderr)
         );
-        let dir = tempfile::tempdir().unwrap();
-        let out = cloudlight()
-            .arg("run")
-            .arg(example(file))
-            .args(["--duration", "2", "--out"])
-            .arg(dir.path())
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{file}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let json = read_json(dir.path().join("metrics.json"));
-        for client in clients {
-            let stage = json["stages"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .find(|s| s["name"] == client)
-                .unwrap();
-            let r = &stage["report"];
+        let (dir, found) = run_example(file, "2", &clients);
+        for (client, (r, csv)) in clients.iter().zip(found) {
             assert!(
                 r["maps_blended"].as_u64().unwrap() >= 1,
                 "{file} {client}: {r}"
             );
             assert_eq!(r["decode_errors"], 0, "{file} {client}: {r}");
             assert_eq!(r["indirect_shown"], true, "{file} {client}: {r}");
-            let folder = dir.path().join(client.replace('[', "-").replace(']', ""));
-            let csv = std::fs::read_to_string(folder.join("frames.csv")).unwrap();
             assert!(
                 csv.starts_with("frame,scene_time_s,frame_ms,age_ms,maps_blended"),
                 "{csv}"
             );
+            let folder = dir.path().join(client.replace('[', "-").replace(']', ""));
             assert!(folder.join("frame_00000.png").exists(), "{file} {client}");
         }
     }

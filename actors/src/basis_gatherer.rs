@@ -91,6 +91,24 @@ impl Default for GathererParams {
 /// side is at most 2160), so that every map the gatherer makes can be encoded.
 pub const MAX_RESOLUTION: u32 = 2160;
 
+/// Checks the atlas knobs (`texels_per_m2`, `resolution`, `max_resolution`, `max_texel_m`,
+/// `unwrap_limit_s`) a gatherer and its clients share.
+pub fn check_atlas(a: &AtlasSettings) -> Result<(), String> {
+    use cloudlight_runtime::check_range;
+    check_range("texels_per_m2", a.texels_per_m2, 1e-6, 1e9, "texels per m²")?;
+    check_map_side("resolution", a.resolution, true)?;
+    check_range(
+        "max_resolution",
+        a.max_resolution as f64,
+        16.0,
+        MAX_RESOLUTION as f64,
+        "texels",
+    )?;
+    check_map_side("max_resolution", a.max_resolution, false)?;
+    check_range("max_texel_m", a.max_texel_m as f64, 1e-6, 1e4, "m")?;
+    check_range("unwrap_limit_s", a.unwrap_limit_s, 0.0, 86_400.0, "s")
+}
+
 /// Checks a map side `value` of knob `key` against what the video encoder takes (even, at
 /// most [`MAX_RESOLUTION`]); `allow_zero` for "from the surface area".
 pub fn check_map_side(key: &str, value: u32, allow_zero: bool) -> Result<(), String> {
@@ -167,24 +185,7 @@ impl CheckParams for GathererParams {
             1e7,
             "texels",
         )?;
-        check_map_side("resolution", self.resolution, true)?;
-        check_range(
-            "texels_per_m2",
-            self.texels_per_m2,
-            1e-6,
-            1e9,
-            "texels per m²",
-        )?;
-        check_range(
-            "max_resolution",
-            self.max_resolution as f64,
-            16.0,
-            MAX_RESOLUTION as f64,
-            "texels",
-        )?;
-        check_map_side("max_resolution", self.max_resolution, false)?;
-        check_range("max_texel_m", self.max_texel_m as f64, 1e-6, 1e4, "m")?;
-        check_range("unwrap_limit_s", self.unwrap_limit_s, 0.0, 86_400.0, "s")?;
+        check_atlas(&self.lightmap_settings().atlas)?;
         check_range("interval_ms", self.interval_ms, 0.0, 3.6e6, "ms")?;
         check_range("resend_s", self.resend_s, 0.0, 86_400.0, "s")
     }

@@ -100,33 +100,13 @@ impl IrradianceClientParams {
 
 impl CheckParams for IrradianceClientParams {
     fn check(&self) -> Result<(), String> {
-        use cloudlight_runtime::check_range;
         if !(self.blend > 0.0 && self.blend <= 1.0) {
             return Err(format!(
                 "`blend` = {} must be in (0, 1] (1: no temporal filter)",
                 self.blend
             ));
         }
-        let max = crate::basis_gatherer::MAX_RESOLUTION as f64;
-        check_range(
-            "texels_per_m2",
-            self.texels_per_m2,
-            1e-6,
-            1e9,
-            "texels per m²",
-        )?;
-        use crate::basis_gatherer::check_map_side;
-        check_map_side("resolution", self.resolution, true)?;
-        check_range(
-            "max_resolution",
-            self.max_resolution as f64,
-            16.0,
-            max,
-            "texels",
-        )?;
-        check_map_side("max_resolution", self.max_resolution, false)?;
-        check_range("max_texel_m", self.max_texel_m as f64, 1e-6, 1e4, "m")?;
-        check_range("unwrap_limit_s", self.unwrap_limit_s, 0.0, 86_400.0, "s")
+        crate::basis_gatherer::check_atlas(&self.atlas_settings())
     }
 }
 

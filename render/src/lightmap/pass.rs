@@ -251,15 +251,7 @@ pub fn lightmap_frame(
 ) -> Result<ReadFrame, RasterError> {
     let mut pass = LightmapPass::new(raster)?;
     pass.set_map(raster, map)?;
-    let view = OneFrame {
-        scene,
-        triangles,
-        lights,
-        camera: *camera,
-        width,
-        height,
-        shadows,
-    };
+    let view = OneFrame::new(scene, triangles, lights, camera, (width, height), shadows);
     raster.read_frame(&view, &mut pass)
 }
 

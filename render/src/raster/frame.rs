@@ -120,6 +120,28 @@ pub struct OneFrame<'a> {
     pub shadows: ShadowSettings,
 }
 
+impl<'a> OneFrame<'a> {
+    /// `scene`'s `triangles` lit by `lights`, seen from `camera` at `width × height`.
+    pub fn new(
+        scene: &'a Scene,
+        triangles: &'a [WorldTriangle],
+        lights: &'a [LightState],
+        camera: &Camera,
+        (width, height): (u32, u32),
+        shadows: ShadowSettings,
+    ) -> Self {
+        OneFrame {
+            scene,
+            triangles,
+            lights,
+            camera: *camera,
+            width,
+            height,
+            shadows,
+        }
+    }
+}
+
 impl Raster {
     /// Renders `view` once with `indirect` as the technique's pass and reads back `readback`.
     pub fn render_once(
@@ -482,15 +504,7 @@ impl Raster {
         height: u32,
         shadows: ShadowSettings,
     ) -> Result<(GBuffer, Vec<Vec3>), RasterError> {
-        let view = OneFrame {
-            scene,
-            triangles,
-            lights,
-            camera: *camera,
-            width,
-            height,
-            shadows,
-        };
+        let view = OneFrame::new(scene, triangles, lights, camera, (width, height), shadows);
         let f = self.read_frame(&view, &mut NoIndirect)?;
         Ok((f.gbuffer, f.direct))
     }

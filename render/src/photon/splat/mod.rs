@@ -388,15 +388,7 @@ pub fn photon_frame(
 ) -> Result<PhotonFrame, RasterError> {
     let mut pass = PhotonSplatPass::new(raster, splat)?;
     pass.set_photons(raster, photons)?;
-    let view = OneFrame {
-        scene,
-        triangles,
-        lights,
-        camera: *camera,
-        width,
-        height,
-        shadows,
-    };
+    let view = OneFrame::new(scene, triangles, lights, camera, (width, height), shadows);
     raster.read_frame(&view, &mut pass)
 }
 
