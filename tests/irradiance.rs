@@ -71,6 +71,21 @@ capacity = 16
     )
 }
 
+/// A raw-map client `raw` on `home` (64×48, with `params`) fed by the gatherer.
+fn raw_client(params: &str) -> String {
+    format!(
+        r#"[[stage]]
+name = "raw"
+kind = "irradiance_raw_reconstructor"
+node = "home"
+params = {{ width = 64, height = 48, {params} }}
+[[edge]]
+from = "gather.out"
+to = "raw.in"
+"#
+    )
+}
+
 fn topology(scene: &str, gatherer: &str, clients: u32) -> String {
     cluster(scene, gatherer, 2.5, &viewers(clients))
 }
@@ -78,20 +93,12 @@ fn topology(scene: &str, gatherer: &str, clients: u32) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_gatherer_streams_maps_to_every_client_through_h264_and_raw_over_a_lossy_link() {
     // Two H.264 clients and one raw client (the f16 map across the cut), rendering frames.
-    let raw = r#"[[stage]]
-name = "raw"
-kind = "irradiance_raw_reconstructor"
-node = "home"
-params = { width = 64, height = 48, fps = 5.0 }
-[[edge]]
-from = "gather.out"
-to = "raw.in"
-"#;
+    let raw = raw_client("fps = 5.0");
     let text = cluster(
         "cornell-animated",
         "interval_ms = 100.0",
         2.5,
-        &(viewers(2) + raw),
+        &(viewers(2) + &raw),
     );
     let registry = cloudlight::actors::registry();
     let plan = plan_text(&text, &registry);
@@ -132,16 +139,8 @@ async fn a_converged_static_map_is_current_light_between_its_re_sends() {
     // The static box converges within about a second of 50 ms updates; from then on the
     // gatherer re-sends its map once a second, marked steady: the light a client holds is
     // current (age 0), not as old as the last re-send.
-    let raw = r#"[[stage]]
-name = "raw"
-kind = "irradiance_raw_reconstructor"
-node = "home"
-params = { width = 64, height = 48, fps = 10.0, render = false }
-[[edge]]
-from = "gather.out"
-to = "raw.in"
-"#;
-    let text = cluster("cornell", "interval_ms = 50.0, resend_s = 1.0", 4.0, raw);
+    let raw = raw_client("fps = 10.0, render = false");
+    let text = cluster("cornell", "interval_ms = 50.0, resend_s = 1.0", 4.0, &raw);
     let registry = cloudlight::actors::registry();
     let run = run_plan(
         &plan_text(&text, &registry),
