@@ -611,6 +611,10 @@ fn irradiance_benchmarks_print_the_papers_rows_scale_sweep_and_split_the_frame()
             "--sweep",
             "rays_per_basis=128",
             "--sweep",
+            "fit=constant,quadratic",
+            "--sweep",
+            "rays_per_texel=8",
+            "--sweep",
             "qp=16,28",
             "--out",
         ])
@@ -625,7 +629,12 @@ fn irradiance_benchmarks_print_the_papers_rows_scale_sweep_and_split_the_frame()
     );
     let points = read_json(quality.join("quality.json"))["points"].clone();
     let points = points.as_array().unwrap();
-    assert_eq!(points.len(), 3, "two QPs per basis, one per texel");
+    assert_eq!(points.len(), 5, "two QPs per basis fit, one per texel");
+    let fits: Vec<&str> = points.iter().map(|p| p["fit"].as_str().unwrap()).collect();
+    assert_eq!(
+        fits,
+        ["constant", "constant", "quadratic", "quadratic", "-"]
+    );
     for p in points {
         for e in [&p["raw"], &p["h264"]] {
             assert!(e["relmse"].as_f64().unwrap().is_finite(), "{p}");

@@ -18,7 +18,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use cloudlight_render::lightmap::{
-    AtlasSettings, BasisSettings, GatherMode, GatherSettings, Gatherer, Lightmap, LightmapSettings,
+    AtlasSettings, BasisFit, BasisSettings, GatherMode, GatherSettings, Gatherer, Lightmap,
+    LightmapSettings,
 };
 use cloudlight_runtime::{
     Cadence, CheckParams, Latency, NextTick, Port, Stage, StageCtx, StageKind, StageSetup, lock,
@@ -41,6 +42,9 @@ pub struct GathererParams {
     pub mode: GatherMode,
     /// Rays per basis.
     pub rays_per_basis: u32,
+    /// What a basis carries: `constant` (the paper's bases: one value, every ray from its
+    /// centre), `linear` or `quadratic` (default; a fit to rays from all its texels).
+    pub fit: BasisFit,
     /// Rays per texel in `texels` mode.
     pub rays_per_texel: u32,
     /// Light samples per texel for texture-space direct light.
@@ -73,6 +77,7 @@ impl Default for GathererParams {
         GathererParams {
             mode: g.mode,
             rays_per_basis: g.rays_per_basis,
+            fit: g.fit,
             rays_per_texel: g.rays_per_texel,
             direct_samples: g.direct_samples,
             texels_per_basis: b.texels_per_basis,
@@ -147,6 +152,7 @@ impl GathererParams {
         GatherSettings {
             mode: self.mode,
             rays_per_basis: self.rays_per_basis,
+            fit: self.fit,
             rays_per_texel: self.rays_per_texel,
             direct_samples: self.direct_samples,
             seed,

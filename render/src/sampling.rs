@@ -79,6 +79,31 @@ pub fn basis(n: Vec3) -> (Vec3, Vec3) {
     )
 }
 
+/// The Morton (Z-curve) code of `(x, y)`: interleaved bits, x in the even ones.
+pub fn morton2(x: u32, y: u32) -> u64 {
+    fn spread(v: u32) -> u64 {
+        let mut x = u64::from(v);
+        x = (x | (x << 16)) & 0x0000_FFFF_0000_FFFF;
+        x = (x | (x << 8)) & 0x00FF_00FF_00FF_00FF;
+        x = (x | (x << 4)) & 0x0F0F_0F0F_0F0F_0F0F;
+        x = (x | (x << 2)) & 0x3333_3333_3333_3333;
+        (x | (x << 1)) & 0x5555_5555_5555_5555
+    }
+    spread(x) | (spread(y) << 1)
+}
+
+/// The base-3 radical inverse of `i` in [0, 1): the third Halton dimension, which with the
+/// Hammersley pair (i / n, base-2 inverse) stratifies a third coordinate.
+pub fn radical_inverse3(mut i: u32) -> f32 {
+    let (mut inv, mut f) = (0.0f64, 1.0f64 / 3.0);
+    while i > 0 {
+        inv += f64::from(i % 3) * f;
+        i /= 3;
+        f /= 3.0;
+    }
+    inv as f32
+}
+
 /// Uniform point on a triangle, as barycentric weights of vertices 1 and 2.
 pub fn uniform_triangle(u1: f32, u2: f32) -> Vec2 {
     let s = u1.sqrt();

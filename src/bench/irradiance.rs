@@ -13,7 +13,7 @@ use cloudlight_actors::irradiance_reconstructor::{IrradianceClientParams, Irradi
 use cloudlight_actors::video_encoder::{EncoderParams, EncoderReport};
 use cloudlight_render::HdrMap;
 use cloudlight_render::lightmap::{
-    GatherMode, Gatherer, Lightmap, LightmapPass, NotParametrizable, lightmap_frame,
+    BasisFit, GatherMode, Gatherer, Lightmap, LightmapPass, NotParametrizable, lightmap_frame,
 };
 use cloudlight_render::metrics::{ImageErrors, compare};
 use cloudlight_render::raster::{Raster, ShadowSettings};
@@ -41,6 +41,8 @@ pub struct IrradianceOptions {
     pub mode: GatherMode,
     /// Rays per basis.
     pub rays_per_basis: u32,
+    /// What a basis carries: `constant`, `linear` or `quadratic`.
+    pub fit: BasisFit,
     /// Rays per texel in `texels` mode.
     pub rays_per_texel: u32,
     /// Valid texels per basis (the basis budget).
@@ -67,6 +69,7 @@ impl Default for IrradianceOptions {
         IrradianceOptions {
             mode: g.mode,
             rays_per_basis: g.rays_per_basis,
+            fit: g.fit,
             rays_per_texel: g.rays_per_texel,
             texels_per_basis: g.texels_per_basis,
             resolution: g.resolution,
@@ -86,6 +89,7 @@ impl IrradianceOptions {
         GathererParams {
             mode: self.mode,
             rays_per_basis: self.rays_per_basis,
+            fit: self.fit,
             rays_per_texel: self.rays_per_texel,
             texels_per_basis: self.texels_per_basis,
             resolution: self.resolution,
@@ -281,6 +285,10 @@ impl Technique for Irradiance {
         vec![
             ("texels_per_basis".into(), ints(&[90, 180, 360])),
             ("rays_per_basis".into(), ints(&[128, 512, 2048])),
+            (
+                "fit".into(),
+                vec!["constant".into(), "linear".into(), "quadratic".into()],
+            ),
             ("qp".into(), ints(&[12, 20, 28])),
         ]
     }
@@ -479,6 +487,8 @@ pub fn table2_markdown(columns: &[IrradianceColumn]) -> String {
 pub struct IrradiancePoint {
     /// `bases` or `texels`.
     pub mode: String,
+    /// What a basis carries (`constant`, `linear`, `quadratic`; `-` per texel).
+    pub fit: String,
     /// The basis budget.
     pub texels_per_basis: f32,
     /// Bases baked.
@@ -519,6 +529,7 @@ pub fn quality(
 ) -> anyhow::Result<serde_json::Value> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let mut qps = Vec::new();
+    let mut texel_rays = Vec::new();
     let mut gather_sweep = Sweep::new();
     for (key, values) in sweep {
         match key.as_str() {
@@ -531,11 +542,20 @@ pub fn quality(
                     qps.push(qp as u8);
                 }
             }
-            "texels_per_basis" | "rays_per_basis" => {
+            "rays_per_texel" => {
+                for v in values {
+                    let rays = v
+                        .as_integer()
+                        .filter(|r| (1..=100_000).contains(r))
+                        .with_context(|| format!("rays per texel `{v}` is not 1 to 100000"))?;
+                    texel_rays.push(rays as u32);
+                }
+            }
+            "texels_per_basis" | "rays_per_basis" | "fit" => {
                 gather_sweep.push((key.clone(), values.clone()))
             }
             other => anyhow::bail!(
-                "the irradiance quality sweep varies `texels_per_basis`, `rays_per_basis` and `qp`, not `{other}`"
+                "the irradiance quality sweep varies `texels_per_basis`, `rays_per_basis`, `fit`, `rays_per_texel` and `qp`, not `{other}`"
             ),
         }
     }
@@ -544,14 +564,27 @@ pub fn quality(
     }
     let knobs = toml::Table::try_from(options)?;
     let mut settings = super::expand::<Irradiance>(&knobs, &gather_sweep)?;
-    settings.push(IrradianceOptions {
-        mode: GatherMode::Texels,
-        ..options.clone()
-    });
     let scene = cloudlight_scenes::load(scene_spec)?;
     if let Some(why) = options.not_parametrizable(&scene) {
         anyhow::bail!("{} has no irradiance map (n/a): {why}", scene.name);
     }
+    if texel_rays.is_empty() {
+        // Per texel with 5× the rays of the options' bases (the target's comparison), and
+        // at the options' rays per texel.
+        let lm = Lightmap::cached(&scene, &options.gatherer().lightmap_settings())
+            .map_err(|e| anyhow::anyhow!("{} has no irradiance map (n/a): {e}", scene.name))?;
+        let basis_rays = lm.bases.bases.len() as u64 * u64::from(options.rays_per_basis);
+        let valid = lm.texels.valid_count().max(1) as u64;
+        texel_rays.push((5 * basis_rays).div_ceil(valid).max(1) as u32);
+        texel_rays.push(options.rays_per_texel);
+        texel_rays.sort_unstable();
+        texel_rays.dedup();
+    }
+    settings.extend(texel_rays.iter().map(|&rays_per_texel| IrradianceOptions {
+        mode: GatherMode::Texels,
+        rays_per_texel,
+        ..options.clone()
+    }));
     eprintln!(
         "reference: {}x{}, {} spp, indirect only...",
         common.width, common.height, common.spp
@@ -596,7 +629,14 @@ pub fn quality(
             GatherMode::Bases => ("bases", o.rays_per_basis),
             GatherMode::Texels => ("texels", o.rays_per_texel),
         };
-        let tag = format!("{mode}_tpb{}_r{per_point}", o.texels_per_basis);
+        let tag = match o.mode {
+            GatherMode::Bases => format!(
+                "bases_tpb{}_r{per_point}_{}",
+                o.texels_per_basis,
+                fit_name(o.fit)
+            ),
+            GatherMode::Texels => format!("texels_r{per_point}"),
+        };
         exr(format!("indirect_{tag}_raw.exr"), &raw_image)?;
         let update_ms = cost.seconds * 1000.0 / f64::from(cost.updates.max(1));
         let rate = common.rate_hz.min(1000.0 / update_ms.max(1e-3));
@@ -611,6 +651,10 @@ pub fn quality(
             exr(format!("indirect_{tag}_qp{qp}.exr"), &image)?;
             points.push(IrradiancePoint {
                 mode: mode.into(),
+                fit: match o.mode {
+                    GatherMode::Bases => fit_name(o.fit).into(),
+                    GatherMode::Texels => "-".into(),
+                },
                 texels_per_basis: o.texels_per_basis,
                 bases: lm.bases.bases.len(),
                 rays_per_point: per_point,
@@ -680,6 +724,7 @@ fn through_h264(map: &HdrMap, qp: u8) -> anyhow::Result<(HdrMap, usize)> {
 pub fn quality_markdown(points: &[IrradiancePoint]) -> String {
     let mut t = Markdown::new(&[
         "mode",
+        "fit",
         "texels/basis",
         "bases",
         "rays/point",
@@ -697,6 +742,7 @@ pub fn quality_markdown(points: &[IrradiancePoint]) -> String {
     for p in points {
         t.row(vec![
             p.mode.clone(),
+            p.fit.clone(),
             format!("{}", p.texels_per_basis),
             p.bases.to_string(),
             p.rays_per_point.to_string(),
@@ -715,26 +761,45 @@ pub fn quality_markdown(points: &[IrradiancePoint]) -> String {
     t.render()
 }
 
-/// Per-basis against per-texel gathering at the options' basis budget and rays (or the
-/// nearest point), as a sentence.
+/// A fit's knob value.
+fn fit_name(fit: BasisFit) -> &'static str {
+    match fit {
+        BasisFit::Constant => "constant",
+        BasisFit::Linear => "linear",
+        BasisFit::Quadratic => "quadratic",
+    }
+}
+
+/// Per-basis gathering at the options' basis budget, rays and fit (or the nearest point)
+/// against per-texel gathering with at least 5× its rays (the fewest such; else the most
+/// rays there are), as a sentence: the target is within 20% of its error.
 fn per_basis_against_per_texel(
     points: &[IrradiancePoint],
     o: &IrradianceOptions,
 ) -> Option<String> {
-    let texel = points.iter().find(|p| p.mode == "texels")?;
+    let texels: Vec<&IrradiancePoint> = points.iter().filter(|p| p.mode == "texels").collect();
+    let qp = texels.first()?.qp;
     let basis = points
         .iter()
-        .filter(|p| p.mode == "bases" && p.qp == texel.qp)
+        .filter(|p| p.mode == "bases" && p.qp == qp)
         .min_by_key(|p| {
             (
+                p.fit != fit_name(o.fit),
                 (p.texels_per_basis - o.texels_per_basis).abs() as i64,
                 (i64::from(p.rays_per_point) - i64::from(o.rays_per_basis)).abs(),
             )
         })?;
+    let enough = |p: &&&IrradiancePoint| p.rays_per_update >= 5 * basis.rays_per_update;
+    let texel = texels
+        .iter()
+        .filter(enough)
+        .min_by_key(|p| p.rays_per_update)
+        .or_else(|| texels.iter().max_by_key(|p| p.rays_per_update))?;
     Some(format!(
-        "per basis ({} bases × {} rays = {} rays) against per texel ({} rays per texel = {} rays): relMSE {:.4} against {:.4} \
+        "per basis ({} bases, {} fit, × {} rays = {} rays) against per texel ({} rays per texel = {} rays): relMSE {:.4} against {:.4} \
          ({:+.0}%) with {:.1}× fewer rays (target: within 20% with at least 5× fewer)",
         basis.bases,
+        basis.fit,
         basis.rays_per_point,
         count(basis.rays_per_update as f64),
         texel.rays_per_point,
@@ -755,14 +820,25 @@ fn quality_plot(
     qps: &[u8],
 ) -> anyhow::Result<std::path::PathBuf> {
     use crate::plot::{Marker, ParetoPanel, Series};
+    // One series per fit, at the middle QP of the sweep (QP moves the error by far less
+    // than the fit does; the table has every QP).
+    let qp = qps.get(qps.len() / 2).copied().unwrap_or_default();
+    let mut fits: Vec<&str> = points
+        .iter()
+        .filter(|p| p.mode == "bases")
+        .map(|p| p.fit.as_str())
+        .collect();
+    fits.dedup();
+    fits.sort_unstable();
+    fits.dedup();
     let series = |x: fn(&IrradiancePoint) -> f64| -> Vec<Series> {
-        let mut s: Vec<Series> = qps
+        let mut s: Vec<Series> = fits
             .iter()
-            .map(|&qp| Series {
-                label: format!("per basis, H.264 QP {qp}"),
+            .map(|&fit| Series {
+                label: format!("per basis, {fit} fit, H.264 QP {qp}"),
                 points: points
                     .iter()
-                    .filter(|p| p.mode == "bases" && p.qp == qp)
+                    .filter(|p| p.mode == "bases" && p.qp == qp && p.fit == fit)
                     .map(|p| {
                         (
                             x(p),

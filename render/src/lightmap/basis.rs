@@ -13,6 +13,8 @@
 //!    its members' mean (centres stay on the surface).
 //! 3. **Weights**: w_k = (1 − (d/r_k)²)₊² · max(0, n·n_k)^p · vis, over the bases within
 //!    reach, the largest [`MAX_BASES_PER_TEXEL`] kept and normalised to sum to 1.
+//! 4. **Members**: each basis's texels in Morton order over the atlas, which the gather
+//!    spreads a basis's rays over.
 
 use std::collections::HashMap;
 
@@ -20,7 +22,7 @@ use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 
 use crate::bvh::SceneBvh;
-use crate::sampling::Rng;
+use crate::sampling::{Rng, morton2};
 
 use super::texels::TexelSurface;
 
@@ -65,6 +67,8 @@ pub struct Basis {
     pub texel: u32,
     /// Texels assigned to it.
     pub members: u32,
+    /// Where its members start in [`Bases::members`].
+    pub first: u32,
     /// Radius of influence, meters.
     pub radius_m: f32,
 }
@@ -76,15 +80,17 @@ pub struct Bases {
     pub bases: Vec<Basis>,
     /// Per texel: `(basis, weight)` pairs, weights summing to 1 (empty for invalid texels).
     pub weights: Vec<Vec<(u32, f32)>>,
+    /// Every valid texel once, grouped by basis (basis k's are
+    /// `members[first..first + members]`), each group in Morton order over the atlas so that
+    /// an even stride through it is an even spread over the basis's area.
+    pub members: Vec<u32>,
 }
 
 impl Bases {
-    /// Reconstructs per-texel values from per-basis values: Σ_k w_tk · e_k.
-    pub fn reconstruct(&self, per_basis: &[Vec3]) -> Vec<Vec3> {
-        self.weights
-            .par_iter()
-            .map(|w| w.iter().map(|&(k, wk)| per_basis[k as usize] * wk).sum())
-            .collect()
+    /// The texels of basis `k`, in Morton order over the atlas.
+    pub fn members_of(&self, k: usize) -> &[u32] {
+        let b = &self.bases[k];
+        &self.members[b.first as usize..(b.first + b.members) as usize]
     }
 }
 
@@ -141,6 +147,7 @@ pub fn build(surface: &TexelSurface, bvh: &SceneBvh, s: &BasisSettings) -> Bases
         return Bases {
             bases: Vec::new(),
             weights: vec![Vec::new(); n],
+            members: Vec::new(),
         };
     }
     let (pos, nrm) = (&surface.positions, &surface.normals);
@@ -181,23 +188,34 @@ pub fn build(surface: &TexelSurface, bvh: &SceneBvh, s: &BasisSettings) -> Bases
     let extra;
     (assignment, extra) = assign(&valid, &centres, surface, bvh, spacing, cos_max, eps);
     centres.extend(extra);
-    let mut members = vec![0u32; centres.len()];
     let mut radius = vec![surface.texel_m * 2.0; centres.len()];
     for &t in &valid {
         let k = assignment[t as usize] as usize;
-        members[k] += 1;
         let d = pos[t as usize].distance(pos[centres[k] as usize]) * s.radius_scale;
         radius[k] = radius[k].max(d);
     }
-    let bases: Vec<Basis> = centres
+    // Members grouped by basis, each group in Morton order over the atlas.
+    let width = surface.width;
+    let mut grouped: Vec<(u32, u64, u32)> = valid
         .iter()
-        .zip(members.iter().zip(&radius))
-        .map(|(&texel, (&members, &radius_m))| Basis {
-            texel,
-            members,
-            radius_m,
+        .map(|&t| (assignment[t as usize], morton2(t % width, t / width), t))
+        .collect();
+    grouped.sort_unstable();
+    let mut first = vec![0u32; centres.len()];
+    let mut members = vec![0u32; centres.len()];
+    for (i, &(k, _, _)) in grouped.iter().enumerate().rev() {
+        first[k as usize] = i as u32;
+        members[k as usize] += 1;
+    }
+    let bases: Vec<Basis> = (0..centres.len())
+        .map(|k| Basis {
+            texel: centres[k],
+            members: members[k],
+            first: first[k],
+            radius_m: radius[k],
         })
         .collect();
+    let members: Vec<u32> = grouped.into_iter().map(|(_, _, t)| t).collect();
 
     // 3. Weights.
     let reach = radius.iter().copied().fold(0.0, f32::max);
@@ -223,7 +241,11 @@ pub fn build(surface: &TexelSurface, bvh: &SceneBvh, s: &BasisSettings) -> Bases
             )
         })
         .collect();
-    Bases { bases, weights }
+    Bases {
+        bases,
+        weights,
+        members,
+    }
 }
 
 /// The nearest compatible, visible centre of every valid texel, and the texels without one,

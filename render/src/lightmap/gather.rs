@@ -8,14 +8,19 @@
 //!    geometry are static.
 //! 3. **Radiosity**: per texel, the radiance it sends on, B = ρ/π · (E_direct + E_previous),
 //!    dilated into the padding. Reading the previous map adds one bounce per update.
-//! 4. **Gather**: at each basis centre (or each texel, the paper's naive server), N
-//!    cosine-distributed rays from a Hammersley set, traced in Morton order over the sample
-//!    square so that consecutive rays leave in neighbouring directions: coherent bundles
+//! 4. **Gather**: per basis (or per texel, the paper's naive server), N cosine-distributed
+//!    rays from a Hammersley set, traced in Morton order over the sample square so that
+//!    consecutive rays leave in neighbouring directions: coherent bundles
 //!    ([`coherent_samples`]; on the Cornell box an update is ~10–16% faster than in index
-//!    order);
-//!    E = (π/N) · Σ B(hit) over front-face hits (back faces and misses add nothing).
-//! 5. **Reconstruct**: per texel, E = Σ w_k E_k over its bases, made an [`HdrMap`] (dilated
-//!    once, there; the next bounce reads that map).
+//!    order). Each ray gives one sample π · B(hit) of the irradiance where it leaves (back
+//!    faces and misses give 0). A basis's rays leave from all its texels (a third stratified
+//!    coordinate picks the texel) and a least-squares polynomial in the surface's
+//!    coordinates is fitted to their samples ([`BasisFit`]: the gradients of irradiance
+//!    caching, fitted instead of derived); with [`BasisFit::Constant`] they all leave the
+//!    centre and their mean is the basis's one value (the paper's bases).
+//! 5. **Reconstruct**: per texel, E = Σ w_k E_k(x) over its bases, each basis's polynomial
+//!    evaluated at the texel (clamped at 0), made an [`HdrMap`] (dilated once, there; the
+//!    next bounce reads that map).
 //!
 //! While lights and geometry are static the update converges to a fixed point (a fixed
 //! sample set); once an update changes the map by less than [`CONVERGED`] relative, later
@@ -30,7 +35,7 @@ use rayon::prelude::*;
 use crate::bvh::{BvhKind, SceneBvh};
 use crate::direct_light::DirectLight;
 use crate::hdr_map::{HdrMap, bilinear};
-use crate::sampling::{Rng, basis, cosine_hemisphere};
+use crate::sampling::{Rng, basis, cosine_hemisphere, morton2, radical_inverse3};
 
 use super::Lightmap;
 use super::texels::hammersley;
@@ -49,6 +54,33 @@ pub enum GatherMode {
     Texels,
 }
 
+/// What a basis carries of the irradiance over its texels (CloudLight's bases carry one
+/// value; a slope and a curvature, fitted to rays that leave from all its texels, follow the
+/// light across the basis as irradiance caching's gradients do).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BasisFit {
+    /// One value, gathered with every ray leaving the basis's centre (the paper's bases).
+    Constant,
+    /// Value and gradient along the surface (3 terms): rays leave from all its texels.
+    Linear,
+    /// Value, gradient and curvature (6 terms); needs a few hundred rays per basis, below
+    /// which `linear` is less noisy.
+    #[default]
+    Quadratic,
+}
+
+impl BasisFit {
+    /// Terms of the fitted polynomial.
+    pub fn terms(self) -> usize {
+        match self {
+            BasisFit::Constant => 1,
+            BasisFit::Linear => 3,
+            BasisFit::Quadratic => 6,
+        }
+    }
+}
+
 /// Settings of the gather.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct GatherSettings {
@@ -56,6 +88,9 @@ pub struct GatherSettings {
     pub mode: GatherMode,
     /// Rays per basis (the paper: 26k rays for 50 bases).
     pub rays_per_basis: u32,
+    /// What a basis carries: with `linear` or `quadratic`, a basis's rays leave from all its
+    /// texels (stratified over them) and it carries a least-squares fit of what they gather.
+    pub fit: BasisFit,
     /// Rays per texel in [`GatherMode::Texels`].
     pub rays_per_texel: u32,
     /// Light samples per texel for texture-space direct light.
@@ -69,6 +104,7 @@ impl Default for GatherSettings {
         GatherSettings {
             mode: GatherMode::Bases,
             rays_per_basis: 512,
+            fit: BasisFit::Quadratic,
             rays_per_texel: 64,
             direct_samples: 4,
             seed: 1,
@@ -110,29 +146,140 @@ pub struct Gatherer {
     converged: bool,
     updates: u64,
     /// The gather's sample set in coherent order ([`coherent_samples`]).
-    samples: Vec<(f32, f32)>,
+    samples: Vec<[f32; 3]>,
 }
 
 /// The `n` Hammersley points of the unit square in Morton (Z-curve) order: consecutive
 /// samples map to neighbouring directions on the hemisphere, so a point's rays run as
 /// coherent bundles (each ray's traversal finds the nodes of the one before it in cache).
-pub fn coherent_samples(n: u32) -> Vec<(f32, f32)> {
-    fn spread(v: u32) -> u64 {
-        let mut x = u64::from(v & 0xFFFF);
-        x = (x | (x << 8)) & 0x00FF_00FF;
-        x = (x | (x << 4)) & 0x0F0F_0F0F;
-        x = (x | (x << 2)) & 0x3333_3333;
-        (x | (x << 1)) & 0x5555_5555
-    }
+/// Each carries a third coordinate, the base-3 radical inverse of its Hammersley index, which
+/// picks the texel a basis's ray leaves from (stratified over the basis's texels and
+/// independent of the direction).
+pub fn coherent_samples(n: u32) -> Vec<[f32; 3]> {
     let quantize = |u: f32| (u.clamp(0.0, 1.0) * 65535.0) as u32;
-    let mut s: Vec<(u64, (f32, f32))> = (0..n)
+    let mut s: Vec<(u64, [f32; 3])> = (0..n)
         .map(|i| {
             let (u1, u2) = hammersley(i, n);
-            (spread(quantize(u1)) | (spread(quantize(u2)) << 1), (u1, u2))
+            (
+                morton2(quantize(u1), quantize(u2)),
+                [u1, u2, radical_inverse3(i)],
+            )
         })
         .collect();
     s.sort_unstable_by_key(|e| e.0);
     s.into_iter().map(|e| e.1).collect()
+}
+
+/// What one basis gathered: irradiance over its texels as a polynomial in the centre's
+/// tangent-plane coordinates (u, v) in units of `scale_m` (its radius of influence):
+/// coefficients of 1, u, v, u², uv, v² ([`BasisFit::terms`] of them non-zero).
+#[derive(Clone, Copy, Debug, Default)]
+struct BasisLight {
+    centre: Vec3,
+    tangent: Vec3,
+    bitangent: Vec3,
+    scale_m: f32,
+    c: [Vec3; 6],
+}
+
+fn features(u: f32, v: f32) -> [f32; 6] {
+    [1.0, u, v, u * u, u * v, v * v]
+}
+
+impl BasisLight {
+    /// Irradiance the basis predicts at `x`, never negative.
+    fn at(&self, x: Vec3) -> Vec3 {
+        let d = (x - self.centre) / self.scale_m;
+        let f = features(d.dot(self.tangent), d.dot(self.bitangent));
+        f.iter()
+            .zip(&self.c)
+            .map(|(f, c)| *c * *f)
+            .sum::<Vec3>()
+            .max(Vec3::ZERO)
+    }
+}
+
+/// Least-squares fit of the first `K` terms of [`features`] to samples (u, v, value).
+struct SurfaceFit<const K: usize> {
+    a: [[f64; K]; K],
+    b: [[f64; 3]; K],
+}
+
+impl<const K: usize> SurfaceFit<K> {
+    /// The coefficients fitted to `samples` ((u, v, value) each).
+    fn fit(samples: impl Iterator<Item = (f32, f32, Vec3)>) -> [Vec3; 6] {
+        let mut fit = SurfaceFit {
+            a: [[0.0; K]; K],
+            b: [[0.0; 3]; K],
+        };
+        for (u, v, y) in samples {
+            fit.add(u, v, y);
+        }
+        fit.solve()
+    }
+
+    fn add(&mut self, u: f32, v: f32, y: Vec3) {
+        let f = features(u, v);
+        for i in 0..K {
+            for j in 0..K {
+                self.a[i][j] += f64::from(f[i] * f[j]);
+            }
+            for (c, y) in y.to_array().into_iter().enumerate() {
+                self.b[i][c] += f64::from(f[i] * y);
+            }
+        }
+    }
+
+    /// The coefficients; a ridge of 10⁻⁴ of each term's second moment keeps a degenerate
+    /// spread of samples (on a line, at a point) from dividing by zero: the terms it cannot
+    /// see come out 0.
+    fn solve(&self) -> [Vec3; 6] {
+        let mut a = self.a;
+        let mut b = self.b;
+        for (i, row) in a.iter_mut().enumerate().skip(1) {
+            row[i] += 1e-4 * row[i] + 1e-12;
+        }
+        // Gaussian elimination with partial pivoting.
+        for col in 0..K {
+            let p = (col..K)
+                .max_by(|&x, &y| a[x][col].abs().total_cmp(&a[y][col].abs()))
+                .unwrap_or(col);
+            a.swap(col, p);
+            b.swap(col, p);
+            if a[col][col].abs() < 1e-30 {
+                continue;
+            }
+            let (pivot_a, pivot_b) = (a[col], b[col]);
+            for r in col + 1..K {
+                let f = a[r][col] / pivot_a[col];
+                for (x, p) in a[r].iter_mut().zip(&pivot_a).skip(col) {
+                    *x -= f * p;
+                }
+                for (x, p) in b[r].iter_mut().zip(&pivot_b) {
+                    *x -= f * p;
+                }
+            }
+        }
+        let mut x = [[0.0f64; 3]; K];
+        for r in (0..K).rev() {
+            if a[r][r].abs() < 1e-30 {
+                continue;
+            }
+            for c in 0..3 {
+                let s: f64 = (r + 1..K).map(|k| a[r][k] * x[k][c]).sum();
+                x[r][c] = (b[r][c] - s) / a[r][r];
+            }
+        }
+        let mut out = [Vec3::ZERO; 6];
+        for (o, x) in out.iter_mut().zip(x) {
+            *o = Vec3::new(x[0] as f32, x[1] as f32, x[2] as f32);
+        }
+        if out.iter().all(|c| c.is_finite()) {
+            out
+        } else {
+            [Vec3::ZERO; 6]
+        }
+    }
 }
 
 impl Gatherer {
@@ -261,40 +408,80 @@ impl Gatherer {
         let (pos, nrm) = &self.frame;
         let eps = lm.texels.texel_m * 1e-2;
         let (w, h) = (lm.texels.width, lm.texels.height);
-        let gather_at = |texel: usize, rays: u32| -> Vec3 {
-            let (x, n) = (pos[texel], nrm[texel]);
+        // π · B(hit) of the ray leaving texel `from` along sample `s` (rotated by `r`): one
+        // sample of the irradiance there (0 for a miss or a back face).
+        let ray = |from: usize, s: &[f32; 3], r: (f32, f32)| -> Vec3 {
+            let (x, n) = (pos[from], nrm[from]);
             let (t, b) = basis(n);
-            // A fixed rotation per point decorrelates neighbours' sample sets.
-            let mut rng = Rng::new(self.settings.seed, texel as u64);
-            let (r1, r2) = (rng.next_f32(), rng.next_f32());
-            let mut sum = Vec3::ZERO;
-            for &(u1, u2) in &self.samples {
-                let l = cosine_hemisphere((u1 + r1).fract(), (u2 + r2).fract());
-                let d = (t * l.x + b * l.y + n * l.z).normalize();
-                if let Some(hit) = bvh.closest_hit(x + n * eps, d, f32::INFINITY)
-                    && bvh.geometric_normal(hit.triangle).dot(d) < 0.0
-                {
+            let l = cosine_hemisphere((s[0] + r.0).fract(), (s[1] + r.1).fract());
+            let d = (t * l.x + b * l.y + n * l.z).normalize();
+            match bvh.closest_hit(x + n * eps, d, f32::INFINITY) {
+                Some(hit) if bvh.geometric_normal(hit.triangle).dot(d) < 0.0 => {
                     let tri = &bvh.triangles()[hit.triangle as usize];
                     let (bu, bv) = (hit.uv.x, hit.uv.y);
                     let uv = tri.lightmap_uv[0] * (1.0 - bu - bv)
                         + tri.lightmap_uv[1] * bu
                         + tri.lightmap_uv[2] * bv;
-                    sum += bilinear(radiosity, w, h, uv);
+                    bilinear(radiosity, w, h, uv) * std::f32::consts::PI
                 }
+                _ => Vec3::ZERO,
             }
-            sum * (std::f32::consts::PI / rays.max(1) as f32)
+        };
+        // A fixed rotation per point decorrelates neighbours' sample sets.
+        let rotation = |texel: usize| {
+            let mut rng = Rng::new(self.settings.seed, texel as u64);
+            (rng.next_f32(), rng.next_f32())
         };
         match self.settings.mode {
             GatherMode::Bases => {
                 let n = self.settings.rays_per_basis;
-                let per_basis: Vec<Vec3> = lm
+                let per_basis: Vec<BasisLight> = (0..lm.bases.bases.len())
+                    .into_par_iter()
+                    .map(|k| {
+                        let b = &lm.bases.bases[k];
+                        let centre = b.texel as usize;
+                        let (tangent, bitangent) = basis(nrm[centre]);
+                        let mut light = BasisLight {
+                            centre: pos[centre],
+                            tangent,
+                            bitangent,
+                            scale_m: b.radius_m.max(f32::MIN_POSITIVE),
+                            ..Default::default()
+                        };
+                        let r = rotation(centre);
+                        if self.settings.fit == BasisFit::Constant {
+                            let sum: Vec3 = self.samples.iter().map(|s| ray(centre, s, r)).sum();
+                            light.c[0] = sum / n.max(1) as f32;
+                            return light;
+                        }
+                        let members = lm.bases.members_of(k);
+                        let samples = self.samples.iter().map(|s| {
+                            let m = ((s[2] * members.len() as f32) as usize).min(members.len() - 1);
+                            let from = members[m] as usize;
+                            let d = (pos[from] - light.centre) / light.scale_m;
+                            (d.dot(tangent), d.dot(bitangent), ray(from, s, r))
+                        });
+                        light.c = match self.settings.fit {
+                            BasisFit::Linear => SurfaceFit::<3>::fit(samples),
+                            _ => SurfaceFit::<6>::fit(samples),
+                        };
+                        light
+                    })
+                    .collect();
+                let texels = lm
                     .bases
-                    .bases
+                    .weights
                     .par_iter()
-                    .map(|b| gather_at(b.texel as usize, n))
+                    .enumerate()
+                    .map(|(t, blend)| {
+                        blend
+                            .iter()
+                            .map(|&(k, wk)| per_basis[k as usize].at(pos[t]) * wk)
+                            .sum()
+                    })
                     .collect();
                 let rays = per_basis.len() as u64 * n as u64;
-                (lm.bases.reconstruct(&per_basis), rays, per_basis.len())
+                (texels, rays, per_basis.len())
             }
             GatherMode::Texels => {
                 let n = self.settings.rays_per_texel;
@@ -302,7 +489,9 @@ impl Gatherer {
                     .into_par_iter()
                     .map(|i| {
                         if lm.texels.valid[i] {
-                            gather_at(i, n)
+                            let r = rotation(i);
+                            let sum: Vec3 = self.samples.iter().map(|s| ray(i, s, r)).sum();
+                            sum / n.max(1) as f32
                         } else {
                             Vec3::ZERO
                         }
@@ -361,4 +550,44 @@ fn direct_map(
         .collect();
     let lights = lm.scene.lights.len() as u64 + 1;
     (e, lm.texels.valid_count() as u64 * samples as u64 * lights)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_surface_fit_recovers_a_quadratic_and_survives_a_degenerate_spread() {
+        let truth = [1.0, 0.5, -0.25, 0.3, -0.2, 0.1];
+        let value = |u: f32, v: f32| {
+            let f = features(u, v);
+            Vec3::new(1.0, 2.0, 0.5) * f.iter().zip(truth).map(|(f, c)| f * c).sum::<f32>()
+        };
+        let grid = (0..15 * 15).map(|i| {
+            let (u, v) = ((i % 15) as f32 / 7.0 - 1.0, (i / 15) as f32 / 7.0 - 1.0);
+            (u, v, value(u, v))
+        });
+        let c = SurfaceFit::<6>::fit(grid.clone());
+        for (k, t) in truth.iter().enumerate() {
+            assert!(
+                (c[k].x - t).abs() < 2e-3,
+                "term {k}: {} against {t}",
+                c[k].x
+            );
+            assert!((c[k].y - 2.0 * t).abs() < 4e-3);
+        }
+        // A linear fit of the same samples: the best plane (symmetric grid: the mean of
+        // the curvature terms lands in the constant, the slopes are exact).
+        let c = SurfaceFit::<3>::fit(grid);
+        assert!((c[1].x - 0.5).abs() < 2e-3 && (c[2].x + 0.25).abs() < 2e-3);
+        assert_eq!(&c[3..], &[Vec3::ZERO; 3]);
+        // Every sample at one point: the value there, no slopes, nothing infinite.
+        let c = SurfaceFit::<6>::fit((0..10).map(|_| (0.0, 0.0, Vec3::splat(3.0))));
+        assert!(
+            (c[0] - Vec3::splat(3.0)).abs().max_element() < 1e-4,
+            "{c:?}"
+        );
+        assert!(c.iter().all(|c| c.is_finite()));
+        assert!(c[1..].iter().all(|c| c.abs().max_element() < 1e-3), "{c:?}");
+    }
 }

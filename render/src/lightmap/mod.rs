@@ -29,7 +29,7 @@ pub mod texels;
 
 pub use atlas::{Atlas, AtlasSettings, UvSource};
 pub use basis::{Bases, Basis, BasisSettings, MAX_BASES_PER_TEXEL};
-pub use gather::{GatherMode, GatherSettings, Gatherer, Update};
+pub use gather::{BasisFit, GatherMode, GatherSettings, Gatherer, Update};
 pub use pass::{LightmapPass, lightmap_frame};
 pub use texels::TexelSurface;
 

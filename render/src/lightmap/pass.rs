@@ -402,10 +402,11 @@ mod tests {
                 "after {updates} updates: raw {r:?}; H.264 QP 16 ({} B) {v:?}",
                 unit.data.len()
             );
-            // The 45 bases smooth corners the path tracer darkens, and the 256-spp reference
-            // is noisy: 0.174 measured raw, 0.178 through H.264 (energy 1.09).
-            assert!(r.relmse < 0.21, "raw: {r:?}");
-            assert!((0.95..1.2).contains(&r.energy_ratio), "raw: {r:?}");
+            // Measured with 45 quadratic bases: 0.043 raw, 0.044 through H.264 (energy
+            // 0.993), much of it the 256-spp reference's noise; one value per basis gave
+            // 0.174 (its bases smooth the corners the path tracer darkens).
+            assert!(r.relmse < 0.065, "raw: {r:?}");
+            assert!((0.95..1.05).contains(&r.energy_ratio), "raw: {r:?}");
             // H.264 at QP 16 adds next to nothing.
             assert!(
                 v.relmse < r.relmse * 1.05 + 0.005,

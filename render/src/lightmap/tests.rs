@@ -206,6 +206,22 @@ fn the_cornell_box_bakes_near_the_papers_fifty_bases_with_normalised_blends() {
             assert!(w.is_empty());
         }
     }
+    // Every valid texel belongs to exactly one basis's member list, and it is that basis's.
+    let mut seen = vec![0u32; lm.texels.valid.len()];
+    for k in 0..lm.bases.bases.len() {
+        let members = lm.bases.members_of(k);
+        assert_eq!(members.len() as u32, lm.bases.bases[k].members);
+        assert!(
+            members.contains(&lm.bases.bases[k].texel),
+            "basis {k}'s centre"
+        );
+        for &t in members {
+            seen[t as usize] += 1;
+        }
+    }
+    for (i, &n) in seen.iter().enumerate() {
+        assert_eq!(n, u32::from(lm.texels.valid[i]), "texel {i}");
+    }
     // Seams stay shut: every map texel (padding included) has a finite value after dilation.
     let mut g = Gatherer::new(Arc::new(lm), GatherSettings::default());
     let u = g.update(0.0);
@@ -217,6 +233,71 @@ fn the_cornell_box_bakes_near_the_papers_fifty_bases_with_normalised_blends() {
     );
     assert!(mean_valid(&u.map).x > 0.0);
     println!("update: {} rays, {:.2} ms", u.rays, u.seconds * 1e3);
+}
+
+/// The converged map of `lm` with `settings`, as texels.
+fn converged(lm: &Arc<Lightmap>, settings: GatherSettings) -> Vec<Vec3> {
+    let mut g = Gatherer::new(lm.clone(), settings);
+    for _ in 0..24 {
+        if g.update(0.0).converged {
+            break;
+        }
+    }
+    g.map().texels()
+}
+
+#[test]
+fn fitted_bases_follow_the_per_texel_map_far_closer_than_one_value_per_basis() {
+    // The per-texel gather (the paper's naive server, 256 rays a texel) is the reference
+    // in texel space; the same bases carrying one value, a plane and a quadric are scored
+    // by the scale-invariant relMSE over valid texels.
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let lm = Arc::new(Lightmap::bake(&scene, &LightmapSettings::default()).unwrap());
+    let reference = converged(
+        &lm,
+        GatherSettings {
+            mode: GatherMode::Texels,
+            rays_per_texel: 256,
+            ..Default::default()
+        },
+    );
+    let valid: Vec<usize> = (0..reference.len())
+        .filter(|&i| lm.texels.valid[i])
+        .collect();
+    let mean = valid
+        .iter()
+        .map(|&i| reference[i].element_sum())
+        .sum::<f32>()
+        / (3 * valid.len()) as f32;
+    let relmse = |map: &[Vec3]| {
+        valid
+            .iter()
+            .map(|&i| {
+                let (x, y) = (map[i] / mean, reference[i] / mean);
+                ((x - y) * (x - y) / (y * y + Vec3::splat(0.01))).element_sum()
+            })
+            .sum::<f32>()
+            / (3 * valid.len()) as f32
+    };
+    let error = |fit| {
+        relmse(&converged(
+            &lm,
+            GatherSettings {
+                fit,
+                ..Default::default()
+            },
+        ))
+    };
+    let (constant, linear, quadratic) = (
+        error(BasisFit::Constant),
+        error(BasisFit::Linear),
+        error(BasisFit::Quadratic),
+    );
+    println!(
+        "texel relMSE against per texel: constant {constant:.4}, linear {linear:.4}, quadratic {quadratic:.4}"
+    );
+    assert!(linear < 0.5 * constant, "{linear} against {constant}");
+    assert!(quadratic < 0.8 * linear, "{quadratic} against {linear}");
 }
 
 #[test]
@@ -353,8 +434,9 @@ fn one_triangle_bakes_and_gathers_without_nan() {
 
 #[test]
 fn a_gathered_cornell_map_survives_h264_within_the_video_bounds() {
-    // Measured: 0.47 / 0.74 / 1.31 % mean luminance error, chroma 0.35–0.69 %; the bounds
-    // allow half as much again.
+    // Measured (quadratic bases, whose fitted maps carry more fine detail for the codec than
+    // one value per basis did): 0.79 / 1.38 / 2.36 % mean luminance error, chroma
+    // 0.52–0.95 %; the bounds allow half as much again.
     let scene = cloudlight_scenes::builtin("cornell").unwrap();
     let lm = Arc::new(Lightmap::bake(&scene, &LightmapSettings::default()).unwrap());
     let mut g = Gatherer::new(lm, GatherSettings::default());
@@ -362,7 +444,7 @@ fn a_gathered_cornell_map_survives_h264_within_the_video_bounds() {
         g.update(0.0);
     }
     let img = g.map().clone();
-    for (qp, bound) in [(12u8, 0.007), (20, 0.011), (28, 0.02)] {
+    for (qp, bound) in [(12u8, 0.012), (20, 0.021), (28, 0.035)] {
         let f =
             crate::video::measure::hdr_codec(&img, crate::video::RateControl::FixedQp(qp)).unwrap();
         println!(
@@ -370,7 +452,7 @@ fn a_gathered_cornell_map_survives_h264_within_the_video_bounds() {
             f.key.luminance_mean, f.key.chroma_mean, f.key_bytes, f.next_bytes
         );
         assert!(f.key.luminance_mean <= bound, "QP {qp}: {:?}", f.key);
-        assert!(f.key.chroma_mean <= 0.011, "QP {qp}: {:?}", f.key);
+        assert!(f.key.chroma_mean <= 0.014, "QP {qp}: {:?}", f.key);
     }
 }
 
@@ -409,7 +491,10 @@ fn the_bake_cache_tells_scenes_apart_by_name_and_texture_contents() {
 fn the_gather_traces_each_point_s_sample_set_in_coherent_order() {
     // The same Hammersley set, reordered: consecutive samples are neighbours on the square.
     let n = 512;
-    let s = gather::coherent_samples(n);
+    let s: Vec<(f32, f32)> = gather::coherent_samples(n)
+        .iter()
+        .map(|s| (s[0], s[1]))
+        .collect();
     let mut plain: Vec<(f32, f32)> = (0..n).map(|i| texels::hammersley(i, n)).collect();
     let mut sorted = s.clone();
     let key = |p: &(f32, f32)| (p.0.to_bits(), p.1.to_bits());
