@@ -531,26 +531,31 @@ pub fn quality(
     let mut qps = Vec::new();
     let mut texel_rays = Vec::new();
     let mut gather_sweep = Sweep::new();
+    // Whole numbers of `values` in `range`, or an error naming `what`.
+    let whole = |values: &[toml::Value], range: std::ops::RangeInclusive<i64>, what: &str| {
+        values
+            .iter()
+            .map(|v| {
+                v.as_integer()
+                    .filter(|x| range.contains(x))
+                    .with_context(|| {
+                        format!(
+                            "{what} `{v}` is not a whole number {} to {}",
+                            range.start(),
+                            range.end()
+                        )
+                    })
+            })
+            .collect::<anyhow::Result<Vec<i64>>>()
+    };
     for (key, values) in sweep {
         match key.as_str() {
-            "qp" => {
-                for v in values {
-                    let qp = v
-                        .as_integer()
-                        .filter(|q| (0..=51).contains(q))
-                        .with_context(|| format!("QP `{v}` is not a whole number 0 to 51"))?;
-                    qps.push(qp as u8);
-                }
-            }
-            "rays_per_texel" => {
-                for v in values {
-                    let rays = v
-                        .as_integer()
-                        .filter(|r| (1..=100_000).contains(r))
-                        .with_context(|| format!("rays per texel `{v}` is not 1 to 100000"))?;
-                    texel_rays.push(rays as u32);
-                }
-            }
+            "qp" => qps.extend(whole(values, 0..=51, "QP")?.into_iter().map(|q| q as u8)),
+            "rays_per_texel" => texel_rays.extend(
+                whole(values, 1..=100_000, "rays per texel")?
+                    .into_iter()
+                    .map(|r| r as u32),
+            ),
             "texels_per_basis" | "rays_per_basis" | "fit" => {
                 gather_sweep.push((key.clone(), values.clone()))
             }
