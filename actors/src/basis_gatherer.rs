@@ -49,6 +49,8 @@ pub struct GathererParams {
     pub rays_per_texel: u32,
     /// Light samples per texel for texture-space direct light.
     pub direct_samples: u32,
+    /// Re-compute only what changed (default), or everything each update.
+    pub partial: bool,
     /// Valid texels per basis (sets the basis budget).
     pub texels_per_basis: f32,
     /// Map side in texels (0: from the surface area at `texels_per_m2`).
@@ -80,6 +82,7 @@ impl Default for GathererParams {
             fit: g.fit,
             rays_per_texel: g.rays_per_texel,
             direct_samples: g.direct_samples,
+            partial: g.partial,
             texels_per_basis: b.texels_per_basis,
             resolution: a.resolution,
             texels_per_m2: a.texels_per_m2,
@@ -155,6 +158,7 @@ impl GathererParams {
             fit: self.fit,
             rays_per_texel: self.rays_per_texel,
             direct_samples: self.direct_samples,
+            partial: self.partial,
             seed,
         }
     }
@@ -220,6 +224,11 @@ pub struct GathererReport {
     pub bases: usize,
     /// Gather rays of the last update that gathered.
     pub rays_per_update: u64,
+    /// Mean fraction of the points (bases or texels) gathered again per update that
+    /// gathered: below 1 when only part of the scene changed (`partial`).
+    pub regathered_fraction: f64,
+    /// Mean fraction of the valid texels whose direct light an update computed.
+    pub direct_fraction: f64,
     /// Update time, p50 / p99 / mean, ms (updates that gathered).
     pub update_ms_p50: f64,
     /// p99, ms.
@@ -325,6 +334,16 @@ impl BasisGatherer {
             self.sent_steady = false;
             self.update.record_s(u.seconds);
             self.report.rays_per_update = u.rays;
+            let n = (self.report.updates - self.report.converged_updates) as f64;
+            let mean = |old: f64, x: f64| old + (x - old) / n.max(1.0);
+            self.report.regathered_fraction = mean(
+                self.report.regathered_fraction,
+                u.regathered as f64 / u.gather_points.max(1) as f64,
+            );
+            self.report.direct_fraction = mean(
+                self.report.direct_fraction,
+                u.direct_texels as f64 / self.report.valid_texels.max(1) as f64,
+            );
         }
         let bytes = u.map.data_bytes() as u64;
         // A converged static map is valid until superseded: clients show it as current.

@@ -80,6 +80,19 @@ impl<'a> DirectLight<'a> {
         }
     }
 
+    /// The box (lower, upper corner, meters) around the emissive triangles; inverted
+    /// (lower > upper) when there are none.
+    pub fn emitter_box(&self) -> (Vec3, Vec3) {
+        let tris = self.bvh.triangles();
+        self.emitters
+            .triangles
+            .iter()
+            .flat_map(|&t| tris[t as usize].v)
+            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), v| {
+                (lo.min(v), hi.max(v))
+            })
+    }
+
     /// How far off a surface a ray starts, meters (1e-5 of the scene's diagonal).
     pub fn eps(&self) -> f32 {
         self.eps

@@ -38,6 +38,7 @@ use crate::hdr_map::{HdrMap, bilinear};
 use crate::sampling::{Rng, basis, cosine_hemisphere, morton2, radical_inverse3};
 
 use super::Lightmap;
+use super::changes::{Aabb, Changes, TileChanges};
 use super::texels::hammersley;
 
 /// Relative change of the map's energy below which a static scene's update is final.
@@ -95,6 +96,11 @@ pub struct GatherSettings {
     pub rays_per_texel: u32,
     /// Light samples per texel for texture-space direct light.
     pub direct_samples: u32,
+    /// Whether an update re-computes only what changed ([`super::changes`]): the direct
+    /// light of texels whose lights moved or whose shadows a moving object may cross, and
+    /// the bases whose rays may reach a moving object or read changed radiosity. Off: every
+    /// update re-computes everything. (Per texel, [`GatherMode::Texels`], always does.)
+    pub partial: bool,
     /// Seed of the direct-light samples and the gather's sample rotation.
     pub seed: u64,
 }
@@ -107,6 +113,7 @@ impl Default for GatherSettings {
             fit: BasisFit::Quadratic,
             rays_per_texel: 64,
             direct_samples: 4,
+            partial: true,
             seed: 1,
         }
     }
@@ -123,8 +130,12 @@ pub struct Update {
     pub rays: u64,
     /// Shadow rays of texture-space direct light (0 when kept).
     pub direct_rays: u64,
-    /// Points gathered at (bases or texels).
+    /// Points of the map (bases or texels).
     pub gather_points: usize,
+    /// Of which gathered again in this update (the rest kept what they had).
+    pub regathered: usize,
+    /// Texels whose direct light was computed again (0 when kept).
+    pub direct_texels: usize,
     /// Whether the scene was static and converged, so nothing was re-gathered.
     pub converged: bool,
     /// Wall time of the whole update, seconds.
@@ -147,6 +158,25 @@ pub struct Gatherer {
     updates: u64,
     /// The gather's sample set in coherent order ([`coherent_samples`]).
     samples: Vec<[f32; 3]>,
+    /// Scene time of the last update that computed anything.
+    time: Option<f64>,
+    /// Per basis: what it gathered last, and what its rays touched then.
+    bases: Vec<GatheredBasis>,
+    /// Which parts of the map changed since the bases that read them gathered.
+    tiles: Option<TileChanges>,
+    /// Per texel: its object (`u32::MAX` where invalid).
+    texel_object: Vec<u32>,
+    /// Per basis: the objects its texels lie on.
+    basis_objects: Vec<Vec<u32>>,
+}
+
+/// One basis's last gather: its fitted light, the box around its rays' segments and the
+/// map tiles whose radiosity they read.
+#[derive(Clone, Debug, Default)]
+struct GatheredBasis {
+    light: BasisLight,
+    reach: Aabb,
+    tiles: Vec<u32>,
 }
 
 /// The `n` Hammersley points of the unit square in Morton (Z-curve) order: consecutive
@@ -289,9 +319,41 @@ impl Gatherer {
         let previous = vec![Vec3::ZERO; t.valid.len()];
         let map = HdrMap::new(t.width, t.height, &previous, &t.valid)
             .expect("a baked light map's sides and coverage agree");
+        // Triangles are the scene's objects' in order.
+        let mut object_of = Vec::new();
+        for (i, o) in lightmap.scene.objects.iter().enumerate() {
+            object_of.extend(std::iter::repeat_n(i as u32, o.mesh.indices.len()));
+        }
+        let texel_object: Vec<u32> = t
+            .points
+            .iter()
+            .zip(&t.valid)
+            .map(|(p, &valid)| match p {
+                Some(p) if valid => object_of.get(p.triangle as usize).copied().unwrap_or(0),
+                _ => u32::MAX,
+            })
+            .collect();
+        let basis_objects = (0..lightmap.bases.bases.len())
+            .map(|k| {
+                let mut objects: Vec<u32> = lightmap
+                    .bases
+                    .members_of(k)
+                    .iter()
+                    .map(|&m| texel_object[m as usize])
+                    .collect();
+                objects.sort_unstable();
+                objects.dedup();
+                objects
+            })
+            .collect();
         Gatherer {
             map: (Arc::new(map), 0.0),
             frame: (t.positions.clone(), t.normals.clone()),
+            time: None,
+            bases: Vec::new(),
+            tiles: None,
+            texel_object,
+            basis_objects,
             lightmap,
             settings,
             bvh: None,
@@ -319,43 +381,74 @@ impl Gatherer {
     /// Computes the map for scene time `t_s` (one more bounce than the last).
     pub fn update(&mut self, t_s: f64) -> Update {
         let start = Instant::now();
-        let scene = &self.lightmap.scene;
-        let moving_geometry = scene.has_moving_geometry();
-        let moving_lights = scene.is_animated() && !moving_geometry;
+        let lightmap = self.lightmap.clone();
+        let scene = &lightmap.scene;
         let is_static = !scene.is_animated();
         if is_static && self.converged {
             self.map.1 = t_s;
-            return self.finish(start, 0, 0, 0, true);
+            return self.finish(start, [0; 4], true);
         }
+        // What moved since the last update (everything, the first time).
+        let changes = self.time.map(|t0| Changes::between(scene, t0, t_s));
+        let partial = self.settings.partial && changes.is_some();
+        let moving_geometry = changes.as_ref().is_none_or(|c| !c.movers.is_empty());
         // 1. Scene.
         if self.bvh.is_none() || moving_geometry {
             let bvh = SceneBvh::at(scene, t_s, BvhKind::default());
-            if moving_geometry {
-                self.frame = self.lightmap.texels.frame_at(bvh.triangles());
+            if scene.has_moving_geometry() {
+                self.frame = lightmap.texels.frame_at(bvh.triangles());
             }
             self.bvh = Some(bvh);
         }
-        let bvh = self.bvh.as_ref().expect("built above");
-        // 2. Direct light.
-        let mut direct_rays = 0;
-        if self.direct.is_none() || moving_geometry || moving_lights {
-            let (e, rays) = direct_map(
-                &self.lightmap,
-                bvh,
+        let bvh = self.bvh.take().expect("built above");
+        // 2. Direct light: every texel when a light changed (or the first time); else the
+        // texels on movers and those whose shadow rays a mover may cross.
+        let (mut direct_rays, mut direct_texels) = (0, 0);
+        let stale: Option<Vec<bool>> = match &changes {
+            _ if self.direct.is_none() => None,
+            Some(c) if c.none() => Some(Vec::new()),
+            Some(c) if partial && !c.lights => {
+                let light = DirectLight::new(scene, &bvh, t_s);
+                let lights: Vec<_> = scene.lights.iter().map(|l| l.at(t_s)).collect();
+                let emitters = light.emitter_box();
+                let emitters = Aabb {
+                    lo: emitters.0,
+                    hi: emitters.1,
+                };
+                Some(
+                    (0..self.texel_object.len())
+                        .into_par_iter()
+                        .map(|i| {
+                            let o = self.texel_object[i];
+                            o != u32::MAX
+                                && (c.moved[o as usize]
+                                    || c.shadow_may_cross(self.frame.0[i], &lights, &emitters))
+                        })
+                        .collect(),
+                )
+            }
+            _ => None,
+        };
+        if stale.as_ref().is_none_or(|s| s.iter().any(|&s| s)) {
+            let (e, rays, texels) = direct_map(
+                &lightmap,
+                &bvh,
                 &self.frame,
                 t_s,
                 &self.settings,
                 self.updates,
+                stale.as_deref().zip(self.direct.as_deref()),
             );
             self.direct = Some(e);
-            direct_rays = rays;
+            (direct_rays, direct_texels) = (rays, texels);
         }
         // 3. Radiosity.
         let radiosity = self.radiosity();
         // 4–5. Gather and reconstruct.
-        let (texels, rays, points) = self.gather(bvh, &radiosity);
-        let t = &self.lightmap.texels;
-        let map = HdrMap::from_plan(&self.lightmap.dilation, &texels)
+        let (texels, rays, regathered) = self.gather(&bvh, &radiosity, changes.as_ref(), partial);
+        self.bvh = Some(bvh);
+        let t = &lightmap.texels;
+        let map = HdrMap::from_plan(&lightmap.dilation, &texels)
             .expect("a baked light map's sides and coverage agree");
         // The next bounce reads the map as clients get it (dilated once, in the map).
         let texels = map.texels();
@@ -363,24 +456,30 @@ impl Gatherer {
         self.converged = is_static && (new - old).abs() <= CONVERGED * new.max(f32::MIN_POSITIVE);
         self.previous = texels;
         self.map = (Arc::new(map), t_s);
-        self.finish(start, rays, direct_rays, points, false)
+        self.time = Some(t_s);
+        self.finish(
+            start,
+            [rays, direct_rays, regathered as u64, direct_texels as u64],
+            false,
+        )
     }
 
-    fn finish(
-        &mut self,
-        start: Instant,
-        rays: u64,
-        direct_rays: u64,
-        points: usize,
-        converged: bool,
-    ) -> Update {
+    /// The update's report; `counts` are the gather rays, the direct-light rays, the points
+    /// gathered again and the texels whose direct light was computed.
+    fn finish(&mut self, start: Instant, counts: [u64; 4], converged: bool) -> Update {
         self.updates += 1;
+        let [rays, direct_rays, regathered, direct_texels] = counts;
         Update {
             map: self.map.0.clone(),
             time_s: self.map.1,
             rays,
             direct_rays,
-            gather_points: points,
+            gather_points: match self.settings.mode {
+                GatherMode::Bases => self.lightmap.bases.bases.len(),
+                GatherMode::Texels => self.lightmap.texels.valid_count(),
+            },
+            regathered: regathered as usize,
+            direct_texels: direct_texels as usize,
             converged,
             seconds: start.elapsed().as_secs_f64(),
         }
@@ -403,28 +502,70 @@ impl Gatherer {
         lm.dilated(b)
     }
 
-    fn gather(&self, bvh: &SceneBvh, radiosity: &[Vec3]) -> (Vec<Vec3>, u64, usize) {
-        let lm = &self.lightmap;
+    /// Gathers the bases (all, or with `partial` those that `changes` and the radiosity's
+    /// changes reach) or every texel; the texels' irradiance, the rays traced and the points
+    /// gathered.
+    fn gather(
+        &mut self,
+        bvh: &SceneBvh,
+        radiosity: &[Vec3],
+        changes: Option<&Changes>,
+        partial: bool,
+    ) -> (Vec<Vec3>, u64, usize) {
+        let lm = self.lightmap.clone();
         let (pos, nrm) = &self.frame;
         let eps = lm.texels.texel_m * 1e-2;
         let (w, h) = (lm.texels.width, lm.texels.height);
-        // π · B(hit) of the ray leaving texel `from` along sample `s` (rotated by `r`): one
-        // sample of the irradiance there (0 for a miss or a back face).
-        let ray = |from: usize, s: &[f32; 3], r: (f32, f32)| -> Vec3 {
+        let (lo, hi) = bvh.bounds();
+        let scene_box = Aabb { lo, hi };
+        // Which bases gather: all, or those a change reaches.
+        let count = lm.bases.bases.len();
+        let tiles = self
+            .tiles
+            .get_or_insert_with(|| TileChanges::new(w, h, radiosity.to_vec()));
+        let dirty: Vec<bool> = match changes {
+            Some(c) if partial && self.bases.len() == count => {
+                let mean = energy(radiosity, &lm.texels.valid) / 3.0;
+                let changed = tiles.update(radiosity, mean);
+                (0..count)
+                    .map(|k| {
+                        let g = &self.bases[k];
+                        self.basis_objects[k].iter().any(|&o| c.moved[o as usize])
+                            || c.movers.iter().any(|m| m.intersects(&g.reach))
+                            || g.tiles.iter().any(|&t| changed[t as usize])
+                    })
+                    .collect()
+            }
+            _ => {
+                *tiles = TileChanges::new(w, h, radiosity.to_vec());
+                vec![true; count]
+            }
+        };
+        let tiles: &TileChanges = tiles;
+        // One ray leaving texel `from` along sample `s` (rotated by `r`): π · B(hit), one
+        // sample of the irradiance there (0 for a miss or a back face); where its segment
+        // ends (the hit, or where it leaves the scene); the map tile it read.
+        let ray = |from: usize, s: &[f32; 3], r: (f32, f32)| -> (Vec3, Vec3, Option<u32>) {
             let (x, n) = (pos[from], nrm[from]);
             let (t, b) = basis(n);
             let l = cosine_hemisphere((s[0] + r.0).fract(), (s[1] + r.1).fract());
             let d = (t * l.x + b * l.y + n * l.z).normalize();
-            match bvh.closest_hit(x + n * eps, d, f32::INFINITY) {
-                Some(hit) if bvh.geometric_normal(hit.triangle).dot(d) < 0.0 => {
+            let o = x + n * eps;
+            match bvh.closest_hit(o, d, f32::INFINITY) {
+                Some(hit) => {
+                    let end = o + d * hit.t;
+                    if bvh.geometric_normal(hit.triangle).dot(d) >= 0.0 {
+                        return (Vec3::ZERO, end, None);
+                    }
                     let tri = &bvh.triangles()[hit.triangle as usize];
                     let (bu, bv) = (hit.uv.x, hit.uv.y);
                     let uv = tri.lightmap_uv[0] * (1.0 - bu - bv)
                         + tri.lightmap_uv[1] * bu
                         + tri.lightmap_uv[2] * bv;
-                    bilinear(radiosity, w, h, uv) * std::f32::consts::PI
+                    let e = bilinear(radiosity, w, h, uv) * std::f32::consts::PI;
+                    (e, end, Some(tiles.tile_of(uv)))
                 }
-                _ => Vec3::ZERO,
+                None => (Vec3::ZERO, scene_box.exit(o, d), None),
             }
         };
         // A fixed rotation per point decorrelates neighbours' sample sets.
@@ -435,8 +576,9 @@ impl Gatherer {
         match self.settings.mode {
             GatherMode::Bases => {
                 let n = self.settings.rays_per_basis;
-                let per_basis: Vec<BasisLight> = (0..lm.bases.bases.len())
+                let gathered: Vec<(usize, GatheredBasis)> = (0..count)
                     .into_par_iter()
+                    .filter(|&k| dirty[k])
                     .map(|k| {
                         let b = &lm.bases.bases[k];
                         let centre = b.texel as usize;
@@ -449,25 +591,55 @@ impl Gatherer {
                             ..Default::default()
                         };
                         let r = rotation(centre);
-                        if self.settings.fit == BasisFit::Constant {
-                            let sum: Vec3 = self.samples.iter().map(|s| ray(centre, s, r)).sum();
-                            light.c[0] = sum / n.max(1) as f32;
-                            return light;
-                        }
-                        let members = lm.bases.members_of(k);
-                        let samples = self.samples.iter().map(|s| {
-                            let m = ((s[2] * members.len() as f32) as usize).min(members.len() - 1);
-                            let from = members[m] as usize;
-                            let d = (pos[from] - light.centre) / light.scale_m;
-                            (d.dot(tangent), d.dot(bitangent), ray(from, s, r))
-                        });
-                        light.c = match self.settings.fit {
-                            BasisFit::Linear => SurfaceFit::<3>::fit(samples),
-                            _ => SurfaceFit::<6>::fit(samples),
+                        let mut reach = Aabb::EMPTY;
+                        let mut read = Vec::new();
+                        let mut note = |from: usize, (e, end, tile): (Vec3, Vec3, Option<u32>)| {
+                            reach.grow(pos[from]);
+                            reach.grow(end);
+                            read.extend(tile);
+                            e
                         };
-                        light
+                        if self.settings.fit == BasisFit::Constant {
+                            let sum: Vec3 = self
+                                .samples
+                                .iter()
+                                .map(|s| note(centre, ray(centre, s, r)))
+                                .sum();
+                            light.c[0] = sum / n.max(1) as f32;
+                        } else {
+                            let members = lm.bases.members_of(k);
+                            let samples = self.samples.iter().map(|s| {
+                                let m =
+                                    ((s[2] * members.len() as f32) as usize).min(members.len() - 1);
+                                let from = members[m] as usize;
+                                let d = (pos[from] - light.centre) / light.scale_m;
+                                let e = note(from, ray(from, s, r));
+                                (d.dot(tangent), d.dot(bitangent), e)
+                            });
+                            light.c = match self.settings.fit {
+                                BasisFit::Linear => SurfaceFit::<3>::fit(samples),
+                                _ => SurfaceFit::<6>::fit(samples),
+                            };
+                        }
+                        read.sort_unstable();
+                        read.dedup();
+                        let tiles = read;
+                        (
+                            k,
+                            GatheredBasis {
+                                light,
+                                reach,
+                                tiles,
+                            },
+                        )
                     })
                     .collect();
+                let regathered = gathered.len();
+                self.bases.resize_with(count, Default::default);
+                for (k, g) in gathered {
+                    self.bases[k] = g;
+                }
+                let per_basis = &self.bases;
                 let texels = lm
                     .bases
                     .weights
@@ -476,12 +648,11 @@ impl Gatherer {
                     .map(|(t, blend)| {
                         blend
                             .iter()
-                            .map(|&(k, wk)| per_basis[k as usize].at(pos[t]) * wk)
+                            .map(|&(k, wk)| per_basis[k as usize].light.at(pos[t]) * wk)
                             .sum()
                     })
                     .collect();
-                let rays = per_basis.len() as u64 * n as u64;
-                (texels, rays, per_basis.len())
+                (texels, regathered as u64 * n as u64, regathered)
             }
             GatherMode::Texels => {
                 let n = self.settings.rays_per_texel;
@@ -490,7 +661,7 @@ impl Gatherer {
                     .map(|i| {
                         if lm.texels.valid[i] {
                             let r = rotation(i);
-                            let sum: Vec3 = self.samples.iter().map(|s| ray(i, s, r)).sum();
+                            let sum: Vec3 = self.samples.iter().map(|s| ray(i, s, r).0).sum();
                             sum / n.max(1) as f32
                         } else {
                             Vec3::ZERO
@@ -516,7 +687,9 @@ fn energy(texels: &[Vec3], valid: &[bool]) -> f32 {
     (sum / n.max(1) as f64) as f32
 }
 
-/// Texture-space direct irradiance (W·m⁻²) of every valid texel, and the shadow rays spent.
+/// Texture-space direct irradiance (W·m⁻²) of every valid texel — or, given `(stale,
+/// kept)`, of the stale texels, the others keeping their `kept` values — the shadow rays
+/// spent and the texels computed.
 fn direct_map(
     lm: &Lightmap,
     bvh: &SceneBvh,
@@ -524,7 +697,8 @@ fn direct_map(
     t_s: f64,
     s: &GatherSettings,
     update: u64,
-) -> (Vec<Vec3>, u64) {
+    only: Option<(&[bool], &[Vec3])>,
+) -> (Vec<Vec3>, u64, usize) {
     let light = DirectLight::new(&lm.scene, bvh, t_s);
     let samples = s.direct_samples.max(1);
     let eps = light.eps().max(lm.texels.texel_m * 1e-3);
@@ -532,6 +706,11 @@ fn direct_map(
     let e: Vec<Vec3> = (0..lm.texels.valid.len())
         .into_par_iter()
         .map(|i| {
+            if let Some((stale, kept)) = only
+                && !stale[i]
+            {
+                return kept[i];
+            }
             if !lm.texels.valid[i] || !light.any() {
                 return Vec3::ZERO;
             }
@@ -548,46 +727,12 @@ fn direct_map(
             }
         })
         .collect();
+    let computed = match only {
+        Some((stale, _)) => (0..stale.len())
+            .filter(|&i| stale[i] && lm.texels.valid[i])
+            .count(),
+        None => lm.texels.valid_count(),
+    };
     let lights = lm.scene.lights.len() as u64 + 1;
-    (e, lm.texels.valid_count() as u64 * samples as u64 * lights)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_surface_fit_recovers_a_quadratic_and_survives_a_degenerate_spread() {
-        let truth = [1.0, 0.5, -0.25, 0.3, -0.2, 0.1];
-        let value = |u: f32, v: f32| {
-            let f = features(u, v);
-            Vec3::new(1.0, 2.0, 0.5) * f.iter().zip(truth).map(|(f, c)| f * c).sum::<f32>()
-        };
-        let grid = (0..15 * 15).map(|i| {
-            let (u, v) = ((i % 15) as f32 / 7.0 - 1.0, (i / 15) as f32 / 7.0 - 1.0);
-            (u, v, value(u, v))
-        });
-        let c = SurfaceFit::<6>::fit(grid.clone());
-        for (k, t) in truth.iter().enumerate() {
-            assert!(
-                (c[k].x - t).abs() < 2e-3,
-                "term {k}: {} against {t}",
-                c[k].x
-            );
-            assert!((c[k].y - 2.0 * t).abs() < 4e-3);
-        }
-        // A linear fit of the same samples: the best plane (symmetric grid: the mean of
-        // the curvature terms lands in the constant, the slopes are exact).
-        let c = SurfaceFit::<3>::fit(grid);
-        assert!((c[1].x - 0.5).abs() < 2e-3 && (c[2].x + 0.25).abs() < 2e-3);
-        assert_eq!(&c[3..], &[Vec3::ZERO; 3]);
-        // Every sample at one point: the value there, no slopes, nothing infinite.
-        let c = SurfaceFit::<6>::fit((0..10).map(|_| (0.0, 0.0, Vec3::splat(3.0))));
-        assert!(
-            (c[0] - Vec3::splat(3.0)).abs().max_element() < 1e-4,
-            "{c:?}"
-        );
-        assert!(c.iter().all(|c| c.is_finite()));
-        assert!(c[1..].iter().all(|c| c.abs().max_element() < 1e-3), "{c:?}");
-    }
+    (e, computed as u64 * samples as u64 * lights, computed)
 }

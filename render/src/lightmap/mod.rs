@@ -23,6 +23,7 @@ use crate::hdr_map::{DILATE_RINGS, DilationPlan};
 
 pub mod atlas;
 pub mod basis;
+pub mod changes;
 pub mod gather;
 pub mod pass;
 pub mod texels;

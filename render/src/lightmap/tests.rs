@@ -107,6 +107,93 @@ fn thin_wall() -> Scene {
 }
 
 #[test]
+fn an_update_regathers_only_what_a_moving_object_or_light_reaches_and_matches_a_full_one() {
+    // The thin-wall rooms with a 0.3 m box circling in the lit room: the dark room's bases
+    // and direct light are kept, and the map equals a full update's.
+    let mut scene = thin_wall();
+    let mut mover = Mesh::default();
+    mover.push_box(Vec3::splat(-0.15), Vec3::splat(0.15));
+    scene.objects.push(Object {
+        motion: Motion::Orbit {
+            center: Vec3::new(1.0, 0.5, 1.0),
+            axis: Vec3::Y,
+            radius: 0.5,
+            period_s: 4.0,
+            phase: 0.0,
+        },
+        ..object("mover", mover, 0)
+    });
+    let lm = Arc::new(
+        Lightmap::bake(
+            &scene,
+            &LightmapSettings {
+                atlas: AtlasSettings {
+                    resolution: 256,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+        )
+        .unwrap(),
+    );
+    let settings = |partial| GatherSettings {
+        partial,
+        ..Default::default()
+    };
+    let (mut part, mut full) = (
+        Gatherer::new(lm.clone(), settings(true)),
+        Gatherer::new(lm.clone(), settings(false)),
+    );
+    let mut kept = 0;
+    for i in 0..10 {
+        let t = i as f64 * 0.1;
+        let (p, f) = (part.update(t), full.update(t));
+        assert_eq!(f.regathered, f.gather_points);
+        println!(
+            "t {t:.1}: partial re-gathered {} of {} bases, direct light of {} of {} texels; full {} ms, partial {} ms",
+            p.regathered,
+            p.gather_points,
+            p.direct_texels,
+            lm.texels.valid_count(),
+            f.seconds * 1e3,
+            p.seconds * 1e3
+        );
+        if i > 0 {
+            assert!(
+                p.regathered < p.gather_points,
+                "update {i}: {}",
+                p.regathered
+            );
+            assert!(p.direct_texels < lm.texels.valid_count() / 2, "update {i}");
+            assert!(p.direct_texels > 0, "the box's own texels and its shadow");
+            kept += p.gather_points - p.regathered;
+        }
+        let (a, b) = (p.map.texels(), f.map.texels());
+        let mean = mean_valid(&f.map).element_sum() / 3.0;
+        let worst = (0..a.len())
+            .filter(|&i| lm.texels.valid[i])
+            .map(|i| (a[i] - b[i]).abs().max_element())
+            .fold(0.0f32, f32::max);
+        // Measured: identical (every change here reaches whole tiles far above the
+        // tolerance); the bound is the tolerance's worst case.
+        assert!(
+            worst <= 1e-3 * std::f32::consts::PI * mean,
+            "update {i}: partial and full maps differ by {worst} (mean {mean})"
+        );
+    }
+    assert!(kept > 0);
+    // A light that moves changes every texel's light: everything is gathered again.
+    let cornell = cloudlight_scenes::builtin("cornell-animated").unwrap();
+    let lm = Arc::new(Lightmap::bake(&cornell, &LightmapSettings::default()).unwrap());
+    let mut g = Gatherer::new(lm.clone(), GatherSettings::default());
+    for i in 0..3 {
+        let u = g.update(i as f64 * 0.1);
+        assert_eq!(u.regathered, u.gather_points, "update {i}");
+        assert_eq!(u.direct_texels, lm.texels.valid_count(), "update {i}");
+    }
+}
+
+#[test]
 fn a_thin_wall_leaves_the_dark_side_dark() {
     let settings = LightmapSettings {
         atlas: AtlasSettings {
