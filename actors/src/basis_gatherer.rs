@@ -301,11 +301,13 @@ impl BasisGatherer {
         r.update_ms_mean = self.update.mean_ms();
         r.overruns = self.cadence.overruns();
         r.summary = format!(
-            "{} updates (p50 {:.1} ms, {} rays, {} converged), {}² map, {} bases, {} maps sent",
+            "{} updates (p50 {:.1} ms, {} rays, {} converged; {:.0}% of points gathered and {:.0}% of direct light computed per update), {}² map, {} bases, {} maps sent",
             r.updates,
             r.update_ms_p50,
             r.rays_per_update,
             r.converged_updates,
+            r.regathered_fraction * 100.0,
+            r.direct_fraction * 100.0,
             r.resolution,
             r.bases,
             r.maps_sent

@@ -250,8 +250,9 @@ impl<const K: usize> SurfaceFit<K> {
 
     fn add(&mut self, u: f32, v: f32, y: Vec3) {
         let f = features(u, v);
+        // The upper triangle only (the matrix is symmetric; `solve` mirrors it).
         for i in 0..K {
-            for j in 0..K {
+            for j in i..K {
                 self.a[i][j] += f64::from(f[i] * f[j]);
             }
             for (c, y) in y.to_array().into_iter().enumerate() {
@@ -266,6 +267,9 @@ impl<const K: usize> SurfaceFit<K> {
     fn solve(&self) -> [Vec3; 6] {
         let mut a = self.a;
         let mut b = self.b;
+        for (i, j) in (0..K).flat_map(|i| (0..i).map(move |j| (i, j))) {
+            a[i][j] = a[j][i];
+        }
         for (i, row) in a.iter_mut().enumerate().skip(1) {
             row[i] += 1e-4 * row[i] + 1e-12;
         }
