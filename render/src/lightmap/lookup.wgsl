@@ -23,6 +23,8 @@ fn vs_full(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
     return vec4<f32>(uv * 2.0 - 1.0, 0.0, 1.0);
 }
 
+// Branch-free after the first test: llvmpipe samples far more slowly under divergent
+// control flow.
 @fragment
 fn fs_lookup(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     let px = vec2<i32>(frag.xy);
@@ -33,12 +35,11 @@ fn fs_lookup(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     let uv_bits = textureLoad(guv, px, 0).xy;
     // A NaN (no light-map UV) tested on its bits: WGSL may assume floats are never NaN.
     let exponent = 0x7f800000u;
-    if ((uv_bits.x & exponent) == exponent || (uv_bits.y & exponent) == exponent || params.scale.y < 0.5) {
-        return bitcast<vec4<u32>>(vec4<f32>(0.0, 0.0, 0.0, 1.0));
-    }
-    let uv = bitcast<vec2<f32>>(uv_bits);
+    let mapped = (uv_bits.x & exponent) != exponent && (uv_bits.y & exponent) != exponent && params.scale.y >= 0.5;
+    let uv = select(vec2<f32>(0.0), bitcast<vec2<f32>>(uv_bits), mapped);
     let v = textureLoad(galb, px, 0).xy;
     let albedo = vec3<f32>(unpack2x16float(v.x), unpack2x16float(v.y).x);
     let e = max(textureSampleLevel(map, map_sampler, uv, 0.0).rgb, vec3<f32>(0.0)) * params.scale.x;
-    return bitcast<vec4<u32>>(vec4<f32>(albedo / 3.14159265 * e, 1.0));
+    let radiance = select(vec3<f32>(0.0), albedo / 3.14159265 * e, mapped);
+    return bitcast<vec4<u32>>(vec4<f32>(radiance, 1.0));
 }

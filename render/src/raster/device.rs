@@ -89,6 +89,14 @@ pub(crate) fn choose_formats(
             limits.max_color_attachments, limits.max_color_attachment_bytes_per_sample
         )));
     }
+    let lights_bytes = (super::MAX_LIGHTS * std::mem::size_of::<super::shadow::LightGpu>()) as u64;
+    if limits.max_uniform_buffer_binding_size < lights_bytes {
+        return Err(missing(format!(
+            "uniform buffers of {lights_bytes} bytes for {} lights (it allows {})",
+            super::MAX_LIGHTS,
+            limits.max_uniform_buffer_binding_size
+        )));
+    }
     let depth = wgpu::TextureFormat::Depth32Float;
     let d = adapter.get_texture_format_features(depth);
     if !d

@@ -34,7 +34,7 @@ impl DirectPass {
         shadows: &ShadowMaps,
         out: &wgpu::TextureView,
     ) {
-        let Some((depth, lights, views, params)) = shadows.bindings() else {
+        let Some((depth, lights, params)) = shadows.bindings() else {
             return;
         };
         if self
@@ -64,10 +64,6 @@ impl DirectPass {
                     },
                     wgpu::BindGroupEntry {
                         binding: 6,
-                        resource: views.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 7,
                         resource: params.as_entire_binding(),
                     },
                 ],

@@ -31,7 +31,7 @@ pub use frame::{
     FrameImages, FrameInputs, FrameRenderer, OneFrame, PassTimes, ReadFrame, Readback,
 };
 pub use pass::{IndirectContext, IndirectPass, NoIndirect};
-pub use shadow::ShadowSettings;
+pub use shadow::{MAX_LIGHTS, ShadowSettings};
 pub use targets::{GBufferTargets, Target};
 
 /// Why the raster cannot run.
@@ -80,6 +80,14 @@ pub enum RasterError {
         views: u32,
         /// Device limit.
         max: u32,
+    },
+    /// More lights than the direct pass holds ([`MAX_LIGHTS`]).
+    #[error("{lights} lights exceed the direct pass's {max}: use fewer lights or light samples")]
+    TooManyLights {
+        /// Lights given.
+        lights: usize,
+        /// What the pass holds.
+        max: usize,
     },
     /// A frame size the device cannot hold.
     #[error("a {width}x{height} frame exceeds the device's {max}-pixel texture size (or is empty)")]

@@ -191,7 +191,7 @@ impl Pipelines {
     }
 }
 
-/// The direct-light pass: G-buffer, shadow maps, lights, views, parameters → radiance.
+/// The direct-light pass: G-buffer, shadow maps, lights, parameters → radiance.
 fn direct_pipeline(
     device: &wgpu::Device,
     formats: &Formats,
@@ -215,17 +215,8 @@ fn direct_pipeline(
                 ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
                 count: None,
             },
-            buffer_entry(
-                5,
-                FRAGMENT,
-                wgpu::BufferBindingType::Storage { read_only: true },
-            ),
-            buffer_entry(
-                6,
-                FRAGMENT,
-                wgpu::BufferBindingType::Storage { read_only: true },
-            ),
-            buffer_entry(7, FRAGMENT, wgpu::BufferBindingType::Uniform),
+            buffer_entry(5, FRAGMENT, wgpu::BufferBindingType::Uniform),
+            buffer_entry(6, FRAGMENT, wgpu::BufferBindingType::Uniform),
         ],
     );
     let shader = device.create_shader_module(wgpu::include_wgsl!("direct.wgsl"));

@@ -33,6 +33,11 @@ impl Default for ShadowSettings {
     }
 }
 
+/// Lights the direct pass holds: the length of its uniform `lights` array in direct.wgsl
+/// (a uniform array, because llvmpipe reads it faster than a storage buffer). Each takes
+/// 80 bytes: 20 KiB in all.
+pub const MAX_LIGHTS: usize = 256;
+
 /// Must match `LightGpu` in direct.wgsl.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -40,6 +45,8 @@ pub(crate) struct LightGpu {
     position: [f32; 4],
     direction: [f32; 4],
     intensity: [f32; 4],
+    shadow_right: [f32; 4],
+    shadow_up: [f32; 4],
 }
 
 /// Must match `Params` in direct.wgsl.
@@ -49,11 +56,44 @@ pub(crate) struct DirectParams {
     light_count: u32,
     depth_bias: f32,
     normal_offset_m: f32,
+    cube_cot: f32,
+    near_m: f32,
+    far_m: f32,
+    cube_lights: u32,
     pad: f32,
 }
 
-/// Cube-map faces (view direction, up); the order matches cube_face() in direct.wgsl:
-/// +x, −x, +y, −y, +z, −z. Views are a little wider than 90° so that face borders overlap.
+/// The projection of every cube face of a scene: direct.wgsl's `cube_coord` computes a
+/// face's shadow coordinates from these three numbers instead of reading its matrix.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct CubeProjection {
+    fov_rad: f32,
+    near_m: f32,
+    far_m: f32,
+}
+
+impl CubeProjection {
+    /// Faces a little wider than 90°, so that their borders overlap; planes from the
+    /// scene's bounding radius.
+    fn of_bounds(lo: Vec3, hi: Vec3) -> Self {
+        let radius = ((hi - lo).length() * 0.5).max(1e-3);
+        CubeProjection {
+            fov_rad: 92f32.to_radians(),
+            near_m: radius * 1e-3,
+            far_m: radius * 4.0,
+        }
+    }
+
+    /// clip_from_world of face `face` (an index into [`CUBE_FACES`]) seen from `eye`.
+    fn face(&self, eye: Vec3, face: usize) -> Mat4 {
+        let (dir, up) = CUBE_FACES[face];
+        perspective_view(eye, dir, up, self.fov_rad, self.near_m, self.far_m)
+    }
+}
+
+/// Cube-map faces (view direction, up); the order, and the right (direction × up) and up
+/// (right × direction) axes of each, are written out in cube_view() in direct.wgsl:
+/// +x, −x, +y, −y, +z, −z.
 const CUBE_FACES: [(Vec3, Vec3); 6] = [
     (Vec3::X, Vec3::NEG_Y),
     (Vec3::NEG_X, Vec3::NEG_Y),
@@ -80,7 +120,38 @@ fn light_gpu(
         position: position.extend(kind).to_array(),
         direction: direction.extend(w).to_array(),
         intensity: rgb.extend(first as f32).to_array(),
+        shadow_right: [0.0; 4],
+        shadow_up: [0.0; 4],
     }
+}
+
+impl LightGpu {
+    /// Whether the light's shadow is a cube map (a point light or a surface sample).
+    fn has_cube(&self) -> bool {
+        self.position[3] == 0.0 || self.position[3] == 3.0
+    }
+}
+
+/// The right and up axes of a look_to view along `dir` (what glam's `look_to_mat4` uses).
+fn view_axes(dir: Vec3, up: Vec3) -> (Vec3, Vec3) {
+    let right = dir.cross(up).normalize();
+    (right, right.cross(dir))
+}
+
+/// A light record whose one shadow view looks along `dir` from its `position`: the view's
+/// right axis carries the scale from view units to NDC, the up axis the depth scale (0 for
+/// a perspective view, whose depth follows the cube faces' near and far planes).
+fn with_view_axes(
+    mut gpu: LightGpu,
+    dir: Vec3,
+    up: Vec3,
+    scale: f32,
+    depth_scale: f32,
+) -> LightGpu {
+    let (right, up) = view_axes(dir, up);
+    gpu.shadow_right = right.extend(scale).to_array();
+    gpu.shadow_up = up.extend(depth_scale).to_array();
+    gpu
 }
 
 /// The shadow views of every light (clip_from_world) in a scene of bounds `lo..hi`, and
@@ -88,20 +159,12 @@ fn light_gpu(
 fn shadow_views(lights: &[LightState], lo: Vec3, hi: Vec3) -> (Vec<Mat4>, Vec<LightGpu>) {
     let center = (lo + hi) * 0.5;
     let radius = ((hi - lo).length() * 0.5).max(1e-3);
-    let (near, far) = (radius * 1e-3, radius * 4.0);
+    let projection = CubeProjection::of_bounds(lo, hi);
+    let (near, far) = (projection.near_m, projection.far_m);
     let mut views = Vec::new();
     let mut gpu = Vec::new();
     let cube = |views: &mut Vec<Mat4>, eye: Vec3| {
-        for (dir, up) in CUBE_FACES {
-            views.push(perspective_view(
-                eye,
-                dir,
-                up,
-                92f32.to_radians(),
-                near,
-                far,
-            ));
-        }
+        views.extend((0..CUBE_FACES.len()).map(|face| projection.face(eye, face)));
     };
     for l in lights {
         let first = views.len();
@@ -136,8 +199,12 @@ fn shadow_views(lights: &[LightState], lo: Vec3, hi: Vec3) -> (Vec<Mat4>, Vec<Li
                     Vec3::Y
                 };
                 views.push(perspective_view(position, direction, up, fov, near, far));
-                gpu.push(light_gpu(
-                    position, 1.0, direction, cos_cone, intensity, first,
+                gpu.push(with_view_axes(
+                    light_gpu(position, 1.0, direction, cos_cone, intensity, first),
+                    direction,
+                    up,
+                    1.0 / (fov * 0.5).tan(),
+                    0.0,
                 ));
             }
             LightState::Directional {
@@ -156,7 +223,13 @@ fn shadow_views(lights: &[LightState], lo: Vec3, hi: Vec3) -> (Vec<Mat4>, Vec<Li
                     radius * 4.0,
                 );
                 views.push(proj * glam::camera::rh::view::look_to_mat4(eye, d, up));
-                gpu.push(light_gpu(Vec3::ZERO, 2.0, d, 0.0, irradiance, first));
+                gpu.push(with_view_axes(
+                    light_gpu(eye, 2.0, d, 0.0, irradiance, first),
+                    d,
+                    up,
+                    1.0 / radius,
+                    1.0 / (radius * 4.0),
+                ));
             }
         }
     }
@@ -173,10 +246,8 @@ struct ShadowResources {
     /// One matrix per layer at [`VIEW_STRIDE`] (the shadow pass's dynamic offsets).
     view_uniforms: wgpu::Buffer,
     view_bind: wgpu::BindGroup,
-    /// `array<LightGpu>` and `array<ShadowView>` of direct.wgsl.
+    /// `array<LightGpu>` of direct.wgsl.
     lights: wgpu::Buffer,
-    views: wgpu::Buffer,
-    light_slots: usize,
 }
 
 /// Whether moving a light from `a` to `b` changes its shadow maps by at least half a
@@ -270,7 +341,7 @@ impl ShadowMaps {
         }
     }
 
-    fn resources(&mut self, raster: &Raster, layers: u32, light_slots: usize) -> bool {
+    fn resources(&mut self, raster: &Raster, layers: u32) -> bool {
         let size = self
             .settings
             .size
@@ -278,10 +349,10 @@ impl ShadowMaps {
         let fits = self
             .resources
             .as_ref()
-            .is_some_and(|r| r.layers == layers && r.size == size && r.light_slots == light_slots);
+            .is_some_and(|r| r.layers == layers && r.size == size);
         if !fits {
             self.generation += 1;
-            self.resources = Some(ShadowResources::new(raster, layers, size, light_slots));
+            self.resources = Some(ShadowResources::new(raster, layers, size));
         }
         !fits
     }
@@ -311,13 +382,19 @@ impl ShadowMaps {
         if layers > max {
             return Err(RasterError::TooManyShadowViews { views: layers, max });
         }
+        if lights.len() > MAX_LIGHTS {
+            return Err(RasterError::TooManyLights {
+                lights: lights.len(),
+                max: MAX_LIGHTS,
+            });
+        }
         let layout_changed = self.rendered.len() != lights.len()
             || self
                 .rendered
                 .iter()
                 .zip(lights)
                 .any(|(r, l)| r.as_ref().is_none_or(|r| view_count(r) != view_count(l)));
-        let recreated = self.resources(raster, layers, gpu_lights.len().max(1));
+        let recreated = self.resources(raster, layers);
         if recreated || layout_changed || self.geometry != Some((geometry_version, lo, hi)) {
             self.rendered = vec![None; lights.len()];
             self.views = views.clone();
@@ -339,7 +416,7 @@ impl ShadowMaps {
             }
             first += n;
         }
-        self.write_buffers(raster, &gpu_lights, (hi - lo).length());
+        self.write_buffers(raster, &gpu_lights, (lo, hi));
         self.render_layers(raster, enc, &dirty, vertices);
         self.views_rendered += dirty.len() as u64;
         self.renders += u64::from(!dirty.is_empty());
@@ -378,11 +455,20 @@ impl ShadowMaps {
     }
 
     /// Writes the view matrices the maps hold, the lights and the direct pass's parameters.
-    fn write_buffers(&self, raster: &Raster, gpu_lights: &[LightGpu], extent_m: f32) {
+    fn write_buffers(&self, raster: &Raster, gpu_lights: &[LightGpu], (lo, hi): (Vec3, Vec3)) {
+        let cube = CubeProjection::of_bounds(lo, hi);
+        // Cube lights first: the direct pass loops over each kind of shadow separately.
+        let mut ordered = gpu_lights.to_vec();
+        ordered.sort_by_key(|l| !l.has_cube());
+        let cube_lights = ordered.iter().filter(|l| l.has_cube()).count() as u32;
         let params = DirectParams {
             light_count: gpu_lights.len() as u32,
             depth_bias: self.settings.depth_bias,
-            normal_offset_m: self.settings.normal_offset * extent_m,
+            normal_offset_m: self.settings.normal_offset * (hi - lo).length(),
+            cube_cot: 1.0 / (cube.fov_rad * 0.5).tan(),
+            near_m: cube.near_m,
+            far_m: cube.far_m,
+            cube_lights,
             pad: 0.0,
         };
         raster
@@ -398,31 +484,20 @@ impl ShadowMaps {
         if !gpu_lights.is_empty() {
             raster
                 .queue
-                .write_buffer(&r.lights, 0, bytemuck::cast_slice(gpu_lights));
-            let mats: Vec<[f32; 16]> = self.views.iter().map(|m| m.to_cols_array()).collect();
-            raster
-                .queue
-                .write_buffer(&r.views, 0, bytemuck::cast_slice(&mats));
+                .write_buffer(&r.lights, 0, bytemuck::cast_slice(&ordered));
         }
     }
 
-    /// The bindings the direct pass reads: the depth array, lights, views and parameters.
-    pub(crate) fn bindings(
-        &self,
-    ) -> Option<(
-        &wgpu::TextureView,
-        &wgpu::Buffer,
-        &wgpu::Buffer,
-        &wgpu::Buffer,
-    )> {
+    /// The bindings the direct pass reads: the depth array, lights and parameters.
+    pub(crate) fn bindings(&self) -> Option<(&wgpu::TextureView, &wgpu::Buffer, &wgpu::Buffer)> {
         self.resources
             .as_ref()
-            .map(|r| (&r.array_view, &r.lights, &r.views, &self.params))
+            .map(|r| (&r.array_view, &r.lights, &self.params))
     }
 }
 
 impl ShadowResources {
-    fn new(raster: &Raster, layers: u32, size: u32, light_slots: usize) -> Self {
+    fn new(raster: &Raster, layers: u32, size: u32) -> Self {
         let d = &raster.device;
         let texture = d.create_texture(&wgpu::TextureDescriptor {
             label: Some("shadow maps"),
@@ -468,10 +543,9 @@ impl ShadowResources {
         let view_bind = super::targets::view_bind_group(raster, &view_uniforms, "shadow views");
         let lights = buffer(
             "lights",
-            (std::mem::size_of::<LightGpu>() * light_slots) as u64,
-            wgpu::BufferUsages::STORAGE,
+            (std::mem::size_of::<LightGpu>() * MAX_LIGHTS) as u64,
+            wgpu::BufferUsages::UNIFORM,
         );
-        let views = buffer("views", 64 * layers as u64, wgpu::BufferUsages::STORAGE);
         ShadowResources {
             layers,
             size,
@@ -481,8 +555,6 @@ impl ShadowResources {
             view_uniforms,
             view_bind,
             lights,
-            views,
-            light_slots,
         }
     }
 }

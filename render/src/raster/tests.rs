@@ -464,6 +464,32 @@ fn too_many_lights_is_an_error_not_a_panic() {
             matches!(err, RasterError::TooManyShadowViews { .. }),
             "{err}"
         );
+        // One view each, but more lights than the direct pass holds.
+        let sun = cloudlight_scenes::LightState::Directional {
+            direction: Vec3::NEG_Y,
+            irradiance: Vec3::ONE,
+        };
+        let suns = vec![sun; crate::raster::MAX_LIGHTS + 1];
+        let render = |lights: &[cloudlight_scenes::LightState]| {
+            raster.direct(
+                &scene,
+                &scene.triangles_at(0.0),
+                lights,
+                &scene.cameras[0].camera,
+                8,
+                8,
+                ShadowSettings {
+                    size: 16,
+                    ..Default::default()
+                },
+            )
+        };
+        let err = render(&suns).unwrap_err();
+        assert!(
+            matches!(err, RasterError::TooManyLights { lights, max } if lights == max + 1),
+            "{err}"
+        );
+        render(&suns[1..]).unwrap();
     });
 }
 
