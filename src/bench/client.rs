@@ -22,7 +22,7 @@ pub struct ClientBenchOptions {
     pub frames: usize,
     /// Scene time advances 1/fps per frame.
     pub fps: f64,
-    /// Emissive surfaces become n² × 2 point emitters per triangle.
+    /// Emissive triangles become n² point emitters each.
     pub light_samples: u32,
     /// Shadow-map side, texels.
     pub shadow_size: u32,
@@ -35,7 +35,7 @@ impl Default for ClientBenchOptions {
             height: 360,
             frames: 30,
             fps: 30.0,
-            light_samples: 2,
+            light_samples: cloudlight_actors::client::DEFAULT_LIGHT_SAMPLES,
             shadow_size: 512,
         }
     }

@@ -40,7 +40,7 @@ use serde::{Deserialize, Serialize};
 
 mod params;
 
-pub use params::{CLIENT_KEYS, ClientParams, MAX_FRAME_PX, Params};
+pub use params::{CLIENT_KEYS, ClientParams, DEFAULT_LIGHT_SAMPLES, MAX_FRAME_PX, Params};
 
 /// The technique's messages.
 pub fn input_port<T: ClientTechnique>() -> Port<T::Msg> {

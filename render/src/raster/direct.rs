@@ -19,6 +19,8 @@ impl DirectPass {
             sampler: raster.device.create_sampler(&wgpu::SamplerDescriptor {
                 label: Some("shadow comparison"),
                 compare: Some(wgpu::CompareFunction::LessEqual),
+                mag_filter: wgpu::FilterMode::Linear,
+                min_filter: wgpu::FilterMode::Linear,
                 ..Default::default()
             }),
             bind: None,

@@ -33,8 +33,8 @@ pub struct Args {
     /// Photons splatted: one iteration of this budget (the knob `photons`) [default: 10000].
     #[arg(long, value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     photons: Option<u64>,
-    /// Emissive surfaces become n² × 2 point emitters per triangle.
-    #[arg(long, default_value_t = 2, value_parser = ranges::count::<u32>(1, 64))]
+    /// Emissive triangles become n² point emitters each (the client's knob `light_samples`).
+    #[arg(long, default_value_t = cloudlight_actors::client::DEFAULT_LIGHT_SAMPLES, value_parser = ranges::count::<u32>(1, 64))]
     light_samples: u32,
     /// Shadow-map side, texels.
     #[arg(long, default_value_t = 512, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
