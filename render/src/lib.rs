@@ -18,6 +18,7 @@ pub mod raybench;
 pub mod reference;
 pub mod sampling;
 pub mod video;
+pub mod voxel;
 
 pub use bvh::{BvhKind, Hit, SceneBvh};
 pub use hdr_map::HdrMap;

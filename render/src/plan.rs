@@ -2,12 +2,9 @@
 //! with its default settings — the project models only what a scene requires.
 //!
 //! The allocations are computed from the scene, not guessed: occupied voxels per octree
-//! level come from voxelizing every triangle (points sampled at half the leaf size, so every
-//! touched leaf is found); photon batches from each light's power; light-map texels from the
+//! level come from the voxel technique's voxelization ([`crate::voxel`]); photon batches from each light's power; light-map texels from the
 //! surface area. The defaults are calibrated on the paper's Cornell box figures (10k photons
 //! in one batch, a 128² light map with 50 bases, a 9-level octree).
-
-use std::collections::HashSet;
 
 use cloudlight_scenes::Scene;
 use glam::Vec3;
@@ -110,42 +107,15 @@ pub fn plan(scene: &Scene, s: &PlanSettings) -> ScenePlan {
         })
         .collect();
 
-    // Voxelize at the leaf level; parents are the leaves shifted down.
+    // The voxel technique's own voxelization at the planned depth (every leaf a surface
+    // crosses, exactly), over the geometry's bounds at all times.
     let levels = s.octree_levels.min(12);
-    let n = 1u64 << levels;
-    let extent = (hi - lo).max_element().max(1e-6);
-    let leaf = extent / n as f32;
-    let mut occupied: HashSet<u64> = HashSet::new();
-    let cell = |p: Vec3| -> u64 {
-        let q = ((p - lo) / leaf)
-            .floor()
-            .clamp(Vec3::ZERO, Vec3::splat((n - 1) as f32));
-        (q.x as u64) | (q.y as u64) << 20 | (q.z as u64) << 40
-    };
-    for t in &tris {
-        let (e1, e2) = (t.v[1] - t.v[0], t.v[2] - t.v[0]);
-        let steps = ((e1.length().max(e2.length()) / (0.5 * leaf)).ceil() as u32).clamp(1, 1 << 16);
-        for i in 0..=steps {
-            for j in 0..=(steps - i) {
-                let (a, b) = (i as f32 / steps as f32, j as f32 / steps as f32);
-                occupied.insert(cell(t.v[0] + e1 * a + e2 * b));
-            }
-        }
-    }
-    let mut voxels_per_level = vec![0u64; levels as usize + 1];
-    for l in 0..=levels {
-        let shift = levels - l;
-        let mask = (1u64 << 20) - 1;
-        let at_level: HashSet<u64> = occupied
-            .iter()
-            .map(|c| {
-                ((c & mask) >> shift)
-                    | (((c >> 20) & mask) >> shift) << 20
-                    | ((c >> 40) >> shift) << 40
-            })
-            .collect();
-        voxels_per_level[l as usize] = at_level.len() as u64;
-    }
+    let (swept_lo, swept_hi) = scene.swept_bounds();
+    let grid = crate::voxel::Grid::around(swept_lo, swept_hi, levels);
+    let leaves = crate::voxel::voxelize::fragments(&tris, &scene.materials, &grid);
+    let octree = crate::voxel::Octree::from_leaves(grid, &leaves);
+    let voxels_per_level = octree.levels.iter().map(|l| l.len() as u64).collect();
+    let leaf = grid.voxel_m(levels);
     let texels = (area * s.texels_per_m2).round() as u64;
     ScenePlan {
         triangles: tris.len(),

@@ -206,6 +206,34 @@ impl Motion {
     pub fn is_animated(&self) -> bool {
         !matches!(self, Motion::Static(_))
     }
+    /// The box (lower, upper corner) that the translation of an animated motion stays in
+    /// over all time, meters: a moving object's world points are its local points plus a
+    /// translation inside it. `None` for a static transform (which may rotate and scale).
+    pub fn translation_bounds(&self) -> Option<(Vec3, Vec3)> {
+        match self {
+            Motion::Static(_) => None,
+            Motion::Orbit {
+                center,
+                axis,
+                radius,
+                ..
+            } => {
+                // A circle of `radius` in the plane normal to `axis` spans r·√(1 − a_i²).
+                let a = axis.normalize_or(Vec3::Y);
+                let half = (Vec3::ONE - a * a).max(Vec3::ZERO).powf(0.5) * radius.abs();
+                Some((*center - half, *center + half))
+            }
+            Motion::Path { keys } => {
+                let mut lo = Vec3::splat(f32::INFINITY);
+                let mut hi = Vec3::splat(f32::NEG_INFINITY);
+                for (_, p) in keys {
+                    lo = lo.min(*p);
+                    hi = hi.max(*p);
+                }
+                (lo.cmple(hi).all()).then_some((lo, hi))
+            }
+        }
+    }
 }
 
 fn path_position(keys: &[(f64, Vec3)], t_s: f64) -> Vec3 {
@@ -624,6 +652,36 @@ impl Scene {
             }
         }
         out
+    }
+
+    /// Bounds (lower, upper corner) of the geometry over all scene time, meters: static
+    /// objects where they are, moving ones swept along their motion. Empty scenes give
+    /// (+∞, −∞).
+    pub fn swept_bounds(&self) -> (Vec3, Vec3) {
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        for o in &self.objects {
+            if o.mesh.positions.is_empty() {
+                continue;
+            }
+            match o.motion.translation_bounds() {
+                Some((t_lo, t_hi)) => {
+                    for p in &o.mesh.positions {
+                        lo = lo.min(*p + t_lo);
+                        hi = hi.max(*p + t_hi);
+                    }
+                }
+                None => {
+                    let m = o.motion.world_from_local(0.0);
+                    for p in &o.mesh.positions {
+                        let w = m.transform_point3(*p);
+                        lo = lo.min(w);
+                        hi = hi.max(w);
+                    }
+                }
+            }
+        }
+        (lo, hi)
     }
 
     /// Axis-aligned bounds at scene time `t_s`, meters (min, max).

@@ -63,7 +63,8 @@ pub fn run(args: Args) -> ExitCode {
     );
     let mut v = comfy_table::Table::new();
     v.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
-        .set_header(["voxels: level", "grid", "occupied", "of grid"]);
+        .set_header(["voxels: level", "grid", "occupied", "of grid", "MiB"]);
+    let per_voxel = cloudlight::render::voxel::BYTES_PER_VOXEL;
     for (l, n) in p.voxels_per_level.iter().enumerate() {
         let cells = 1u64 << (3 * l);
         v.add_row([
@@ -71,9 +72,15 @@ pub fn run(args: Args) -> ExitCode {
             format!("{0}³", 1u64 << l),
             n.to_string(),
             format!("{:.3}%", *n as f64 / cells as f64 * 100.0),
+            format!("{:.2}", (*n * per_voxel) as f64 / (1 << 20) as f64),
         ]);
     }
-    println!("voxels (leaf {:.4} m):\n{v}", p.leaf_voxel_m);
+    let total: u64 = p.voxels_per_level.iter().sum();
+    println!(
+        "voxels (leaf {:.4} m; {per_voxel} bytes a voxel of surface, {:.1} MiB in all):\n{v}",
+        p.leaf_voxel_m,
+        (total * per_voxel) as f64 / (1 << 20) as f64
+    );
     print_lightmap(&scene, &p, &settings);
     ExitCode::SUCCESS
 }

@@ -1,0 +1,319 @@
+use cloudlight_scenes::{Material, Mesh, Motion, Object, Scene};
+use glam::{UVec3, Vec3};
+
+use super::*;
+
+fn object(name: &str, mesh: Mesh, material: u32) -> Object {
+    Object {
+        name: name.into(),
+        mesh,
+        material,
+        motion: Motion::identity(),
+    }
+}
+
+fn scene_of(objects: Vec<Object>, materials: Vec<Material>) -> Scene {
+    Scene {
+        name: "voxel-test".into(),
+        materials,
+        objects,
+        lights: Vec::new(),
+        cameras: Vec::new(),
+    }
+}
+
+fn area_of(scene: &Scene, t_s: f64) -> f64 {
+    scene
+        .triangles_at(t_s)
+        .iter()
+        .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length() as f64)
+        .sum()
+}
+
+/// Checks the structure every octree must have, and returns the area at each level.
+fn check_structure(o: &Octree) -> Vec<f64> {
+    assert_eq!(o.levels.len(), o.depth() as usize + 1);
+    assert!(o.levels[0].len() <= 1);
+    for (l, level) in o.levels.iter().enumerate() {
+        assert!(
+            level.codes.windows(2).all(|w| w[0] < w[1]),
+            "level {l} unsorted"
+        );
+        assert_eq!(level.surfaces.len(), level.len());
+        let cells = 1u32 << l;
+        for &c in &level.codes {
+            assert!(morton::decode(c).cmplt(UVec3::splat(cells)).all());
+        }
+        for s in &level.surfaces {
+            assert!(s.area_m2 > 0.0 && s.area_m2.is_finite());
+            assert!(s.albedo.is_finite() && s.normal.is_finite());
+            assert!((0.0..=1.0).contains(&s.opacity));
+        }
+        if l + 1 < o.levels.len() {
+            let next = &o.levels[l + 1];
+            assert_eq!(level.first_child.len(), level.len() + 1);
+            assert_eq!(*level.first_child.last().unwrap() as usize, next.len());
+            for i in 0..level.len() {
+                let children = level.first_child[i] as usize..level.first_child[i + 1] as usize;
+                assert!((1..=8).contains(&children.len()));
+                for c in children {
+                    assert_eq!(next.codes[c] >> 3, level.codes[i], "level {l} voxel {i}");
+                }
+            }
+        } else {
+            assert!(level.first_child.is_empty());
+        }
+    }
+    o.levels
+        .iter()
+        .map(|l| l.surfaces.iter().map(|s| s.area_m2 as f64).sum())
+        .collect()
+}
+
+#[test]
+fn the_cornell_box_s_voxels_hold_its_surface_area_at_every_level() {
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let area = area_of(&scene, 0.0);
+    let v = Voxelizer::new(
+        &scene,
+        &VoxelSettings {
+            max_depth: 6,
+            ..Default::default()
+        },
+    );
+    let o = v.octree_at(&scene, 0.0);
+    assert_eq!(o.depth(), 6);
+    for (l, a) in check_structure(&o).iter().enumerate() {
+        assert!(
+            (a / area - 1.0).abs() < 1e-4,
+            "level {l}: {a} m² against {area}"
+        );
+    }
+    // Surfaces: about 4× the voxels per level near the leaves, far from a volume's 8×.
+    let n: Vec<usize> = o.levels.iter().map(Level::len).collect();
+    let growth = n[6] as f64 / n[5] as f64;
+    assert!((3.0..5.0).contains(&growth), "{n:?}");
+    // The red wall's voxels are red; a wall's normal is its axis.
+    let leaves = o.leaves();
+    let red = leaves
+        .surfaces
+        .iter()
+        .filter(|s| s.albedo.x > 2.0 * s.albedo.y && s.opacity > 0.5)
+        .count();
+    assert!(red > 20, "{red} red voxels");
+    // The floor's voxels face up (away from the walls and boxes: 10% in from a corner).
+    let (lo, hi) = scene.bounds_at(0.0);
+    let g = o.grid;
+    let p = Vec3::new(lo.x + 0.1 * (hi.x - lo.x), lo.y, lo.z + 0.1 * (hi.z - lo.z));
+    let cell = ((p - g.origin) / g.voxel_m(g.depth)).floor().as_uvec3();
+    let floor = leaves.find(morton::encode(cell)).expect("a floor voxel");
+    let s = leaves.surfaces[floor];
+    assert!(s.normal.dot(Vec3::Y) > 0.999 && s.opacity > 0.99, "{s:?}");
+    assert_eq!(o.bytes(), n.iter().sum::<usize>() as u64 * BYTES_PER_VOXEL);
+}
+
+#[test]
+fn a_closed_box_occupies_exactly_the_shell_of_cells() {
+    // A cube filling the grid but for the padding: its faces lie inside the outer cells.
+    let mut m = Mesh::default();
+    m.push_box(Vec3::splat(0.2), Vec3::splat(1.7));
+    let scene = scene_of(
+        vec![object("box", m, 0)],
+        vec![Material::diffuse("grey", Vec3::splat(0.5))],
+    );
+    for depth in 0..=5u32 {
+        let v = Voxelizer::new(
+            &scene,
+            &VoxelSettings {
+                max_depth: depth,
+                ..Default::default()
+            },
+        );
+        let o = v.octree_at(&scene, 0.0);
+        check_structure(&o);
+        let n = 1i64 << depth;
+        let shell = n.pow(3) - (n - 2).max(0).pow(3);
+        assert_eq!(o.leaves().len() as i64, shell, "depth {depth}");
+        // Each face is a plane across its cells: opaque where it crosses whole cells.
+        if depth >= 2 {
+            let full = o
+                .leaves()
+                .surfaces
+                .iter()
+                .filter(|s| s.opacity > 0.99)
+                .count();
+            assert!(
+                full as i64 >= 6 * (n - 2) * (n - 2),
+                "{full} opaque of {shell}"
+            );
+        }
+    }
+}
+
+#[test]
+fn moving_objects_are_voxelized_again_and_match_a_whole_voxelization() {
+    let mut floor = Mesh::default();
+    floor.push_quad(
+        Vec3::new(-2.0, 0.0, 2.0),
+        Vec3::new(2.0, 0.0, 2.0),
+        Vec3::new(2.0, 0.0, -2.0),
+        Vec3::new(-2.0, 0.0, -2.0),
+    );
+    let mut cube = Mesh::default();
+    cube.push_box(Vec3::splat(-0.2), Vec3::splat(0.2));
+    let scene = scene_of(
+        vec![
+            object("floor", floor, 0),
+            Object {
+                motion: Motion::Orbit {
+                    center: Vec3::new(0.0, 0.5, 0.0),
+                    axis: Vec3::Y,
+                    radius: 1.5,
+                    period_s: 4.0,
+                    phase: 0.0,
+                },
+                ..object("cube", cube, 1)
+            },
+        ],
+        vec![
+            Material::diffuse("grey", Vec3::splat(0.5)),
+            Material::diffuse("red", Vec3::new(0.8, 0.1, 0.1)),
+        ],
+    );
+    let v = Voxelizer::new(
+        &scene,
+        &VoxelSettings {
+            max_depth: 6,
+            ..Default::default()
+        },
+    );
+    assert_eq!(v.moving_objects(), &[1]);
+    // The grid covers the cube's whole orbit.
+    let (lo, hi) = scene.swept_bounds();
+    assert!(
+        (lo.x + 2.0).abs() < 1e-5 && (hi.y - 0.7).abs() < 1e-5,
+        "{lo} {hi}"
+    );
+    for t in [0.0, 0.7, 1.9, 3.3] {
+        let incremental = v.octree_at(&scene, t);
+        let whole = Octree::from_leaves(
+            v.grid(),
+            &voxelize::fragments(&scene.triangles_at(t), &scene.materials, &v.grid()),
+        );
+        assert_eq!(incremental.leaves().codes, whole.leaves().codes, "t = {t}");
+        for (a, b) in incremental
+            .leaves()
+            .surfaces
+            .iter()
+            .zip(&whole.leaves().surfaces)
+        {
+            assert!((a.area_m2 - b.area_m2).abs() <= 1e-5 * b.area_m2.max(1e-6));
+        }
+        let areas = check_structure(&incremental);
+        assert!((areas[0] / area_of(&scene, t) - 1.0).abs() < 1e-4);
+    }
+    // And it moved: the leaves differ between two times.
+    assert_ne!(
+        v.octree_at(&scene, 0.0).leaves().codes,
+        v.octree_at(&scene, 1.0).leaves().codes
+    );
+}
+
+#[test]
+fn the_budget_limits_the_depth() {
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let deep = Voxelizer::new(
+        &scene,
+        &VoxelSettings {
+            max_depth: 7,
+            ..Default::default()
+        },
+    )
+    .octree_at(&scene, 0.0);
+    assert_eq!(deep.depth(), 7);
+    let budget = deep.bytes() / 3;
+    let v = Voxelizer::new(
+        &scene,
+        &VoxelSettings {
+            max_depth: 7,
+            budget_bytes: budget,
+        },
+    );
+    let o = v.octree_at(&scene, 0.0);
+    assert!(
+        o.depth() < 7 && o.bytes() <= budget,
+        "{} {}",
+        o.depth(),
+        o.bytes()
+    );
+    // One level coarser fits; the octree is then the deep one's upper levels.
+    assert_eq!(o.depth(), 6);
+    let coarse = deep.clone().coarsened(1);
+    for (l, (a, b)) in o.levels.iter().zip(&coarse.levels).enumerate() {
+        assert_eq!(a.codes, b.codes);
+        assert_eq!(a.first_child, b.first_child);
+        // Areas summed in another order: equal to rounding, slivers included.
+        let face = o.grid.voxel_m(l as u32).powi(2);
+        for (x, y) in a.surfaces.iter().zip(&b.surfaces) {
+            assert!((x.area_m2 - y.area_m2).abs() <= 1e-4 * (y.area_m2 + face));
+        }
+    }
+    // A budget below one voxel still gives the root.
+    let tiny = Voxelizer::new(
+        &scene,
+        &VoxelSettings {
+            max_depth: 7,
+            budget_bytes: 1,
+        },
+    );
+    assert_eq!(tiny.octree_at(&scene, 0.0).depth(), 0);
+}
+
+#[test]
+fn extreme_scenes_voxelize_without_nan() {
+    let tri = |s: f32| {
+        let mut m = Mesh::default();
+        m.push_quad(
+            Vec3::ZERO,
+            Vec3::new(s, 0.0, 0.0),
+            Vec3::new(s, s, 0.3 * s),
+            Vec3::new(0.0, s, 0.3 * s),
+        );
+        m.indices.truncate(1);
+        m
+    };
+    for size in [1e-3f32, 1.0, 1e4] {
+        let scene = scene_of(
+            vec![object("one", tri(size), 0)],
+            vec![Material::diffuse("grey", Vec3::splat(0.5))],
+        );
+        for depth in [0, 4, 9] {
+            let o = Voxelizer::new(
+                &scene,
+                &VoxelSettings {
+                    max_depth: depth,
+                    ..Default::default()
+                },
+            )
+            .octree_at(&scene, 0.0);
+            let areas = check_structure(&o);
+            let area = area_of(&scene, 0.0);
+            assert!(
+                (areas[o.depth() as usize] / area - 1.0).abs() < 1e-3,
+                "size {size} depth {depth}: {areas:?} against {area}"
+            );
+        }
+    }
+    // No geometry at all, and degenerate triangles: an empty octree.
+    let empty = scene_of(Vec::new(), Vec::new());
+    let o = Voxelizer::new(&empty, &VoxelSettings::default()).octree_at(&empty, 0.0);
+    assert!(o.levels.iter().all(Level::is_empty));
+    let mut flat = Mesh::default();
+    flat.push_quad(Vec3::ZERO, Vec3::X, Vec3::X * 2.0, Vec3::X * 3.0);
+    let scene = scene_of(
+        vec![object("flat", flat, 0)],
+        vec![Material::diffuse("grey", Vec3::splat(0.5))],
+    );
+    let o = Voxelizer::new(&scene, &VoxelSettings::default()).octree_at(&scene, 0.0);
+    assert!(o.levels.iter().all(Level::is_empty));
+}
