@@ -7,9 +7,13 @@
 //!   children contiguous, inner levels aggregating their children exactly);
 //! - [`Voxelizer`]: the octree of a scene at any time, its depth chosen from the scene's
 //!   surface and a memory budget, the static objects voxelized once and only moving ones
-//!   again.
+//!   again;
+//! - [`inject`]: direct light into the leaves, as anisotropic radiance (six directions);
+//! - [`filter`]: inner levels from their children, composited front to back per direction.
 
 pub mod clip;
+pub mod filter;
+pub mod inject;
 pub mod morton;
 pub mod octree;
 pub mod voxelize;
@@ -19,6 +23,8 @@ mod tests;
 
 use cloudlight_scenes::{Scene, WorldTriangle};
 
+pub use filter::filter;
+pub use inject::{DIRECTIONS, InjectSettings, Injection, VoxelRadiance, inject};
 pub use octree::{BYTES_PER_VOXEL, Level, Octree, VoxelSurface};
 pub use voxelize::{Fragment, Grid, MAX_DEPTH};
 

@@ -15,6 +15,8 @@ pub struct VoxelSurface {
     pub area_m2: f32,
     /// Area-weighted mean albedo.
     pub albedo: Vec3,
+    /// Centroid of the surface inside the voxel, meters.
+    pub position: Vec3,
     /// Area-weighted mean normal (unit, or zero where opposite-facing surfaces cancel;
     /// surfaces are two-sided).
     pub normal: Vec3,
@@ -23,8 +25,8 @@ pub struct VoxelSurface {
     pub opacity: f32,
 }
 
-/// Bytes a voxel takes: its code (8), first child (4) and surface (32).
-pub const BYTES_PER_VOXEL: u64 = 8 + 4 + 32;
+/// Bytes a voxel's geometry takes: its code (8), first child (4) and surface (44).
+pub const BYTES_PER_VOXEL: u64 = 8 + 4 + 44;
 
 /// One level of the octree.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -72,6 +74,7 @@ fn surface_of(f: &Fragment, voxel_m: f32) -> VoxelSurface {
     VoxelSurface {
         area_m2: area,
         albedo: f.albedo_area * inv,
+        position: f.centroid_area * inv,
         normal: f.normal_area.normalize_or_zero(),
         opacity: (area / (voxel_m * voxel_m)).clamp(0.0, 1.0),
     }
@@ -101,11 +104,7 @@ impl Octree {
             for (i, f) in current.iter().enumerate() {
                 let code = f.code >> 3;
                 match parents.last_mut() {
-                    Some(p) if p.code == code => {
-                        p.area_m2 += f.area_m2;
-                        p.albedo_area += f.albedo_area;
-                        p.normal_area += f.normal_area;
-                    }
+                    Some(p) if p.code == code => p.add(f),
                     _ => {
                         parents.push(Fragment { code, ..*f });
                         first_child.push(i as u32);

@@ -80,15 +80,18 @@ pub struct Fragment {
     pub area_m2: f32,
     /// Albedo × area, m².
     pub albedo_area: Vec3,
+    /// Centroid × area of the surface inside the leaf, m³.
+    pub centroid_area: Vec3,
     /// Unit normal × area, each triangle's normal turned so that its largest component is
     /// positive (surfaces are two-sided; opposite faces of a thin wall must not cancel).
     pub normal_area: Vec3,
 }
 
 impl Fragment {
-    fn add(&mut self, o: &Fragment) {
+    pub(crate) fn add(&mut self, o: &Fragment) {
         self.area_m2 += o.area_m2;
         self.albedo_area += o.albedo_area;
+        self.centroid_area += o.centroid_area;
         self.normal_area += o.normal_area;
     }
 }
@@ -236,6 +239,7 @@ pub fn fragments(
                     code: morton::encode(c),
                     area_m2,
                     albedo_area: albedo_at(t, materials, b) * area_m2,
+                    centroid_area: (grid.origin + centroid * leaf_m) * area_m2,
                     normal_area: unit * area_m2,
                 });
             });
