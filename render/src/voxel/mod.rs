@@ -9,9 +9,12 @@
 //!   surface and a memory budget, the static objects voxelized once and only moving ones
 //!   again;
 //! - [`inject`]: direct light into the leaves, as anisotropic radiance (six directions);
-//! - [`filter`]: inner levels from their children, composited front to back per direction.
+//! - [`filter`]: inner levels from their children, composited front to back per direction;
+//! - [`cone`]: per leaf, cones through the filtered levels gather the indirect irradiance on
+//!   each side (view-independent; fed back into the injection for another bounce).
 
 pub mod clip;
+pub mod cone;
 pub mod filter;
 pub mod inject;
 pub mod morton;
@@ -23,6 +26,7 @@ mod tests;
 
 use cloudlight_scenes::{Scene, WorldTriangle};
 
+pub use cone::{ConeSettings, ConeTracer, Gathered, gather};
 pub use filter::filter;
 pub use inject::{DIRECTIONS, InjectSettings, Injection, VoxelRadiance, inject};
 pub use octree::{BYTES_PER_VOXEL, Level, Octree, VoxelSurface};

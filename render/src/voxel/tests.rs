@@ -2,6 +2,7 @@ use cloudlight_scenes::{Material, Mesh, Motion, Object, Scene};
 use glam::{UVec3, Vec3};
 
 use super::*;
+use crate::voxel::inject::VoxelRadiance;
 
 fn object(name: &str, mesh: Mesh, material: u32) -> Object {
     Object {
@@ -441,4 +442,68 @@ fn filtered_flux_is_conserved_where_nothing_hides_it() {
     // The root: opaque from above where the plane covers the whole face, clear edge-on.
     let root = levels[0][0];
     assert!(root.opacity[2] > 0.9 && root.opacity[0] == 0.0, "{root:?}");
+}
+
+/// Per leaf, the side (0: along its normal, 1: against it) facing the point `inside`.
+fn inward_side(s: &VoxelSurface, inside: Vec3) -> usize {
+    let n = if s.normal.length_squared() > 0.5 {
+        s.normal
+    } else {
+        Vec3::Y
+    };
+    usize::from((inside - s.position).dot(n) < 0.0)
+}
+
+fn quantile(mut v: Vec<f32>, q: f32) -> f32 {
+    v.sort_by(f32::total_cmp);
+    v[((v.len() - 1) as f32 * q) as usize]
+}
+
+#[test]
+fn cones_inside_a_uniformly_bright_box_gather_pi_times_its_radiance() {
+    // Every wall sends radiance B both ways: any inner point receives E = π·B.
+    let scene = bulb_in_a_box(1.0);
+    let o = Voxelizer::new(
+        &scene,
+        &VoxelSettings {
+            max_depth: 5,
+            ..Default::default()
+        },
+    )
+    .octree_at(&scene, 0.0);
+    let b = 2.0f32;
+    let face = o.grid.voxel_m(5).powi(2);
+    let leaves: Vec<VoxelRadiance> = o
+        .leaves()
+        .surfaces
+        .iter()
+        .map(|s| {
+            let mut v = VoxelRadiance::default();
+            for (d, dir) in DIRECTIONS.iter().enumerate() {
+                let projected = s.area_m2 / face * dir.dot(s.normal).abs();
+                v.radiance[d] = Vec3::splat(b * projected);
+                v.opacity[d] = projected.min(1.0);
+            }
+            v
+        })
+        .collect();
+    let levels = filter(&o, leaves);
+    let g = gather(&o, &levels, &ConeSettings::default());
+    let ratios: Vec<f32> = o
+        .leaves()
+        .surfaces
+        .iter()
+        .zip(&g.irradiance)
+        .map(|(s, e)| e[inward_side(s, Vec3::splat(0.5))].x / (std::f32::consts::PI * b))
+        .collect();
+    let (p10, p50, p90) = (
+        quantile(ratios.clone(), 0.1),
+        quantile(ratios.clone(), 0.5),
+        quantile(ratios, 0.9),
+    );
+    eprintln!(
+        "E / πB: p10 {p10:.3}, p50 {p50:.3}, p90 {p90:.3}; {} samples",
+        g.samples
+    );
+    assert!((0.9..1.02).contains(&p50) && p10 > 0.8 && p90 < 1.05);
 }

@@ -226,22 +226,28 @@ pub fn fragments(
 ) -> Vec<Fragment> {
     let cells = grid.cells(grid.depth);
     let leaf_m = grid.voxel_m(grid.depth);
-    let mut all: Vec<Fragment> = triangles
+    // Each fragment with its triangle: sorting by (code, triangle) fixes the order in which
+    // a leaf's shares are summed, so the same scene gives the same bits on any thread count.
+    let mut all: Vec<(u32, Fragment)> = triangles
         .par_iter()
-        .fold(Vec::new, |mut out, t| {
+        .enumerate()
+        .fold(Vec::new, |mut out, (index, t)| {
             let q = t.v.map(|v| (v - grid.origin) / leaf_m);
             let n = (q[1] - q[0]).cross(q[2] - q[0]);
             let unit = canonical(n.normalize_or_zero());
             scan_triangle(&q, cells, |c, area, centroid| {
                 let area_m2 = area * leaf_m * leaf_m;
                 let b = barycentric(&q, n, centroid);
-                out.push(Fragment {
-                    code: morton::encode(c),
-                    area_m2,
-                    albedo_area: albedo_at(t, materials, b) * area_m2,
-                    centroid_area: (grid.origin + centroid * leaf_m) * area_m2,
-                    normal_area: unit * area_m2,
-                });
+                out.push((
+                    index as u32,
+                    Fragment {
+                        code: morton::encode(c),
+                        area_m2,
+                        albedo_area: albedo_at(t, materials, b) * area_m2,
+                        centroid_area: (grid.origin + centroid * leaf_m) * area_m2,
+                        normal_area: unit * area_m2,
+                    },
+                ));
             });
             out
         })
@@ -252,7 +258,8 @@ pub fn fragments(
             a.append(&mut b);
             a
         });
-    all.par_sort_unstable_by_key(|f| f.code);
+    all.par_sort_unstable_by_key(|(index, f)| (f.code, *index));
+    let all: Vec<Fragment> = all.into_iter().map(|(_, f)| f).collect();
     merge_sorted(all)
 }
 
