@@ -17,6 +17,8 @@ pub mod raster;
 pub mod raybench;
 pub mod reference;
 pub mod sampling;
+#[cfg(test)]
+mod test_scenes;
 pub mod video;
 pub mod voxel;
 

@@ -9,25 +9,7 @@ use glam::Vec3;
 
 use super::*;
 use crate::HdrMap;
-
-fn object(name: &str, mesh: Mesh, material: u32) -> Object {
-    Object {
-        name: name.into(),
-        mesh,
-        material,
-        motion: Motion::identity(),
-    }
-}
-
-fn bare(name: &str, materials: Vec<Material>, objects: Vec<Object>) -> Scene {
-    Scene {
-        name: name.into(),
-        materials,
-        objects,
-        lights: Vec::new(),
-        cameras: Vec::new(),
-    }
-}
+use crate::test_scenes::{bare, object};
 
 /// The inside of a 1 m cube whose walls all emit `le` and reflect `albedo`.
 fn furnace(le: f32, albedo: f32) -> Scene {

@@ -2,25 +2,11 @@ use cloudlight_scenes::{Material, Mesh, Motion, Object, Scene};
 use glam::{UVec3, Vec3};
 
 use super::*;
+use crate::test_scenes::{bare, object};
 use crate::voxel::inject::VoxelRadiance;
 
-fn object(name: &str, mesh: Mesh, material: u32) -> Object {
-    Object {
-        name: name.into(),
-        mesh,
-        material,
-        motion: Motion::identity(),
-    }
-}
-
 fn scene_of(objects: Vec<Object>, materials: Vec<Material>) -> Scene {
-    Scene {
-        name: "voxel-test".into(),
-        materials,
-        objects,
-        lights: Vec::new(),
-        cameras: Vec::new(),
-    }
+    bare("voxel-test", materials, objects)
 }
 
 fn area_of(scene: &Scene, t_s: f64) -> f64 {
