@@ -63,7 +63,7 @@ pub(crate) struct DirectParams {
     pad: f32,
 }
 
-/// The projection of every cube face of a scene: direct.wgsl's `cube_coord` computes a
+/// The projection of every cube face of a scene: direct.wgsl's `cube_view` computes a
 /// face's shadow coordinates from these three numbers instead of reading its matrix.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct CubeProjection {

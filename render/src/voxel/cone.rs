@@ -209,11 +209,7 @@ pub fn gather(octree: &Octree, levels: &[Vec<VoxelRadiance>], settings: &ConeSet
         .surfaces
         .par_iter()
         .map(|s| {
-            let n = if s.normal.length_squared() > 0.5 {
-                s.normal
-            } else {
-                Vec3::Y
-            };
+            let n = s.side_normal();
             let mut count = 0u64;
             let e = [n, -n].map(|side| {
                 let origin = s.position + side * (leaf_m * settings.offset_voxels);

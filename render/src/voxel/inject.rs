@@ -72,11 +72,6 @@ pub struct Injection {
     pub samples: u64,
 }
 
-/// A leaf's normal, or +Y where its surfaces' normals cancel.
-fn side_normal(n: Vec3) -> Vec3 {
-    if n.length_squared() > 0.5 { n } else { Vec3::Y }
-}
-
 /// Injects the direct light of `scene` at `t_s` (its BVH at that time: `bvh`) into the
 /// leaves of `octree`; `indirect`, per leaf and side, is irradiance gathered by the previous
 /// bounce, added before reflection (multi-bounce).
@@ -98,7 +93,7 @@ pub fn inject(
         .par_iter()
         .enumerate()
         .map(|(i, s)| {
-            let n = side_normal(s.normal);
+            let n = s.side_normal();
             let mut rng = Rng::new(settings.seed, leaves.codes[i]);
             let sides = [n, -n];
             let e: [Vec3; 2] = sides.map(|side| {

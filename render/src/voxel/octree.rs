@@ -80,6 +80,18 @@ fn surface_of(f: &Fragment, voxel_m: f32) -> VoxelSurface {
     }
 }
 
+impl VoxelSurface {
+    /// The normal of the voxel's first side (the second faces the opposite way): its mean
+    /// normal, or +Y where its surfaces' normals cancel.
+    pub fn side_normal(&self) -> Vec3 {
+        if self.normal.length_squared() > 0.5 {
+            self.normal
+        } else {
+            Vec3::Y
+        }
+    }
+}
+
 impl Octree {
     /// The octree of leaf fragments (sorted by code, one per leaf, from
     /// [`super::voxelize::fragments`] at `grid.depth`).

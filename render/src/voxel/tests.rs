@@ -432,11 +432,7 @@ fn filtered_flux_is_conserved_where_nothing_hides_it() {
 
 /// Per leaf, the side (0: along its normal, 1: against it) facing the point `inside`.
 fn inward_side(s: &VoxelSurface, inside: Vec3) -> usize {
-    let n = if s.normal.length_squared() > 0.5 {
-        s.normal
-    } else {
-        Vec3::Y
-    };
+    let n = s.side_normal();
     usize::from((inside - s.position).dot(n) < 0.0)
 }
 
