@@ -15,6 +15,10 @@
 //!   (squared components of the direction), so a wall seen obliquely is as opaque and as
 //!   bright as seen head-on.
 //!
+//! Cones leave from voxels [`ConeSettings::levels_above_leaves`] above the leaves where the
+//! surface is flat, and from finer voxels (down to the leaves) where it is not; the result
+//! is an irradiance for every voxel of every level ([`Gathered`]).
+//!
 //! Each sample's opacity is corrected for the step (α' = 1 − (1 − α)^(Δt / voxel)) and
 //! composited front to back, until the cone is opaque or leaves the grid.
 
@@ -22,8 +26,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::inject::VoxelRadiance;
-use super::morton;
-use super::octree::Octree;
+use super::octree::{Locator, Octree, VoxelSurface};
 use crate::sampling::basis;
 
 /// Cone-tracing settings.
@@ -44,6 +47,17 @@ pub struct ConeSettings {
     /// back (dark, and opaque when seen from it) would hide the light beyond. Steps are no
     /// longer than the voxels read, so the samples get denser near a surface.
     pub voxel_per_height: f32,
+    /// Cones leave from voxels this many levels above the leaves (the paper's remedy for
+    /// large scenes: "computing indirect illumination at intermediate octree nodes instead
+    /// of leaves"); the leaves below take their ancestor's irradiance. Indirect light is
+    /// smooth, and each level up gathers from a quarter of the voxels.
+    pub levels_above_leaves: u32,
+    /// Where a gathering voxel's surfaces are less flat than this ([`VoxelSurface::flatness`]:
+    /// a corner, an edge, a curve), its children gather instead, down to the leaves: full
+    /// resolution only where the geometry has detail (CloudLight §4.1).
+    ///
+    /// [`VoxelSurface::flatness`]: super::octree::VoxelSurface::flatness
+    pub refine_below_flatness: f32,
 }
 
 impl Default for ConeSettings {
@@ -54,6 +68,8 @@ impl Default for ConeSettings {
             opaque: 0.97,
             coarsest_level: 2,
             voxel_per_height: 0.5,
+            levels_above_leaves: 2,
+            refine_below_flatness: 0.95,
         }
     }
 }
@@ -64,20 +80,73 @@ const HALF_ANGLE_TAN: f32 = 0.577_350_3; // tan 30°
 const AXIS_WEIGHT: f32 = std::f32::consts::PI / 4.0;
 const SIDE_WEIGHT: f32 = 3.0 * std::f32::consts::PI / 20.0;
 
+/// (cos φ, sin φ) of the five side cones around the normal, φ = 2πk/5.
+const SIDE_PHI: [(f32, f32); 5] = [
+    (1.0, 0.0),
+    (0.309_017, 0.951_056_5),
+    (-0.809_017, 0.587_785_3),
+    (-0.809_017, -0.587_785_3),
+    (0.309_017, -0.951_056_5),
+];
+
 fn cones(n: Vec3) -> [(Vec3, f32); 6] {
     let (t, b) = basis(n);
-    let (s, c) = (60f32.to_radians().sin(), 60f32.to_radians().cos());
+    let (s, c) = (0.866_025_4, 0.5); // sin 60°, cos 60°
     let mut out = [(n, AXIS_WEIGHT); 6];
-    for (k, cone) in out.iter_mut().enumerate().skip(1) {
-        let phi = std::f32::consts::TAU * (k - 1) as f32 / 5.0;
-        *cone = (n * c + (t * phi.cos() + b * phi.sin()) * s, SIDE_WEIGHT);
+    for (cone, (cos, sin)) in out.iter_mut().skip(1).zip(SIDE_PHI) {
+        *cone = (n * c + (t * cos + b * sin) * s, SIDE_WEIGHT);
     }
     out
+}
+
+/// log₂ of a positive, normal `x`, within 10⁻⁵ (log₂ m = 2/ln 2 · atanh((m − 1)/(m + 1))
+/// over the mantissa, to y⁵): libm's `log2f` and `powf` were a third of the gather's time.
+fn fast_log2(x: f32) -> f32 {
+    let bits = x.to_bits();
+    let mut exponent = ((bits >> 23) & 0xff) as i32 - 127;
+    let mut m = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
+    // The mantissa in [1/√2, √2), so |y| < 0.18 and the series' remainder is below 10⁻⁵.
+    if m > std::f32::consts::SQRT_2 {
+        m *= 0.5;
+        exponent += 1;
+    }
+    let y = (m - 1.0) / (m + 1.0);
+    let y2 = y * y;
+    exponent as f32 + 2.885_39 * y * (1.0 + y2 * (1.0 / 3.0 + y2 * 0.2))
+}
+
+/// 2^x for x ≤ 0, within 10⁻⁵ relative; 0 below 2⁻¹²⁶.
+fn fast_exp2(x: f32) -> f32 {
+    if x < -126.0 {
+        return 0.0;
+    }
+    let mut i = x as i32;
+    if (i as f32) > x {
+        i -= 1;
+    }
+    let f = x - i as f32;
+    // 2^f = √2 · e^g, g = (f − ½)·ln 2 ∈ [−0.35, 0.35]: Taylor to g⁵.
+    let g = (f - 0.5) * std::f32::consts::LN_2;
+    let p = std::f32::consts::SQRT_2
+        * (1.0 + g * (1.0 + g * (0.5 + g * (1.0 / 6.0 + g * (1.0 / 24.0 + g / 120.0)))));
+    p * f32::from_bits(((i + 127) as u32) << 23)
+}
+
+/// (1 − a)^r: what a sample of opacity `a` transmits over `r` of its voxel's length.
+fn transmitted(a: f32, r: f32) -> f32 {
+    if a >= 1.0 {
+        0.0
+    } else {
+        fast_exp2(r * fast_log2(1.0 - a))
+    }
 }
 
 /// The filtered octree, ready to be sampled.
 pub struct ConeTracer<'a> {
     octree: &'a Octree,
+    locator: Locator,
+    /// Per level, cells per meter.
+    cells_per_m: Vec<f32>,
     levels: &'a [Vec<VoxelRadiance>],
     settings: ConeSettings,
 }
@@ -91,6 +160,10 @@ impl<'a> ConeTracer<'a> {
     ) -> Self {
         ConeTracer {
             octree,
+            locator: Locator::new(octree),
+            cells_per_m: (0..=octree.depth())
+                .map(|l| 1.0 / octree.grid.voxel_m(l))
+                .collect(),
             levels,
             settings,
         }
@@ -100,13 +173,12 @@ impl<'a> ConeTracer<'a> {
     /// toward `toward` (a unit direction); empty outside the grid and where nothing is.
     fn voxel(&self, level: u32, p: Vec3, toward: Vec3) -> (Vec3, f32) {
         let g = &self.octree.grid;
-        let cells = g.cells(level);
-        let c = ((p - g.origin) / g.voxel_m(level)).floor();
-        if c.cmplt(Vec3::ZERO).any() || c.cmpge(Vec3::splat(cells as f32)).any() {
+        let c = (p - g.origin) * self.cells_per_m[level as usize];
+        if c.cmplt(Vec3::ZERO).any() || c.cmpge(Vec3::splat(g.cells(level) as f32)).any() {
             return (Vec3::ZERO, 0.0);
         }
-        let lvl = &self.octree.levels[level as usize];
-        let Some(i) = lvl.find(morton::encode(c.as_uvec3())) else {
+        // Non-negative, so truncation is the floor (a call into libm without SSE4.1).
+        let Some(i) = self.locator.find(self.octree, level, c.as_uvec3()) else {
             return (Vec3::ZERO, 0.0);
         };
         let v = &self.levels[level as usize][i];
@@ -131,29 +203,37 @@ impl<'a> ConeTracer<'a> {
     }
 
     /// The mean radiance arriving at `origin` from the cone around unit `dir` (half-angle
-    /// 30°), W·m⁻²·sr⁻¹, and the number of samples taken.
-    pub fn cone(&self, origin: Vec3, dir: Vec3, n: Vec3) -> (Vec3, u32) {
+    /// 30°), W·m⁻²·sr⁻¹, and the number of samples taken. The cone leaves a surface of
+    /// normal `n` from a voxel `start_m` wide.
+    pub fn cone(&self, origin: Vec3, dir: Vec3, n: Vec3, start_m: f32) -> (Vec3, u32) {
         let g = &self.octree.grid;
         let depth = g.depth;
         let leaf_m = g.voxel_m(depth);
         let max_t = g.size_m * 3f32.sqrt();
-        let mut t = leaf_m;
+        let coarsest = self.settings.coarsest_level.min(depth) as f32;
+        let cos = dir.dot(n).max(0.0);
+        let mut t = start_m;
         let (mut color, mut alpha) = (Vec3::ZERO, 0.0f32);
         let mut samples = 0;
         while t < max_t && alpha < self.settings.opaque {
-            let diameter = (2.0 * t * HALF_ANGLE_TAN).max(leaf_m);
-            // Level whose voxel is the footprint's size: fine ones near, coarse far.
-            let coarsest = self.settings.coarsest_level.min(depth) as f32;
-            // Voxels no larger than the footprint, nor than a fraction of the height over
-            // the surface left (see `voxel_per_height`).
-            let height = t * dir.dot(n).max(0.0) + leaf_m * self.settings.offset_voxels;
+            let diameter = 2.0 * t * HALF_ANGLE_TAN;
+            // Voxels no larger than the footprint (fine ones near, coarse far), nor than a
+            // fraction of the height over the surface left (see `voxel_per_height`).
+            let height = t * cos + start_m * self.settings.offset_voxels;
             let size = diameter
                 .min(self.settings.voxel_per_height * height)
                 .max(leaf_m);
-            let level = (depth as f32 - (size / leaf_m).log2()).clamp(coarsest, depth as f32);
-            let (fine, coarse) = (level.ceil() as u32, level.floor() as u32);
+            let level = (depth as f32 - fast_log2(size / leaf_m)).clamp(coarsest, depth as f32);
+            // Between two levels, both are read and blended.
+            let coarse = level as u32;
             let blend = level - coarse as f32;
+            let fine = if blend > 0.0 { coarse + 1 } else { coarse };
             let p = origin + dir * t;
+            if (p - g.origin).cmplt(Vec3::ZERO).any()
+                || (p - g.origin).cmpge(Vec3::splat(g.size_m)).any()
+            {
+                break; // out of the grid: nothing more to meet
+            }
             let toward = -dir;
             let (c0, a0) = self.voxel(coarse, p, toward);
             let (c1, a1) = if fine == coarse {
@@ -166,7 +246,7 @@ impl<'a> ConeTracer<'a> {
             let step = size * self.settings.step;
             if a > 1e-6 {
                 let voxel_m = g.voxel_m(coarse) * (1.0 - blend) + g.voxel_m(fine) * blend;
-                let corrected = 1.0 - (1.0 - a.min(1.0)).powf(step / voxel_m);
+                let corrected = 1.0 - transmitted(a, step / voxel_m);
                 color += (1.0 - alpha) * c * (corrected / a);
                 alpha += (1.0 - alpha) * corrected;
             }
@@ -176,12 +256,13 @@ impl<'a> ConeTracer<'a> {
         (color, samples)
     }
 
-    /// Irradiance at `origin` over the hemisphere around unit `n`, W·m⁻², and the samples.
-    pub fn irradiance(&self, origin: Vec3, n: Vec3) -> (Vec3, u32) {
+    /// Irradiance at `origin` over the hemisphere around unit `n`, W·m⁻², and the samples,
+    /// for cones leaving a voxel `start_m` wide.
+    pub fn irradiance(&self, origin: Vec3, n: Vec3, start_m: f32) -> (Vec3, u32) {
         let mut e = Vec3::ZERO;
         let mut samples = 0;
         for (dir, weight) in cones(n) {
-            let (l, s) = self.cone(origin, dir, n);
+            let (l, s) = self.cone(origin, dir, n, start_m);
             e += l * weight;
             samples += s;
         }
@@ -192,36 +273,160 @@ impl<'a> ConeTracer<'a> {
 /// What one gather computed.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Gathered {
-    /// Per leaf (the octree's leaf order), the indirect irradiance on its two sides (along
-    /// its normal, then against it), W·m⁻²: the `indirect` input of the next injection.
-    pub irradiance: Vec<[Vec3; 2]>,
+    /// Per level (root first, aligned with the octree's levels), per voxel, the indirect
+    /// irradiance on its two sides (along its [`VoxelSurface::side_normal`], then against
+    /// it), W·m⁻². Voxels that gathered hold what their cones found; voxels above them the
+    /// area-weighted mean of their children; voxels below them their ancestor's, so the
+    /// leaves are the next injection's `indirect` input.
+    pub levels: Vec<Vec<[Vec3; 2]>>,
+    /// Voxels whose cones were traced.
+    pub gathered: u64,
     /// Voxel samples taken by all cones.
     pub samples: u64,
 }
 
-/// Gathers indirect irradiance on both sides of every leaf of `octree` from the filtered
-/// voxels `levels`.
+impl Gathered {
+    /// The leaves' irradiance (the octree's leaf order).
+    pub fn leaves(&self) -> &[[Vec3; 2]] {
+        self.levels.last().map_or(&[], |l| l.as_slice())
+    }
+}
+
+/// A voxel's two sides' values as seen from a voxel of normal `onto`: swapped where the
+/// two normals disagree.
+fn sides_onto(values: [Vec3; 2], from: &VoxelSurface, onto: &VoxelSurface) -> [Vec3; 2] {
+    if from.side_normal().dot(onto.side_normal()) >= 0.0 {
+        values
+    } else {
+        [values[1], values[0]]
+    }
+}
+
+/// The voxels (level, index) whose cones are traced: those `settings.levels_above_leaves`
+/// above the leaves, or their descendants where they are not flat.
+fn gathering_voxels(octree: &Octree, settings: &ConeSettings) -> Vec<(u32, u32)> {
+    let depth = octree.depth();
+    let top = depth.saturating_sub(settings.levels_above_leaves);
+    let mut stack: Vec<(u32, u32)> = (0..octree.levels[top as usize].len() as u32)
+        .rev()
+        .map(|i| (top, i))
+        .collect();
+    let mut out = Vec::new();
+    while let Some((level, i)) = stack.pop() {
+        let l = &octree.levels[level as usize];
+        if level == depth || l.surfaces[i as usize].flatness >= settings.refine_below_flatness {
+            out.push((level, i));
+        } else {
+            let children = l.first_child[i as usize]..l.first_child[i as usize + 1];
+            stack.extend(children.rev().map(|c| (level + 1, c)));
+        }
+    }
+    out
+}
+
+/// Gathers indirect irradiance on both sides of the voxels of `octree` from the filtered
+/// voxels `levels` (see [`Gathered`]).
 pub fn gather(octree: &Octree, levels: &[Vec<VoxelRadiance>], settings: &ConeSettings) -> Gathered {
     let tracer = ConeTracer::new(octree, levels, *settings);
-    let leaf_m = octree.grid.voxel_m(octree.grid.depth);
-    let (irradiance, samples): (Vec<[Vec3; 2]>, Vec<u64>) = octree
-        .leaves()
-        .surfaces
+    let gathering = gathering_voxels(octree, settings);
+    let traced: Vec<([Vec3; 2], u64)> = gathering
         .par_iter()
-        .map(|s| {
+        .map(|&(level, i)| {
+            let s = &octree.levels[level as usize].surfaces[i as usize];
+            let voxel_m = octree.grid.voxel_m(level);
             let n = s.side_normal();
             let mut count = 0u64;
             let e = [n, -n].map(|side| {
-                let origin = s.position + side * (leaf_m * settings.offset_voxels);
-                let (e, k) = tracer.irradiance(origin, side);
+                let origin = s.position + side * (voxel_m * settings.offset_voxels);
+                let (e, k) = tracer.irradiance(origin, side, voxel_m);
                 count += u64::from(k);
                 e
             });
             (e, count)
         })
-        .unzip();
+        .collect();
+    let mut out: Vec<Vec<[Vec3; 2]>> = octree
+        .levels
+        .iter()
+        .map(|l| vec![[Vec3::ZERO; 2]; l.len()])
+        .collect();
+    let mut known: Vec<Vec<bool>> = octree.levels.iter().map(|l| vec![false; l.len()]).collect();
+    for (&(level, i), (e, _)) in gathering.iter().zip(&traced) {
+        out[level as usize][i as usize] = *e;
+        known[level as usize][i as usize] = true;
+    }
+    // Up: a voxel all of whose children are known is their area-weighted mean (voxels
+    // below a gathering one stay unknown).
+    for level in (0..octree.levels.len().saturating_sub(1)).rev() {
+        let (parents, below) = (&octree.levels[level], &octree.levels[level + 1]);
+        for i in 0..parents.len() {
+            let children = parents.first_child[i] as usize..parents.first_child[i + 1] as usize;
+            if known[level][i]
+                || children.is_empty()
+                || !children.clone().all(|c| known[level + 1][c])
+            {
+                continue;
+            }
+            let (mut sum, mut area) = ([Vec3::ZERO; 2], 0.0);
+            for c in children {
+                let child = &below.surfaces[c];
+                let e = sides_onto(out[level + 1][c], child, &parents.surfaces[i]);
+                sum = [sum[0] + e[0] * child.area_m2, sum[1] + e[1] * child.area_m2];
+                area += child.area_m2;
+            }
+            let inv = if area > 0.0 { 1.0 / area } else { 0.0 };
+            out[level][i] = [sum[0] * inv, sum[1] * inv];
+            known[level][i] = true;
+        }
+    }
+    // Down: the rest take their parent's.
+    for level in 1..octree.levels.len() {
+        let (parents, below) = (&octree.levels[level - 1], &octree.levels[level]);
+        for p in 0..parents.len() {
+            for c in parents.first_child[p] as usize..parents.first_child[p + 1] as usize {
+                if !known[level][c] {
+                    out[level][c] =
+                        sides_onto(out[level - 1][p], &parents.surfaces[p], &below.surfaces[c]);
+                    known[level][c] = true;
+                }
+            }
+        }
+    }
     Gathered {
-        irradiance,
-        samples: samples.iter().sum(),
+        levels: out,
+        gathered: gathering.len() as u64,
+        samples: traced.iter().map(|(_, k)| k).sum(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fast_math_is_close_to_libm() {
+        for k in 0..2000 {
+            let x = 1e-6 * 1.02f32.powi(k);
+            assert!((fast_log2(x) - x.log2()).abs() < 1e-5, "log2 {x}");
+        }
+        for k in 0..2000 {
+            let x = -0.01 * k as f32;
+            let (ours, libm) = (fast_exp2(x), x.exp2());
+            assert!(
+                (ours - libm).abs() <= 1e-5 * libm,
+                "exp2 {x}: {ours} vs {libm}"
+            );
+        }
+        for a in [0.0f32, 1e-6, 0.1, 0.5, 0.9, 0.999, 1.0] {
+            for r in [0.25f32, 0.5, 0.75, 1.0, 1.5] {
+                let want = (1.0 - a).powf(r);
+                assert!((transmitted(a, r) - want).abs() < 1e-4, "{a} {r}");
+            }
+        }
+        let cones = cones(Vec3::Z);
+        assert!((cones.iter().map(|c| c.1).sum::<f32>() - std::f32::consts::PI).abs() < 1e-5);
+        for (d, _) in &cones[1..] {
+            assert!((d.dot(Vec3::Z) - 0.5).abs() < 1e-5 && (d.length() - 1.0).abs() < 1e-5);
+        }
     }
 }

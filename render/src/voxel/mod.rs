@@ -29,7 +29,7 @@ use cloudlight_scenes::{Scene, WorldTriangle};
 pub use cone::{ConeSettings, ConeTracer, Gathered, gather};
 pub use filter::filter;
 pub use inject::{DIRECTIONS, InjectSettings, Injection, VoxelRadiance, inject};
-pub use octree::{BYTES_PER_VOXEL, Level, Octree, VoxelSurface};
+pub use octree::{BYTES_PER_VOXEL, DENSE_LEVELS, Level, Locator, Octree, VoxelSurface};
 pub use voxelize::{Fragment, Grid, MAX_DEPTH};
 
 /// How deep an octree may go and how much memory it may take.

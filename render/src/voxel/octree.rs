@@ -4,7 +4,7 @@
 //! voxels) are contiguous. Inner levels aggregate their children exactly, so the root holds
 //! the whole scene's area.
 
-use glam::Vec3;
+use glam::{UVec3, Vec3};
 
 use super::voxelize::{Fragment, Grid};
 
@@ -23,10 +23,14 @@ pub struct VoxelSurface {
     /// Isotropic opacity in [0, 1]: the surface area over the voxel's face area, clamped (a
     /// plane across the voxel blocks it; a sliver barely does).
     pub opacity: f32,
+    /// How much the surfaces in the voxel agree in orientation: the length of the
+    /// area-weighted mean of their (sign-canonical) normals, 1 for a plane, less at a
+    /// corner or on a curve. The gather refines below voxels that are not flat.
+    pub flatness: f32,
 }
 
-/// Bytes a voxel's geometry takes: its code (8), first child (4) and surface (44).
-pub const BYTES_PER_VOXEL: u64 = 8 + 4 + 44;
+/// Bytes a voxel's geometry takes: its code (8), first child (4) and surface (48).
+pub const BYTES_PER_VOXEL: u64 = 8 + 4 + 48;
 
 /// One level of the octree.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -77,6 +81,7 @@ fn surface_of(f: &Fragment, voxel_m: f32) -> VoxelSurface {
         position: f.centroid_area * inv,
         normal: f.normal_area.normalize_or_zero(),
         opacity: (area / (voxel_m * voxel_m)).clamp(0.0, 1.0),
+        flatness: (f.normal_area.length() * inv).clamp(0.0, 1.0),
     }
 }
 
@@ -162,5 +167,74 @@ impl Octree {
         }
         self.grid = self.grid.with_depth(depth);
         self
+    }
+}
+
+/// Levels up to this one are located through a dense table (4 bytes per cell: 8 MiB at
+/// level 7); deeper voxels are found by descending from their ancestor at this level.
+pub const DENSE_LEVELS: u32 = 7;
+
+/// Finds the voxel of any cell in constant time: a dense table of voxel indices per level
+/// down to [`DENSE_LEVELS`], then at most `depth − DENSE_LEVELS` steps down through each
+/// node's (at most eight, contiguous) children. Binary search over the sorted codes cost
+/// two cache-missing searches per cone sample.
+#[derive(Clone, Debug, Default)]
+pub struct Locator {
+    /// Per level (root first, down to the dense limit), per cell in x-fastest order, the
+    /// voxel's index in its level, or `u32::MAX` where the cell is empty.
+    dense: Vec<Vec<u32>>,
+}
+
+const EMPTY: u32 = u32::MAX;
+
+impl Locator {
+    /// The tables of `octree`.
+    pub fn new(octree: &Octree) -> Locator {
+        let dense_depth = octree.depth().min(DENSE_LEVELS);
+        let dense = (0..=dense_depth)
+            .map(|level| {
+                let cells = octree.grid.cells(level) as usize;
+                let mut table = vec![EMPTY; cells * cells * cells];
+                for (i, &code) in octree.levels[level as usize].codes.iter().enumerate() {
+                    let c = super::morton::decode(code);
+                    table[c.x as usize + cells * (c.y as usize + cells * c.z as usize)] = i as u32;
+                }
+                table
+            })
+            .collect();
+        Locator { dense }
+    }
+
+    /// Bytes the tables take.
+    pub fn bytes(&self) -> u64 {
+        self.dense.iter().map(|t| 4 * t.len() as u64).sum()
+    }
+
+    /// The index (in `octree.levels[level]`) of the voxel at `cell` of `level`, if occupied;
+    /// `cell` must lie inside the grid.
+    pub fn find(&self, octree: &Octree, level: u32, cell: UVec3) -> Option<usize> {
+        let dense_level = (self.dense.len() as u32 - 1).min(level);
+        let up = level - dense_level;
+        let top = cell >> up;
+        let cells = octree.grid.cells(dense_level) as usize;
+        let table = &self.dense[dense_level as usize];
+        let mut i = table[top.x as usize + cells * (top.y as usize + cells * top.z as usize)];
+        if i == EMPTY {
+            return None;
+        }
+        for l in dense_level..level {
+            let shift = level - l - 1;
+            let b = (cell >> shift) & UVec3::ONE;
+            let bits = u64::from(b.x | b.y << 1 | b.z << 2);
+            let parent = &octree.levels[l as usize];
+            let below = &octree.levels[l as usize + 1];
+            let range = parent.first_child[i as usize] as usize
+                ..parent.first_child[i as usize + 1] as usize;
+            i = range
+                .into_iter()
+                .find(|&c| below.codes[c] & 7 == bits)
+                .map(|c| c as u32)?;
+        }
+        Some(i as usize)
     }
 }

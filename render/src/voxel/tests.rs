@@ -475,7 +475,7 @@ fn cones_inside_a_uniformly_bright_box_gather_pi_times_its_radiance() {
         .leaves()
         .surfaces
         .iter()
-        .zip(&g.irradiance)
+        .zip(g.leaves())
         .map(|(s, e)| e[inward_side(s, Vec3::splat(0.5))].x / (std::f32::consts::PI * b))
         .collect();
     let (p10, p50, p90) = (
@@ -499,7 +499,7 @@ fn one_bounce_in_a_closed_box_carries_the_reflected_power() {
     let levels = filter(&o, inj.leaves.clone());
     let g = gather(&o, &levels, &ConeSettings::default());
     let mut received = Vec3::ZERO;
-    for (s, e) in o.leaves().surfaces.iter().zip(&g.irradiance) {
+    for (s, e) in o.leaves().surfaces.iter().zip(g.leaves()) {
         received += e[inward_side(s, Vec3::splat(0.5))] * s.area_m2;
         assert!(e[0].is_finite() && e[1].is_finite());
     }
