@@ -1,10 +1,12 @@
 //! Voxel kernels on the Cornell box, each at octree depths 6 and 7: voxelization (static
-//! geometry, done once), light injection, the octree filter and the cone-traced gather.
+//! geometry, done once), light injection, the octree filter, the cone-traced gather, and
+//! encoding and decoding the gathered irradiance as Haar deltas.
 //!
 //! `cargo bench -p cloudlight-render --bench voxels`
 
 use cloudlight_render::voxel::{
-    ConeSettings, InjectSettings, VoxelSettings, Voxelizer, filter, gather, inject,
+    ConeSettings, DeltaDecoder, DeltaEncoder, InjectSettings, TransferSettings, VoxelSettings,
+    Voxelizer, filter, gather, inject,
 };
 use cloudlight_render::{BvhKind, SceneBvh};
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -42,6 +44,34 @@ fn voxels(c: &mut Criterion) {
         );
         group.bench_function(format!("depth {depth}: gather"), |b| {
             b.iter(|| gather(&octree, &levels, &cone))
+        });
+        // Transfer: every update a key update (every voxel that differs from its parent).
+        let transfer = TransferSettings {
+            key_every: 1,
+            ..Default::default()
+        };
+        let mut encoder = DeltaEncoder::new(transfer);
+        let update = encoder.encode(&octree, &g, 0.0);
+        eprintln!(
+            "depth {depth}: a key update is {} B in {} deltas, {} of {} voxels, raw {} B ({:.3})",
+            update.bytes,
+            update.deltas.len(),
+            update.voxels_sent,
+            update.voxels,
+            update.raw_bytes,
+            update.bytes as f64 / update.raw_bytes as f64
+        );
+        group.bench_function(format!("depth {depth}: encode a key update"), |b| {
+            b.iter(|| encoder.encode(&octree, &g, 0.0))
+        });
+        group.bench_function(format!("depth {depth}: decode a key update"), |b| {
+            b.iter(|| {
+                let mut decoder = DeltaDecoder::new();
+                for d in &update.deltas {
+                    decoder.apply(&octree, d).unwrap();
+                }
+                decoder
+            })
         });
     }
     group.finish();

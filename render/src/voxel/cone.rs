@@ -26,7 +26,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::inject::VoxelRadiance;
-use super::octree::{Locator, Octree, VoxelSurface};
+use super::octree::{Locator, Octree};
 use crate::sampling::basis;
 
 /// Cone-tracing settings.
@@ -274,7 +274,7 @@ impl<'a> ConeTracer<'a> {
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Gathered {
     /// Per level (root first, aligned with the octree's levels), per voxel, the indirect
-    /// irradiance on its two sides (along its [`VoxelSurface::side_normal`], then against
+    /// irradiance on its two sides (along its [`side_normal`](super::octree::VoxelSurface::side_normal), then against
     /// it), W·m⁻². Voxels that gathered hold what their cones found; voxels above them the
     /// area-weighted mean of their children; voxels below them their ancestor's, so the
     /// leaves are the next injection's `indirect` input.
@@ -289,16 +289,6 @@ impl Gathered {
     /// The leaves' irradiance (the octree's leaf order).
     pub fn leaves(&self) -> &[[Vec3; 2]] {
         self.levels.last().map_or(&[], |l| l.as_slice())
-    }
-}
-
-/// A voxel's two sides' values as seen from a voxel of normal `onto`: swapped where the
-/// two normals disagree.
-fn sides_onto(values: [Vec3; 2], from: &VoxelSurface, onto: &VoxelSurface) -> [Vec3; 2] {
-    if from.side_normal().dot(onto.side_normal()) >= 0.0 {
-        values
-    } else {
-        [values[1], values[0]]
     }
 }
 
@@ -359,6 +349,7 @@ pub fn gather(octree: &Octree, levels: &[Vec<VoxelRadiance>], settings: &ConeSet
     // below a gathering one stay unknown).
     for level in (0..octree.levels.len().saturating_sub(1)).rev() {
         let (parents, below) = (&octree.levels[level], &octree.levels[level + 1]);
+        let links = octree.parent_links(level + 1);
         for i in 0..parents.len() {
             let children = parents.first_child[i] as usize..parents.first_child[i + 1] as usize;
             if known[level][i]
@@ -370,7 +361,7 @@ pub fn gather(octree: &Octree, levels: &[Vec<VoxelRadiance>], settings: &ConeSet
             let (mut sum, mut area) = ([Vec3::ZERO; 2], 0.0);
             for c in children {
                 let child = &below.surfaces[c];
-                let e = sides_onto(out[level + 1][c], child, &parents.surfaces[i]);
+                let e = links[c].onto(out[level + 1][c]);
                 sum = [sum[0] + e[0] * child.area_m2, sum[1] + e[1] * child.area_m2];
                 area += child.area_m2;
             }
@@ -381,14 +372,11 @@ pub fn gather(octree: &Octree, levels: &[Vec<VoxelRadiance>], settings: &ConeSet
     }
     // Down: the rest take their parent's.
     for level in 1..octree.levels.len() {
-        let (parents, below) = (&octree.levels[level - 1], &octree.levels[level]);
-        for p in 0..parents.len() {
-            for c in parents.first_child[p] as usize..parents.first_child[p + 1] as usize {
-                if !known[level][c] {
-                    out[level][c] =
-                        sides_onto(out[level - 1][p], &parents.surfaces[p], &below.surfaces[c]);
-                    known[level][c] = true;
-                }
+        let (above, here) = out.split_at_mut(level);
+        for (c, link) in octree.parent_links(level).iter().enumerate() {
+            if !known[level][c] {
+                here[0][c] = link.onto(above[level - 1][link.parent as usize]);
+                known[level][c] = true;
             }
         }
     }

@@ -19,6 +19,7 @@ pub mod filter;
 pub mod inject;
 pub mod morton;
 pub mod octree;
+pub mod transfer;
 pub mod voxelize;
 
 #[cfg(test)]
@@ -29,7 +30,11 @@ use cloudlight_scenes::{Scene, WorldTriangle};
 pub use cone::{ConeSettings, ConeTracer, Gathered, gather};
 pub use filter::filter;
 pub use inject::{DIRECTIONS, InjectSettings, Injection, VoxelRadiance, inject};
-pub use octree::{BYTES_PER_VOXEL, DENSE_LEVELS, Level, Locator, Octree, VoxelSurface};
+pub use octree::{BYTES_PER_VOXEL, DENSE_LEVELS, Level, Locator, Octree, ParentLink, VoxelSurface};
+pub use transfer::{
+    DeltaDecoder, DeltaEncoder, DeltaError, EncodedUpdate, FULL_PRECISION, TransferSettings,
+    VoxelDelta,
+};
 pub use voxelize::{Fragment, Grid, MAX_DEPTH};
 
 /// How deep an octree may go and how much memory it may take.

@@ -170,6 +170,43 @@ impl Octree {
     }
 }
 
+/// A voxel's parent, and whether the voxel's two sides are its parent's swapped (their
+/// side normals disagree): how per-side values pass between levels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ParentLink {
+    /// Index of the parent in the level above.
+    pub parent: u32,
+    /// Whether the sides swap.
+    pub flipped: bool,
+}
+
+impl ParentLink {
+    /// Per-side values of one voxel as seen from the other (the relation is symmetric).
+    pub fn onto<T: Copy>(&self, v: [T; 2]) -> [T; 2] {
+        if self.flipped { [v[1], v[0]] } else { v }
+    }
+}
+
+impl Octree {
+    /// For each voxel of `level` (above 0), its [`ParentLink`].
+    pub fn parent_links(&self, level: usize) -> Vec<ParentLink> {
+        let (parents, below) = (&self.levels[level - 1], &self.levels[level]);
+        let mut out = Vec::with_capacity(below.len());
+        for (p, parent) in parents.surfaces.iter().enumerate() {
+            let n = parent.side_normal();
+            for child in &below.surfaces
+                [parents.first_child[p] as usize..parents.first_child[p + 1] as usize]
+            {
+                out.push(ParentLink {
+                    parent: p as u32,
+                    flipped: n.dot(child.side_normal()) < 0.0,
+                });
+            }
+        }
+        out
+    }
+}
+
 /// Levels up to this one are located through a dense table (4 bytes per cell: 8 MiB at
 /// level 7); deeper voxels are found by descending from their ancestor at this level.
 pub const DENSE_LEVELS: u32 = 7;
