@@ -19,7 +19,9 @@ pub mod filter;
 pub mod inject;
 pub mod morton;
 pub mod octree;
+pub mod pass;
 pub mod transfer;
+pub mod volume;
 pub mod voxelize;
 
 #[cfg(test)]
@@ -31,10 +33,12 @@ pub use cone::{ConeSettings, ConeTracer, Gathered, gather};
 pub use filter::filter;
 pub use inject::{DIRECTIONS, InjectSettings, Injection, VoxelRadiance, inject};
 pub use octree::{BYTES_PER_VOXEL, DENSE_LEVELS, Level, Locator, Octree, ParentLink, VoxelSurface};
+pub use pass::VoxelPass;
 pub use transfer::{
     DeltaDecoder, DeltaEncoder, DeltaError, EncodedUpdate, FULL_PRECISION, TransferSettings,
     VoxelDelta,
 };
+pub use volume::{DEFAULT_VOLUME_LEVEL, VoxelVolume, values_at};
 pub use voxelize::{Fragment, Grid, MAX_DEPTH};
 
 /// How deep an octree may go and how much memory it may take.

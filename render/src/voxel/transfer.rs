@@ -641,22 +641,6 @@ impl DeltaDecoder {
     }
 }
 
-/// The leaves' values when only levels down to `level` are trusted (a receiver partway
-/// through an update): each leaf takes its ancestor's at `level`, sides matched.
-pub fn leaves_from(octree: &Octree, levels: &[Vec<[Vec3; 2]>], level: u32) -> Vec<[Vec3; 2]> {
-    let depth = octree.levels.len() - 1;
-    let level = (level as usize).min(depth);
-    let mut current: Vec<[Vec3; 2]> = levels[level].clone();
-    for l in level + 1..=depth {
-        current = octree
-            .parent_links(l)
-            .iter()
-            .map(|link| link.onto(current[link.parent as usize]))
-            .collect();
-    }
-    current
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -824,7 +808,12 @@ mod tests {
         let mut errors = Vec::new();
         for d in &update.deltas {
             dec.apply(&octree, d).unwrap();
-            let shown = leaves_from(&octree, dec.levels(), dec.complete_level().unwrap());
+            let shown = crate::voxel::volume::values_at(
+                &octree,
+                dec.levels(),
+                dec.complete_level().unwrap(),
+                depth as u32,
+            );
             let err: f32 = shown
                 .iter()
                 .zip(&truth)
