@@ -848,6 +848,81 @@ fn the_irradiance_example_topologies_validate_run_and_write_frames_with_light() 
 }
 
 #[test]
+fn the_voxel_example_topologies_run_on_one_node_split_and_as_video_to_thin_clients() {
+    let stage_of = |json: &serde_json::Value, name: &str| {
+        json["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == name)
+            .unwrap_or_else(|| panic!("no stage {name}"))["report"]
+            .clone()
+    };
+    // The frame renderer on the GI node's node, and on each client (deltas over the link).
+    for (file, clients) in [
+        ("voxels-local.toml", vec!["render"]),
+        ("voxels-split.toml", vec!["render[0]", "render[1]"]),
+    ] {
+        let (dir, found) = run_example(file, "2", &clients);
+        for (client, (r, csv)) in clients.iter().zip(found) {
+            assert!(
+                r["updates_complete"].as_u64().unwrap() >= 1,
+                "{file} {client}: {r}"
+            );
+            for refused in [
+                "deltas_rejected",
+                "deltas_foreign",
+                "deltas_out_of_sequence",
+            ] {
+                assert_eq!(r[refused], 0, "{file} {client}: {r}");
+            }
+            assert_eq!(r["indirect_shown"], true, "{file} {client}: {r}");
+            assert!(
+                csv.starts_with(
+                    "frame,scene_time_s,frame_ms,age_ms,voxel_updates,volume_from_level"
+                ),
+                "{csv}"
+            );
+            let folder = dir.path().join(client.replace('[', "-").replace(']', ""));
+            assert!(folder.join("frame_00000.png").exists(), "{file} {client}");
+        }
+        let json = read_json(dir.path().join("metrics.json"));
+        let cones = stage_of(&json, "cones");
+        assert!(cones["updates_sent"].as_u64().unwrap() >= 1, "{cones}");
+        // The deltas cost a fraction of the raw values (the target: at most 1/4).
+        let ratio = cones["ratio_to_raw"].as_f64().unwrap();
+        assert!(ratio > 0.0 && ratio < 0.25, "{cones}");
+        let inject = stage_of(&json, "inject");
+        assert!(inject["bounces_applied"].as_u64().unwrap() >= 1, "{inject}");
+    }
+    // The paper's deployment: frames rendered on a frame node, H.264 to thin clients.
+    let dir = tempfile::tempdir().unwrap();
+    let out = cloudlight()
+        .arg("run")
+        .arg(example("voxels-cloud.toml"))
+        .args(["--duration", "3", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    ok(&out);
+    let json = read_json(dir.path().join("metrics.json"));
+    for i in 0..2 {
+        let render = stage_of(&json, &format!("render[{i}]"));
+        assert!(
+            render["updates_complete"].as_u64().unwrap() >= 1,
+            "{render}"
+        );
+        let viewer = stage_of(&json, &format!("viewer[{i}]"));
+        assert!(
+            viewer["decoder"]["pictures"].as_u64().unwrap() >= 1,
+            "{viewer}"
+        );
+        assert_eq!(viewer["decoder"]["errors"], 0, "{viewer}");
+        assert!(viewer["indirect_shown"].as_bool().unwrap(), "{viewer}");
+    }
+}
+
+#[test]
 fn run_flags_that_cannot_be_durations_are_refused_before_anything_runs() {
     for (flag, value) in [
         ("--duration", "nan"),

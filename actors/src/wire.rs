@@ -96,6 +96,52 @@ pub struct VideoMsg {
     pub data: Vec<u8>,
 }
 
+/// The voxel technique's edges inside the GI node (CloudLight §4.1).
+pub mod voxel {
+    use std::sync::Arc;
+
+    pub use cloudlight_render::voxel::VoxelDelta;
+    use cloudlight_render::voxel::{Octree, VoxelRadiance};
+    use cloudlight_scenes::glam::Vec3;
+    use serde::{Deserialize, Serialize};
+
+    /// `light_injector` → `octree_filter`: the leaves' light of one update. The octree
+    /// travels with it (shared in process; on a cut edge its bytes are what cutting the GI
+    /// node there costs).
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    pub struct InjectedMsg {
+        /// Update number.
+        pub update: u64,
+        /// The octree lit.
+        pub octree: Arc<Octree>,
+        /// Per leaf, its anisotropic radiance and opacity.
+        pub leaves: Vec<VoxelRadiance>,
+    }
+
+    /// `octree_filter` → `cone_tracer`: every level's voxels of one update.
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    pub struct FilteredMsg {
+        /// Update number.
+        pub update: u64,
+        /// The octree lit.
+        pub octree: Arc<Octree>,
+        /// Root first, per voxel.
+        pub levels: Vec<Vec<VoxelRadiance>>,
+    }
+
+    /// `cone_tracer` → `light_injector`: the gathered irradiance on the leaves' two sides,
+    /// reflected by the next injection (one more bounce per update).
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    pub struct BounceMsg {
+        /// Update it was gathered in.
+        pub update: u64,
+        /// Checksum of the octree's structure it belongs to.
+        pub structure: u32,
+        /// Per leaf.
+        pub leaves: Vec<[Vec3; 2]>,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -160,6 +206,59 @@ mod tests {
             steady: true,
             data: vec![0, 0, 0, 1, 0x65, 7],
         });
+    }
+
+    #[test]
+    fn voxel_edge_messages_round_trip() {
+        use cloudlight_render::voxel::{
+            DeltaEncoder, Gathered, VoxelRadiance, VoxelSettings, Voxelizer, transfer,
+        };
+        use cloudlight_scenes::glam::Vec3;
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        let settings = VoxelSettings {
+            max_depth: 2,
+            ..Default::default()
+        };
+        let octree = std::sync::Arc::new(Voxelizer::new(&scene, &settings).octree_at(&scene, 0.0));
+        let n = octree.leaves().len();
+        let leaf = VoxelRadiance {
+            radiance: [Vec3::new(1.0, 2.0, 3.0); 6],
+            opacity: [0.5; 6],
+        };
+        round_trip(voxel::InjectedMsg {
+            update: 3,
+            octree: octree.clone(),
+            leaves: vec![leaf; n],
+        });
+        round_trip(voxel::FilteredMsg {
+            update: 3,
+            octree: octree.clone(),
+            levels: octree.levels.iter().map(|l| vec![leaf; l.len()]).collect(),
+        });
+        round_trip(voxel::BounceMsg {
+            update: 3,
+            structure: transfer::structure_of(&octree),
+            leaves: vec![[Vec3::ONE, Vec3::ZERO]; n],
+        });
+        let gathered = Gathered {
+            levels: octree
+                .levels
+                .iter()
+                .map(|l| vec![[Vec3::splat(0.25), Vec3::ONE]; l.len()])
+                .collect(),
+            ..Default::default()
+        };
+        let update = DeltaEncoder::new(Default::default()).encode(&octree, &gathered, 1.5);
+        for delta in update.deltas {
+            // The payload costs about its bytes, beside a small header.
+            let len = codec::encoded_len(&delta).unwrap() as u64;
+            assert!(
+                len <= delta.wire_bytes() + 16,
+                "{len} bytes for {}",
+                delta.wire_bytes()
+            );
+            round_trip(delta);
+        }
     }
 
     #[test]

@@ -32,7 +32,7 @@ pub const DIRECTIONS: [Vec3; 6] = [
 ];
 
 /// What a voxel sends toward each of [`DIRECTIONS`] and how much it hides along it.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct VoxelRadiance {
     /// Radiance leaving through the voxel's face toward each direction, averaged over the
     /// face (so premultiplied by the coverage), W·m⁻²·sr⁻¹ per channel.

@@ -9,7 +9,7 @@ use glam::{UVec3, Vec3};
 use super::voxelize::{Fragment, Grid};
 
 /// What a voxel holds about the surfaces in it.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct VoxelSurface {
     /// Surface area inside the voxel, m².
     pub area_m2: f32,
@@ -33,7 +33,7 @@ pub struct VoxelSurface {
 pub const BYTES_PER_VOXEL: u64 = 8 + 4 + 48;
 
 /// One level of the octree.
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Level {
     /// Morton codes of the occupied cells, ascending.
     pub codes: Vec<u64>,
@@ -64,7 +64,7 @@ impl Level {
 
 /// A sparse voxel octree over a [`Grid`]: `levels[0]` is the root, `levels[grid.depth]`
 /// the leaves.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Octree {
     /// The cube it subdivides.
     pub grid: Grid,

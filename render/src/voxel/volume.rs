@@ -12,8 +12,10 @@
 //!
 //! The texture is `Rgba16Float`, one slab of N³ per face direction (with an empty slice
 //! between slabs, so filtering never mixes two faces), values divided by a scale that puts
-//! the brightest at 2¹⁴ (any light unit fits f16). Before an update's levels are all in,
-//! the level shown takes its values from the deepest complete one ([`values_at`]).
+//! the brightest at 2¹⁴ (any light unit fits f16). Voxels that hold only their parent's
+//! value (below the voxels that gathered, or below the deepest level of an update that has
+//! arrived) take the filtered lookup of the level above instead, so coarse light shows
+//! smooth rather than as blocks.
 
 use glam::{UVec3, Vec3};
 use half::f16;
@@ -70,6 +72,11 @@ impl VoxelVolume {
 
     /// The volume of `level` of `octree` (its values per level in `values`, trusted down to
     /// `complete`).
+    ///
+    /// A voxel whose value is its parent's (the gather inherits below the voxels that
+    /// traced cones, and levels below `complete` have not arrived) would show as a block of
+    /// one colour; it takes instead the filtered lookup of the level above at its surface,
+    /// level by level from the root, so light is as smooth as the cells that gathered it.
     pub fn new(
         octree: &Octree,
         values: &[Vec<[Vec3; 2]>],
@@ -77,8 +84,35 @@ impl VoxelVolume {
         level: u32,
     ) -> VoxelVolume {
         let level = level.min(octree.depth());
+        let mut shown = values[0].clone();
+        let mut volume = VoxelVolume::of_level(octree, 0, &shown);
+        for l in 1..=level as usize {
+            let surfaces = &octree.levels[l].surfaces;
+            let trusted = l <= complete as usize;
+            shown = octree
+                .parent_links(l)
+                .iter()
+                .enumerate()
+                .map(|(i, link)| {
+                    let own = values[l][i];
+                    let inherited =
+                        !trusted || own == link.onto(values[l - 1][link.parent as usize]);
+                    if inherited {
+                        let (p, n) = (surfaces[i].position, surfaces[i].side_normal());
+                        [volume.irradiance(p, n), volume.irradiance(p, -n)]
+                    } else {
+                        own
+                    }
+                })
+                .collect();
+            volume = VoxelVolume::of_level(octree, l as u32, &shown);
+        }
+        volume
+    }
+
+    /// The volume of `level` holding `here` (per voxel of the level).
+    fn of_level(octree: &Octree, level: u32, here: &[[Vec3; 2]]) -> VoxelVolume {
         let n = octree.grid.cells(level);
-        let here = values_at(octree, values, complete, level);
         let max = here
             .iter()
             .flat_map(|v| [v[0].max_element(), v[1].max_element()])
@@ -88,7 +122,7 @@ impl VoxelVolume {
         let slab = (n as usize).pow(2) * (n as usize + 1);
         let mut texels = vec![[f16::ZERO; 4]; 6 * slab];
         let voxels = &octree.levels[level as usize];
-        for ((code, surface), value) in voxels.codes.iter().zip(&voxels.surfaces).zip(&here) {
+        for ((code, surface), value) in voxels.codes.iter().zip(&voxels.surfaces).zip(here) {
             let c = morton::decode(*code);
             let m = surface.side_normal();
             let at = c.x as usize + n as usize * (c.y as usize + n as usize * c.z as usize);

@@ -14,7 +14,7 @@ use super::morton;
 
 /// The cube an octree subdivides: the scene's bounds, padded so that no surface lies on
 /// its upper faces.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Grid {
     /// Lower corner, meters.
     pub origin: Vec3,
