@@ -510,6 +510,62 @@ fn table2_puts_the_full_frame_baseline_beside_the_photon_cut() {
 }
 
 #[test]
+fn table2_of_voxels_prints_the_papers_voxel_block_beside_ours() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("voxels.json");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "table2",
+            "--technique",
+            "voxels",
+            "--seconds",
+            "2",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--fps",
+            "15",
+            "--set",
+            "max_depth=5",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    ok(&out);
+    for row in [
+        "| cornell (ours) | paper: Cornell Box |",
+        "| Gather |",
+        "| 7 ms |",
+        "| GI voxel memory |",
+        "| 0.13 GB |",
+        "| 2.8 Gbps |",
+        "| 4.2 ms |",
+    ] {
+        assert!(text.contains(row), "{row} missing: {text}");
+    }
+    let c = &read_json(&json)["columns"][0];
+    assert_eq!(c["depth"], 5, "{c}");
+    for key in [
+        "inject_ms",
+        "gather_ms",
+        "memory_mb",
+        "gi_to_frame_mbps",
+        "frame_ms_p50",
+        "encode_ms_p50",
+        "server_to_client_mbps",
+    ] {
+        assert!(c[key].as_f64().unwrap() > 0.0, "{key}: {c}");
+    }
+    let ratio = c["delta_ratio_to_raw"].as_f64().unwrap();
+    assert!(ratio > 0.0 && ratio < 0.25, "{c}");
+    assert!(c["pictures"].as_u64().unwrap() > 0, "{c}");
+}
+
+#[test]
 fn irradiance_benchmarks_print_the_papers_rows_scale_sweep_and_split_the_frame() {
     let dir = tempfile::tempdir().unwrap();
     // Table 2: the Cornell box beside the paper's, a scene without a light map as n/a.
@@ -668,28 +724,25 @@ fn irradiance_benchmarks_print_the_papers_rows_scale_sweep_and_split_the_frame()
 
 #[test]
 fn benchmarks_of_missing_techniques_say_so() {
-    for bench in ["table2", "scaling", "quality", "client"] {
-        let out = cloudlight()
-            .args(["bench", bench, "--technique", "voxels"])
-            .output()
-            .unwrap();
-        assert!(!out.status.success(), "{bench}");
-        assert!(
-            String::from_utf8_lossy(&out.stderr).contains("not implemented yet"),
-            "{bench}"
-        );
-    }
-    for bench in ["quality", "client"] {
-        let out = cloudlight()
-            .args(["bench", bench, "--technique", "photons-video"])
-            .output()
-            .unwrap();
-        assert!(!out.status.success(), "{bench}");
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(
-            err.contains(&format!("`photons-video` has no {bench}")),
-            "{bench}: {err}"
-        );
+    let out = cloudlight()
+        .args(["bench", "table2", "--technique", "rays"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("unknown technique `rays`"));
+    for technique in ["photons-video", "voxels"] {
+        for bench in ["quality", "client"] {
+            let out = cloudlight()
+                .args(["bench", bench, "--technique", technique])
+                .output()
+                .unwrap();
+            assert!(!out.status.success(), "{bench}");
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(
+                err.contains(&format!("`{technique}` has no {bench}")),
+                "{technique} {bench}: {err}"
+            );
+        }
     }
     // A knob the technique lacks is refused before anything runs, naming the known ones.
     for bench in ["table2", "scaling", "quality", "client"] {

@@ -41,6 +41,7 @@ pub mod paper;
 pub mod photons;
 pub mod table;
 pub mod video;
+pub mod voxels;
 
 /// Names of the techniques the benchmarks know, implemented or not (the full-frame baseline
 /// `photons-video` among them).
@@ -48,7 +49,7 @@ pub const TECHNIQUES: [&str; 4] = [
     photons::Photons::NAME,
     baseline::PhotonsVideo::NAME,
     irradiance::Irradiance::NAME,
-    "voxels",
+    voxels::Voxels::NAME,
 ];
 
 /// Something to do with one technique's descriptor: [`with_technique`] calls
@@ -66,12 +67,7 @@ pub fn with_technique<V: Visit>(name: &str, v: V) -> anyhow::Result<V::Out> {
         photons::Photons::NAME => Ok(v.visit::<photons::Photons>()),
         baseline::PhotonsVideo::NAME => Ok(v.visit::<baseline::PhotonsVideo>()),
         irradiance::Irradiance::NAME => Ok(v.visit::<irradiance::Irradiance>()),
-        n if TECHNIQUES.contains(&n) => anyhow::bail!(
-            "technique `{n}` is not implemented yet; benchmarks exist for `{}`, `{}` and `{}`",
-            photons::Photons::NAME,
-            baseline::PhotonsVideo::NAME,
-            irradiance::Irradiance::NAME
-        ),
+        voxels::Voxels::NAME => Ok(v.visit::<voxels::Voxels>()),
         other => anyhow::bail!(
             "unknown technique `{other}` (one of: {})",
             TECHNIQUES.join(", ")

@@ -136,6 +136,36 @@ pub const IRRADIANCE_SCALING_FIGURE: (&str, &str) = (
     "per-user latency essentially constant up to 50 users (new users need no server computation); the server's bandwidth grows linearly with users; the network was never saturated",
 );
 
+/// Table 2's voxel block: (row, one cell per scene of [`SCENES`]).
+pub const VOXELS: [(&str, [&str; 6]); 9] = [
+    (
+        "Indirect (GI GPU)",
+        ["19 ms", "28 ms", "28 ms", "40 ms", "45 ms", "32 ms"],
+    ),
+    (
+        "Light injection",
+        ["11 ms", "9 ms", "13 ms", "20 ms", "26 ms", "19 ms"],
+    ),
+    ("Clear", ["1 ms", "3 ms", "2 ms", "3 ms", "3 ms", "2 ms"]),
+    (
+        "Gather",
+        ["7 ms", "15 ms", "12 ms", "16 ms", "16 ms", "12 ms"],
+    ),
+    (
+        "GI GPU voxel memory",
+        ["0.13 GB", "2.6 GB", "2.2 GB", "2.7 GB", "2.0 GB", "2.8 GB"],
+    ),
+    (
+        "GPU-to-GPU bandwidth",
+        [
+            "2.8 Gbps", "6.7 Gbps", "4.5 Gbps", "6.1 Gbps", "3.7 Gbps", "1.9 Gbps",
+        ],
+    ),
+    VIDEO_FRAMES[0],
+    VIDEO_FRAMES[1],
+    VIDEO_FRAMES[2],
+];
+
 /// Table 2's voxel block, the rows of its final frames streamed as video (the server renders
 /// and encodes each client's frame; the client only decodes, about 1 ms at 1080p).
 pub const VIDEO_FRAMES: [(&str, [&str; 6]); 3] = [

@@ -12,7 +12,7 @@ use cloudlight::render::raster::Raster;
 /// Options of `bench client`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// Technique (`photons`, `irradiance`; `voxels` is not implemented yet).
+    /// Technique (`photons`, `irradiance`; `voxels` has none yet: its client only decodes).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.

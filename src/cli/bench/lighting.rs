@@ -50,8 +50,8 @@ impl Knobs {
 pub struct Table2Args {
     /// Technique: `photons`, `irradiance` (a scene without a light map reads "n/a" with its
     /// reason), or `photons-video` (the photon cut beside the full-frame baseline: each
-    /// client's frame rendered and H.264-encoded in the cloud, a thin client decoding it);
-    /// `voxels` is not implemented yet.
+    /// client's frame rendered and H.264-encoded in the cloud, a thin client decoding it), or
+    /// `voxels` (the GI node shared, each client's frame rendered and encoded in the cloud).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Scenes, comma-separated: `cornell`, `city:N`, a .gltf/.glb file.
@@ -72,11 +72,11 @@ pub struct Table2Args {
     /// Client frame height for the indirect time.
     #[arg(long, default_value_t = 720, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     height: u32,
-    /// `photons-video`: the encoder's target bitrate, Mbit/s (the knob `bitrate_mbps`)
+    /// `photons-video` and `voxels`: the encoder's target bitrate, Mbit/s (the knob `bitrate_mbps`)
     /// [default: 3].
     #[arg(long, value_parser = ranges::closed(0.01, 1000.0, "Mbit/s"))]
     bitrate_mbps: Option<f64>,
-    /// `photons-video`: frames per second the cloud renders and encodes per client, at most
+    /// `photons-video` and `voxels`: frames per second the cloud renders and encodes per client, at most
     /// (the knob `fps`) [default: 30].
     #[arg(long, value_parser = ranges::closed(0.1, 240.0, "fps"))]
     fps: Option<f64>,
@@ -88,7 +88,7 @@ pub struct Table2Args {
 /// Options of `bench scaling`.
 #[derive(clap::Args)]
 pub struct ScalingArgs {
-    /// Technique (`photons`, `irradiance`, `photons-video`; `voxels` is not implemented yet).
+    /// Technique (`photons`, `irradiance`, `photons-video`, `voxels`).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Client counts, comma-separated.
@@ -118,7 +118,7 @@ pub struct ScalingArgs {
 #[derive(clap::Args)]
 pub struct QualityArgs {
     /// Technique (`photons`: budgets in two packings; `irradiance`: bases, rays per basis and
-    /// QP, and per-texel gathering; `voxels` is not implemented yet).
+    /// QP, and per-texel gathering; `voxels` has none yet).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Scene.
