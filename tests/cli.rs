@@ -566,6 +566,49 @@ fn table2_of_voxels_prints_the_papers_voxel_block_beside_ours() {
 }
 
 #[test]
+fn voxel_quality_sweeps_depth_and_precision_and_reports_the_leak() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = cloudlight()
+        .args([
+            "bench",
+            "quality",
+            "--technique",
+            "voxels",
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--spp",
+            "16",
+            "--sweep",
+            "max_depth=4",
+            "--sweep",
+            "mantissa_bits=4,23",
+            "--sweep",
+            "qp=24",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    ok(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("| depth | gather levels up |"), "{text}");
+    let report = read_json(dir.path().join("quality.json"));
+    let points = report["points"].as_array().unwrap();
+    assert_eq!(points.len(), 2, "{report}");
+    for p in points {
+        assert!(p["before"]["relmse"].as_f64().unwrap().is_finite(), "{p}");
+        assert!(p["leak"].as_f64().unwrap() > 0.0, "{p}");
+        assert!(p["gi_mbps"].as_f64().unwrap() > 0.0, "{p}");
+    }
+    // Fewer mantissa bits, fewer bytes.
+    assert!(points[0]["delta_kbytes"].as_f64() < points[1]["delta_kbytes"].as_f64());
+    assert!(dir.path().join("quality.png").metadata().unwrap().len() > 1000);
+    assert!(dir.path().join("reference_indirect.exr").exists());
+}
+
+#[test]
 fn irradiance_benchmarks_print_the_papers_rows_scale_sweep_and_split_the_frame() {
     let dir = tempfile::tempdir().unwrap();
     // Table 2: the Cornell box beside the paper's, a scene without a light map as n/a.

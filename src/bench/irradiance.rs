@@ -704,7 +704,7 @@ pub fn quality(
 }
 
 /// `map` packed, coded as a key frame at `qp` and decoded; the map and the key frame's bytes.
-fn through_h264(map: &HdrMap, qp: u8) -> anyhow::Result<(HdrMap, usize)> {
+pub(super) fn through_h264(map: &HdrMap, qp: u8) -> anyhow::Result<(HdrMap, usize)> {
     let packed = hdr::pack(map)?;
     let mut enc = Encoder::new(EncoderSettings {
         width: map.width(),

@@ -11,13 +11,27 @@ use cloudlight_actors::light_injector::{InjectorParams, InjectorReport};
 use cloudlight_actors::octree_filter::FilterReport;
 use cloudlight_actors::video_client::{VideoClientParams, VideoClientReport};
 use cloudlight_actors::video_encoder::{EncoderParams, EncoderReport};
-use cloudlight_render::voxel::BYTES_PER_VOXEL;
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::Context;
+use cloudlight_render::HdrMap;
+use cloudlight_render::metrics::{ImageErrors, compare};
+use cloudlight_render::raster::{OneFrame, Raster, ShadowSettings};
+use cloudlight_render::voxel::{
+    BYTES_PER_VOXEL, ConeSettings, DeltaDecoder, DeltaEncoder, Gathered, InjectSettings, Octree,
+    TransferSettings, VoxelPass, VoxelSettings, VoxelVolume, Voxelizer, filter, gather, inject,
+    leak,
+};
+use cloudlight_render::{BvhKind, SceneBvh};
+use cloudlight_scenes::Scene;
+use cloudlight_scenes::glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use super::table::Markdown;
 use super::{
-    Bench, CLIENT, ClusterOptions, ClusterRun, Placement, ScalingRow, Side, StageGraph, Technique,
-    mean, paper,
+    Bench, CLIENT, ClusterOptions, ClusterRun, Placement, QualityCommon, QualityView, ScalingRow,
+    Side, StageGraph, Sweep, Technique, mean, paper,
 };
 
 /// The voxel technique.
@@ -263,6 +277,27 @@ impl Technique for Voxels {
         markdown(columns)
     }
 
+    fn default_sweep() -> Sweep {
+        let ints = |v: &[i64]| v.iter().map(|&x| toml::Value::Integer(x)).collect();
+        vec![
+            ("max_depth".into(), ints(&[5, 6, 7])),
+            ("levels_above_leaves".into(), ints(&[1, 2, 3])),
+            ("mantissa_bits".into(), ints(&[4, 8])),
+            ("qp".into(), ints(&[20, 28])),
+        ]
+    }
+
+    fn quality(
+        raster: &Raster,
+        scene: &str,
+        common: &QualityCommon,
+        options: &VoxelOptions,
+        sweep: &Sweep,
+        out: &Path,
+    ) -> anyhow::Result<serde_json::Value> {
+        quality(raster, scene, common, options, sweep, out)
+    }
+
     fn table2_note(o: &VoxelOptions, (width, height): (u32, u32), adapter: &str) -> String {
         format!(
             "1 client over loopback, {width}x{height}; GI updates every {} ms on 2 CPU cores (octree depth up to {}, cones from {} levels above the leaves, \
@@ -398,4 +433,298 @@ pub fn markdown(columns: &[VoxelColumn]) -> String {
         t.row(cells);
     }
     t.render()
+}
+
+/// Gathers fed back into the injection before a quality point is measured: what the
+/// pipeline reaches after as many updates of a static scene.
+pub const QUALITY_BOUNCES: u32 = 8;
+
+/// The voxel light of `scene` at time 0 with `o`: the octree, its gathered irradiance after
+/// [`QUALITY_BOUNCES`] bounces, and the mean update time (inject + filter + gather), ms.
+fn solve(scene: &Scene, bvh: &SceneBvh, o: &VoxelOptions, seed: u64) -> (Octree, Gathered, f64) {
+    let settings = VoxelSettings {
+        max_depth: o.max_depth,
+        budget_bytes: (o.budget_mb * 1024.0 * 1024.0) as u64,
+    };
+    let octree = Voxelizer::new(scene, &settings).octree_at(scene, 0.0);
+    let cone = ConeSettings {
+        levels_above_leaves: o.levels_above_leaves,
+        ..Default::default()
+    };
+    let inject_settings = InjectSettings {
+        samples: o.samples,
+        seed,
+    };
+    let mut g = Gathered::default();
+    let start = Instant::now();
+    for bounce in 0..QUALITY_BOUNCES {
+        let indirect = (bounce > 0).then_some(g.leaves());
+        let injection = inject(&octree, scene, bvh, 0.0, indirect, &inject_settings);
+        g = gather(&octree, &filter(&octree, injection.leaves), &cone);
+    }
+    let ms = start.elapsed().as_secs_f64() * 1e3 / f64::from(QUALITY_BOUNCES);
+    (octree, g, ms)
+}
+
+/// One point of the voxel quality sweep.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct VoxelPoint {
+    /// Octree depth reached.
+    pub depth: u32,
+    /// Cones leave this many levels above the leaves.
+    pub levels_above_leaves: u32,
+    /// Mantissa bits of the deltas.
+    pub mantissa_bits: u32,
+    /// H.264 QP of the client's picture.
+    pub qp: u8,
+    /// Voxels, all levels.
+    pub voxels: u64,
+    /// Update time (inject + filter + gather), mean, ms.
+    pub update_ms: f64,
+    /// A key update's deltas, kB.
+    pub delta_kbytes: f64,
+    /// GI node → frame renderer, Mbit/s: a key update per update at the rate.
+    pub gi_mbps: f64,
+    /// The indirect picture as an H.264 key frame, kB.
+    pub video_kbytes: f64,
+    /// Server → client, Mbit/s: a key frame per update at the rate (an upper bound).
+    pub video_mbps: f64,
+    /// The frame renderer's indirect light against the reference, before H.264.
+    pub before: ImageErrors,
+    /// The same through H.264 at `qp`.
+    pub after: ImageErrors,
+    /// Light leaking through a wall 4 mm thick, per unit of the lit side's.
+    pub leak: f64,
+}
+
+/// The voxel quality sweep: for each octree depth, gathering level and delta precision,
+/// the frame renderer's indirect light (after [`QUALITY_BOUNCES`] bounces, through the
+/// deltas and the volume lookup) against the path tracer's indirect image, before H.264 and
+/// through it at each QP; the update time, the bytes, the leak through a thin wall.
+pub fn quality(
+    raster: &Raster,
+    scene_spec: &str,
+    common: &QualityCommon,
+    options: &VoxelOptions,
+    sweep: &Sweep,
+    out: &Path,
+) -> anyhow::Result<serde_json::Value> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut qps = Vec::new();
+    let mut gi_sweep = Sweep::new();
+    for (key, values) in sweep {
+        match key.as_str() {
+            "qp" => {
+                for v in values {
+                    let qp = v
+                        .as_integer()
+                        .filter(|q| (0..=51).contains(q))
+                        .with_context(|| format!("QP `{v}` is not a whole number 0 to 51"))?;
+                    qps.push(qp as u8);
+                }
+            }
+            "max_depth" | "levels_above_leaves" | "mantissa_bits" | "samples" | "volume_level" => {
+                gi_sweep.push((key.clone(), values.clone()))
+            }
+            other => anyhow::bail!(
+                "the voxel quality sweep varies `max_depth`, `levels_above_leaves`, `mantissa_bits`, `samples`, `volume_level` and `qp`, not `{other}`"
+            ),
+        }
+    }
+    if qps.is_empty() {
+        qps.push(24);
+    }
+    let knobs = toml::Table::try_from(options)?;
+    let settings = super::expand::<Voxels>(&knobs, &gi_sweep)?;
+    let scene = cloudlight_scenes::load(scene_spec)?;
+    eprintln!(
+        "reference: {}x{}, {} spp, indirect only...",
+        common.width, common.height, common.spp
+    );
+    let view = QualityView::new(scene, common.width, common.height, common.spp)?;
+    eprintln!("reference took {:.1} s", view.reference_s);
+    let (w, h) = (common.width, common.height);
+    let exr = |name: String, img: &[Vec3]| {
+        cloudlight_render::image_io::write_exr(&out.join(name), w, h, img)
+    };
+    exr("reference_indirect.exr".into(), &view.reference)?;
+    let walled = leak::thin_wall_scene(0.004);
+    let walled_bvh = SceneBvh::at(&walled, 0.0, BvhKind::default());
+    let shadows = ShadowSettings {
+        size: 16,
+        ..Default::default()
+    };
+    let tris = view.scene.triangles_at(0.0);
+    let mut pass = VoxelPass::new(raster)?;
+    let mut points = Vec::new();
+    for o in &settings {
+        let start = Instant::now();
+        let (octree, g, update_ms) = solve(&view.scene, &view.bvh, o, common.seed);
+        let (walled_octree, walled_g, _) = solve(&walled, &walled_bvh, o, common.seed);
+        let leak = leak::leak(&walled_octree, &walled_g);
+        let mut encoder = DeltaEncoder::new(TransferSettings {
+            mantissa_bits: o.mantissa_bits,
+            key_every: 0,
+        });
+        let update = encoder.encode(&octree, &g, 0.0);
+        let mut decoder = DeltaDecoder::new();
+        for d in &update.deltas {
+            decoder.apply(&octree, d)?;
+        }
+        let volume = VoxelVolume::new(&octree, decoder.levels(), octree.depth(), o.volume_level);
+        pass.set_volume(raster, &volume)?;
+        let frame = OneFrame::new(&view.scene, &tris, &[], &view.camera, (w, h), shadows);
+        let f = raster.read_frame(&frame, &mut pass)?;
+        let mask: Vec<bool> = (0..f.indirect.len())
+            .map(|i| f.gbuffer.covered(i))
+            .collect();
+        let before = compare(&f.indirect, &view.reference, &mask, w, h);
+        let tag = format!(
+            "d{}_a{}_m{}",
+            octree.depth(),
+            o.levels_above_leaves,
+            o.mantissa_bits
+        );
+        exr(format!("indirect_{tag}.exr"), &f.indirect)?;
+        let rate = common.rate_hz.min(1000.0 / update_ms.max(1e-3));
+        let picture = HdrMap::new(w, h, &f.indirect, &mask)?;
+        for &qp in &qps {
+            let (coded, key_bytes) = super::irradiance::through_h264(&picture, qp)?;
+            let image: Vec<Vec3> = coded.texels();
+            exr(format!("indirect_{tag}_qp{qp}.exr"), &image)?;
+            points.push(VoxelPoint {
+                depth: octree.depth(),
+                levels_above_leaves: o.levels_above_leaves,
+                mantissa_bits: o.mantissa_bits,
+                qp,
+                voxels: update.voxels,
+                update_ms,
+                delta_kbytes: update.bytes as f64 / 1e3,
+                gi_mbps: update.bytes as f64 * 8.0 * rate / 1e6,
+                video_kbytes: key_bytes as f64 / 1e3,
+                video_mbps: key_bytes as f64 * 8.0 * rate / 1e6,
+                before,
+                after: compare(&image, &view.reference, &mask, w, h),
+                leak,
+            });
+        }
+        eprintln!(
+            "{tag}: {} voxels, {update_ms:.1} ms/update, {:.1} kB of deltas, relMSE {:.4}, leak {leak:.3} ({:.1} s)",
+            update.voxels,
+            update.bytes as f64 / 1e3,
+            before.relmse,
+            start.elapsed().as_secs_f64()
+        );
+    }
+    println!("{}", quality_markdown(&points));
+    println!(
+        "relMSE of the frame renderer's indirect radiance ({w}x{h}, the volume lookup) against the path tracer's indirect image \
+         ({} spp) of the same view, both divided by the reference's mean luminance over pixels that see geometry, after {QUALITY_BOUNCES} \
+         bounces of a static scene at time 0; \"after\" adds H.264 at the QP (the indirect image as the client would see it in the \
+         picture). Mbps: a key update (deltas) or key frame (video) per update at {} Hz or as fast as the update allows. Leak: the \
+         light voxels give the dark half of a box split by a 4 mm wall, per unit of the lit half's. Paper's Cornell box: 19 ms, \
+         2.8 Gbps GI-to-frame, 3 Mbps video.",
+        common.spp, common.rate_hz
+    );
+    let report = serde_json::json!({ "technique": Voxels::NAME, "scene": scene_spec, "common": common,
+        "options": options, "reference_seconds": view.reference_s, "points": points });
+    let json = out.join("quality.json");
+    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("writing {}", json.display()))?;
+    let png = quality_plot(&out.join("quality.png"), scene_spec, &points)?;
+    println!("wrote {} and {}", json.display(), png.display());
+    Ok(report)
+}
+
+/// The quality table.
+pub fn quality_markdown(points: &[VoxelPoint]) -> String {
+    let mut t = Markdown::new(&[
+        "depth",
+        "gather levels up",
+        "mantissa bits",
+        "voxels",
+        "update ms",
+        "deltas kB",
+        "GI→frame Mbps",
+        "QP",
+        "video kB",
+        "video Mbps (≤)",
+        "relMSE before",
+        "relMSE after",
+        "FLIP after",
+        "energy",
+        "leak",
+    ]);
+    for p in points {
+        t.row(vec![
+            p.depth.to_string(),
+            p.levels_above_leaves.to_string(),
+            p.mantissa_bits.to_string(),
+            p.voxels.to_string(),
+            format!("{:.1}", p.update_ms),
+            format!("{:.1}", p.delta_kbytes),
+            format!("{:.1}", p.gi_mbps),
+            p.qp.to_string(),
+            format!("{:.1}", p.video_kbytes),
+            format!("{:.2}", p.video_mbps),
+            format!("{:.4}", p.before.relmse),
+            format!("{:.4}", p.after.relmse),
+            format!("{:.3}", p.after.flip),
+            format!("{:.3}", p.before.energy_ratio),
+            format!("{:.3}", p.leak),
+        ]);
+    }
+    t.render()
+}
+
+fn quality_plot(
+    path: &Path,
+    scene: &str,
+    points: &[VoxelPoint],
+) -> anyhow::Result<std::path::PathBuf> {
+    use crate::plot::{Marker, ParetoPanel, Series};
+    let mut depths: Vec<u32> = points.iter().map(|p| p.depth).collect();
+    depths.sort_unstable();
+    depths.dedup();
+    let qp = points.first().map_or(0, |p| p.qp);
+    let series = |x: fn(&VoxelPoint) -> f64| -> Vec<Series> {
+        depths
+            .iter()
+            .map(|&d| Series {
+                label: format!("depth {d} (before H.264)"),
+                points: points
+                    .iter()
+                    .filter(|p| p.depth == d && p.qp == qp)
+                    .map(|p| {
+                        (
+                            x(p),
+                            p.before.relmse,
+                            format!("↑{} {}b", p.levels_above_leaves, p.mantissa_bits),
+                        )
+                    })
+                    .collect(),
+            })
+            .collect()
+    };
+    crate::plot::pareto(
+        path,
+        &format!("Voxels, {scene}: error against GI-to-frame bandwidth and update time"),
+        &[
+            ParetoPanel {
+                x_label: "GI-to-frame Mbps (a key update per update)".into(),
+                y_label: "relMSE (scale-invariant)".into(),
+                series: series(|p| p.gi_mbps),
+                marker: None,
+            },
+            ParetoPanel {
+                x_label: "update ms (inject + filter + gather)".into(),
+                y_label: "relMSE (scale-invariant)".into(),
+                series: series(|p| p.update_ms),
+                marker: Some(Marker {
+                    x: 19.0,
+                    label: "paper: 19 ms per update (Cornell box)".into(),
+                }),
+            },
+        ],
+    )
 }

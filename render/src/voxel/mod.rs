@@ -17,6 +17,7 @@ pub mod clip;
 pub mod cone;
 pub mod filter;
 pub mod inject;
+pub mod leak;
 pub mod morton;
 pub mod octree;
 pub mod pass;

@@ -118,7 +118,8 @@ pub struct ScalingArgs {
 #[derive(clap::Args)]
 pub struct QualityArgs {
     /// Technique (`photons`: budgets in two packings; `irradiance`: bases, rays per basis and
-    /// QP, and per-texel gathering; `voxels` has none yet).
+    /// QP, and per-texel gathering; `voxels`: octree depth, gathering level, delta precision and
+    /// QP, with the leak through a thin wall).
     #[arg(long, default_value = "photons")]
     technique: String,
     /// Scene.
@@ -129,7 +130,8 @@ pub struct QualityArgs {
     #[arg(long, value_delimiter = ',', value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     budgets: Vec<u64>,
     /// Sweeps a knob, `key=v1,v2,...` (repeatable; the technique says how sweeps combine;
-    /// irradiance: `texels_per_basis`, `rays_per_basis`, `qp`, every combination) [default:
+    /// irradiance: `texels_per_basis`, `rays_per_basis`, `qp`; voxels: `max_depth`,
+    /// `levels_above_leaves`, `mantissa_bits`, `qp`; every combination) [default:
     /// the technique's own sweep].
     #[arg(long, value_name = "KEY=V1,V2,...", value_parser = bench::parse_sweep)]
     sweep: Vec<(String, Vec<toml::Value>)>,
