@@ -18,8 +18,8 @@ use serde::{Deserialize, Serialize};
 use super::photons::{PhotonColumn, PhotonOptions, Photons, table2_column};
 use super::table::Markdown;
 use super::{
-    Bench, CLIENT, ClusterOptions, ClusterRun, Placement, ScalingRow, Side, StageGraph, Technique,
-    mean, paper,
+    Bench, CLIENT, ClusterOptions, ClusterRun, Placement, ScalingRow, ServerCost, Side, StageGraph,
+    Technique, frame_and_encode_ms, paper,
 };
 
 /// The full-frame baseline: the photon technique with each client's frame rendered and
@@ -127,25 +127,13 @@ impl Technique for PhotonsVideo {
         let render: Vec<ClientReport<PhotonClientReport>> = run.per_client("render")?;
         let encode: Vec<EncoderReport> = run.per_client("encode")?;
         let shown: Vec<ClientReport<VideoClientReport>> = run.per_client(CLIENT)?;
-        Ok(ScalingRow {
-            clients,
-            server_update_ms: server.iteration_ms_mean,
-            server_kernel_ms: server.trace_ms_mean * server.batches as f64,
-            server_per_client_ms: (clients > 0).then(|| {
-                mean(
-                    render
-                        .iter()
-                        .zip(&encode)
-                        .map(|(r, e)| r.frame_ms_p50 + e.encode_ms_p50),
-                )
-            }),
+        let cost = ServerCost {
+            update_ms: server.iteration_ms_mean,
+            kernel_ms: server.trace_ms_mean * server.batches as f64,
             updates: server.iterations,
-            total_wire_mbps: run.wire_mbps(),
-            total_payload_mbps: run.payload_mbps(),
-            age_ms_p50_mean: mean(shown.iter().map(|c| c.age_ms_p50)),
-            age_ms_p99_max: shown.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
-            clients_showing_indirect: shown.iter().filter(|c| c.indirect_shown).count(),
-        })
+            per_client_ms: frame_and_encode_ms(&render, &encode),
+        };
+        Ok(ScalingRow::of(run, clients, cost, &shown))
     }
 
     fn scaling_figure() -> (&'static str, &'static str) {

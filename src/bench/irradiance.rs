@@ -26,7 +26,7 @@ use super::client::{ClientBench, ClientBenchOptions};
 use super::table::{Markdown, bytes, count};
 use super::{
     Bench, CLIENT, ClusterOptions, ClusterRun, Placement, QualityCommon, QualityView, Row,
-    ScalingRow, Side, StageGraph, Sweep, Technique, beside_paper, mean, paper,
+    ScalingRow, ServerCost, Side, StageGraph, Sweep, Technique, beside_paper, paper,
 };
 
 /// The irradiance-map technique.
@@ -165,18 +165,13 @@ impl Technique for Irradiance {
     fn scaling_row(run: &ClusterRun, clients: usize) -> anyhow::Result<ScalingRow> {
         let g: GathererReport = run.report("gather")?;
         let shown: Vec<ClientReport<IrradianceClientReport>> = run.per_client(CLIENT)?;
-        Ok(ScalingRow {
-            clients,
-            server_update_ms: g.update_ms_mean,
-            server_kernel_ms: g.update_ms_mean,
-            server_per_client_ms: None,
+        let cost = ServerCost {
+            update_ms: g.update_ms_mean,
+            kernel_ms: g.update_ms_mean,
             updates: g.updates,
-            total_wire_mbps: run.wire_mbps(),
-            total_payload_mbps: run.payload_mbps(),
-            age_ms_p50_mean: mean(shown.iter().map(|c| c.age_ms_p50)),
-            age_ms_p99_max: shown.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
-            clients_showing_indirect: shown.iter().filter(|c| c.indirect_shown).count(),
-        })
+            per_client_ms: None,
+        };
+        Ok(ScalingRow::of(run, clients, cost, &shown))
     }
 
     fn scaling_figure() -> (&'static str, &'static str) {

@@ -625,6 +625,59 @@ pub struct ScalingRow {
     pub clients_showing_indirect: usize,
 }
 
+/// What a scaling row says of the server.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ServerCost {
+    /// Time per update, mean, ms.
+    pub update_ms: f64,
+    /// Of which the lighting kernel, ms.
+    pub kernel_ms: f64,
+    /// Updates done.
+    pub updates: u64,
+    /// Server time paid per client frame, ms (`None`: nothing is per client).
+    pub per_client_ms: Option<f64>,
+}
+
+impl ScalingRow {
+    /// The row of `run` with `clients`: the server's figures, the cut's megabits per second
+    /// and the ages of the light the clients (`shown`, their reports) showed.
+    pub fn of<R>(
+        run: &ClusterRun,
+        clients: usize,
+        server: ServerCost,
+        shown: &[cloudlight_actors::client::ClientReport<R>],
+    ) -> ScalingRow {
+        ScalingRow {
+            clients,
+            server_update_ms: server.update_ms,
+            server_kernel_ms: server.kernel_ms,
+            server_per_client_ms: server.per_client_ms,
+            updates: server.updates,
+            total_wire_mbps: run.wire_mbps(),
+            total_payload_mbps: run.payload_mbps(),
+            age_ms_p50_mean: mean(shown.iter().map(|c| c.age_ms_p50)),
+            age_ms_p99_max: shown.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
+            clients_showing_indirect: shown.iter().filter(|c| c.indirect_shown).count(),
+        }
+    }
+}
+
+/// A frame rendered and encoded in the cloud per client: frame p50 + encode p50, averaged
+/// over the clients (`None` without clients).
+pub fn frame_and_encode_ms<R>(
+    render: &[cloudlight_actors::client::ClientReport<R>],
+    encode: &[cloudlight_actors::video_encoder::EncoderReport],
+) -> Option<f64> {
+    (!render.is_empty()).then(|| {
+        mean(
+            render
+                .iter()
+                .zip(encode)
+                .map(|(r, e)| r.frame_ms_p50 + e.encode_ms_p50),
+        )
+    })
+}
+
 /// The mean of `values` (0 when empty).
 pub fn mean(values: impl IntoIterator<Item = f64>) -> f64 {
     let (sum, n) = values

@@ -22,8 +22,8 @@ use serde::{Deserialize, Serialize};
 use super::client::{ClientBench, ClientBenchOptions};
 use super::table::{Markdown, bytes, count, short};
 use super::{
-    Bench, CLIENT, ClusterOptions, ClusterRun, Placement, QualityCommon, Row, ScalingRow, Side,
-    StageGraph, Sweep, Technique, beside_paper, mean, paper,
+    Bench, CLIENT, ClusterOptions, ClusterRun, Placement, QualityCommon, Row, ScalingRow,
+    ServerCost, Side, StageGraph, Sweep, Technique, beside_paper, paper,
 };
 
 /// The photon technique.
@@ -128,18 +128,13 @@ impl Technique for Photons {
     fn scaling_row(run: &ClusterRun, clients: usize) -> anyhow::Result<ScalingRow> {
         let server: BatcherReport = run.report("server")?;
         let reports: Vec<ClientReport<PhotonClientReport>> = run.per_client(CLIENT)?;
-        Ok(ScalingRow {
-            clients,
-            server_update_ms: server.iteration_ms_mean,
-            server_kernel_ms: server.trace_ms_mean * server.batches as f64,
-            server_per_client_ms: None,
+        let cost = ServerCost {
+            update_ms: server.iteration_ms_mean,
+            kernel_ms: server.trace_ms_mean * server.batches as f64,
             updates: server.iterations,
-            total_wire_mbps: run.wire_mbps(),
-            total_payload_mbps: run.payload_mbps(),
-            age_ms_p50_mean: mean(reports.iter().map(|c| c.age_ms_p50)),
-            age_ms_p99_max: reports.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
-            clients_showing_indirect: reports.iter().filter(|c| c.indirect_shown).count(),
-        })
+            per_client_ms: None,
+        };
+        Ok(ScalingRow::of(run, clients, cost, &reports))
     }
 
     fn scaling_figure() -> (&'static str, &'static str) {

@@ -31,7 +31,7 @@ use serde::{Deserialize, Serialize};
 use super::table::Markdown;
 use super::{
     Bench, CLIENT, ClusterOptions, ClusterRun, Placement, QualityCommon, QualityView, ScalingRow,
-    Side, StageGraph, Sweep, Technique, mean, paper,
+    ServerCost, Side, StageGraph, Sweep, Technique, frame_and_encode_ms, paper,
 };
 
 /// The voxel technique.
@@ -195,25 +195,13 @@ impl Technique for Voxels {
         let render: Vec<ClientReport<FrameRendererReport>> = run.per_client("render")?;
         let encode: Vec<EncoderReport> = run.per_client("encode")?;
         let shown: Vec<ClientReport<VideoClientReport>> = run.per_client(CLIENT)?;
-        Ok(ScalingRow {
-            clients,
-            server_update_ms: inject.inject_ms_mean + filter.filter_ms_p50 + cones.gather_ms_mean,
-            server_kernel_ms: cones.gather_ms_mean,
-            server_per_client_ms: (clients > 0).then(|| {
-                mean(
-                    render
-                        .iter()
-                        .zip(&encode)
-                        .map(|(r, e)| r.frame_ms_p50 + e.encode_ms_p50),
-                )
-            }),
+        let cost = ServerCost {
+            update_ms: inject.inject_ms_mean + filter.filter_ms_p50 + cones.gather_ms_mean,
+            kernel_ms: cones.gather_ms_mean,
             updates: cones.updates,
-            total_wire_mbps: run.wire_mbps(),
-            total_payload_mbps: run.payload_mbps(),
-            age_ms_p50_mean: mean(shown.iter().map(|c| c.age_ms_p50)),
-            age_ms_p99_max: shown.iter().map(|c| c.age_ms_p99).fold(0.0, f64::max),
-            clients_showing_indirect: shown.iter().filter(|c| c.indirect_shown).count(),
-        })
+            per_client_ms: frame_and_encode_ms(&render, &encode),
+        };
+        Ok(ScalingRow::of(run, clients, cost, &shown))
     }
 
     fn scaling_figure() -> (&'static str, &'static str) {

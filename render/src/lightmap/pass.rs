@@ -8,6 +8,7 @@
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 
 use crate::hdr_map::HdrMap;
+use crate::raster::pass::{CachedBindGroup, draw_fullscreen};
 use crate::raster::pipelines::{
     D2, FRAGMENT, UINT, buffer_entry, fullscreen_pipeline, layout, pipeline_layout, texture_entry,
 };
@@ -94,8 +95,8 @@ pub struct LightmapPass {
     map: Option<MapTexture>,
     /// Bumped when the map's texture is made anew (bind groups name its view).
     generation: u64,
-    /// (frame renderer, map generation) the bind group was made for.
-    bound: Option<(u64, u64, wgpu::BindGroup)>,
+    /// The bind group, per frame renderer and map generation.
+    bound: CachedBindGroup,
 }
 
 impl LightmapPass {
@@ -111,7 +112,7 @@ impl LightmapPass {
             }),
             map: None,
             generation: 0,
-            bound: None,
+            bound: CachedBindGroup::default(),
         })
     }
 
@@ -198,15 +199,13 @@ impl IndirectPass for LightmapPass {
             clear_pass(enc, "no light map yet", ctx.indirect);
             return Ok(());
         };
-        let current =
-            |b: &(u64, u64, wgpu::BindGroup)| b.0 == ctx.renderer_id && b.1 == self.generation;
-        if !self.bound.as_ref().is_some_and(current) {
+        let group = self.bound.get(ctx.renderer_id, self.generation, || {
             let g = ctx.gbuffer;
             let tex = |binding, view| wgpu::BindGroupEntry {
                 binding,
                 resource: wgpu::BindingResource::TextureView(view),
             };
-            let group = raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("lightmap lookup"),
                 layout: &self.pipelines.layout,
                 entries: &[
@@ -223,14 +222,9 @@ impl IndirectPass for LightmapPass {
                         resource: wgpu::BindingResource::Sampler(&self.pipelines.sampler),
                     },
                 ],
-            });
-            self.bound = Some((ctx.renderer_id, self.generation, group));
-        }
-        let (.., group) = self.bound.as_ref().expect("bound above");
-        let mut pass = clear_pass(enc, "lightmap lookup", ctx.indirect);
-        pass.set_pipeline(&self.pipelines.lookup);
-        pass.set_bind_group(0, group, &[]);
-        pass.draw(0..3, 0..1);
+            })
+        });
+        draw_fullscreen(enc, "lightmap lookup", ctx, &self.pipelines.lookup, group);
         Ok(())
     }
 }

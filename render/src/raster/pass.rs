@@ -40,6 +40,41 @@ pub trait IndirectPass: Send {
     ) -> Result<(), RasterError>;
 }
 
+/// The bind group of a technique's full-screen pass, kept until the frame renderer (whose
+/// G-buffer it names) or the pass's own resources (`generation`) change.
+#[derive(Default)]
+pub(crate) struct CachedBindGroup(Option<(u64, u64, wgpu::BindGroup)>);
+
+impl CachedBindGroup {
+    /// The group for `renderer_id` and `generation`, made by `make` when it is not the one kept.
+    pub(crate) fn get(
+        &mut self,
+        renderer_id: u64,
+        generation: u64,
+        make: impl FnOnce() -> wgpu::BindGroup,
+    ) -> &wgpu::BindGroup {
+        let current = matches!(&self.0, Some((r, g, _)) if *r == renderer_id && *g == generation);
+        if !current {
+            self.0 = Some((renderer_id, generation, make()));
+        }
+        &self.0.as_ref().expect("kept above").2
+    }
+}
+
+/// Clears `ctx.indirect` and draws the full-screen triangle with `pipeline` and `group`.
+pub(crate) fn draw_fullscreen(
+    enc: &mut wgpu::CommandEncoder,
+    label: &str,
+    ctx: &IndirectContext<'_>,
+    pipeline: &wgpu::RenderPipeline,
+    group: &wgpu::BindGroup,
+) {
+    let mut pass = clear_pass(enc, label, ctx.indirect);
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, group, &[]);
+    pass.draw(0..3, 0..1);
+}
+
 /// No indirect light (direct-only frames).
 pub struct NoIndirect;
 

@@ -5,6 +5,7 @@
 //! every pixel gets no indirect light. The pass owns its pipeline ([`LookupPipelines`],
 //! built once per device).
 
+use crate::raster::pass::{CachedBindGroup, draw_fullscreen};
 use crate::raster::pipelines::{
     FRAGMENT, UINT, buffer_entry, fullscreen_pipeline, layout, pipeline_layout, texture_entry,
 };
@@ -94,8 +95,8 @@ pub struct VoxelPass {
     volume: Option<VolumeTexture>,
     /// Bumped when the texture is made anew (bind groups name its view).
     generation: u64,
-    /// (frame renderer, texture generation) the bind group was made for.
-    bound: Option<(u64, u64, wgpu::BindGroup)>,
+    /// The bind group, per frame renderer and texture generation.
+    bound: CachedBindGroup,
 }
 
 impl VoxelPass {
@@ -111,7 +112,7 @@ impl VoxelPass {
             }),
             volume: None,
             generation: 0,
-            bound: None,
+            bound: CachedBindGroup::default(),
         })
     }
 
@@ -199,15 +200,13 @@ impl IndirectPass for VoxelPass {
             clear_pass(enc, "no voxel volume yet", ctx.indirect);
             return Ok(());
         };
-        let current =
-            |b: &(u64, u64, wgpu::BindGroup)| b.0 == ctx.renderer_id && b.1 == self.generation;
-        if !self.bound.as_ref().is_some_and(current) {
+        let group = self.bound.get(ctx.renderer_id, self.generation, || {
             let g = ctx.gbuffer;
             let tex = |binding, view| wgpu::BindGroupEntry {
                 binding,
                 resource: wgpu::BindingResource::TextureView(view),
             };
-            let group = raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("voxel lookup"),
                 layout: &self.pipelines.layout,
                 entries: &[
@@ -224,14 +223,9 @@ impl IndirectPass for VoxelPass {
                         resource: wgpu::BindingResource::Sampler(&self.pipelines.sampler),
                     },
                 ],
-            });
-            self.bound = Some((ctx.renderer_id, self.generation, group));
-        }
-        let (.., group) = self.bound.as_ref().expect("bound above");
-        let mut pass = clear_pass(enc, "voxel lookup", ctx.indirect);
-        pass.set_pipeline(&self.pipelines.lookup);
-        pass.set_bind_group(0, group, &[]);
-        pass.draw(0..3, 0..1);
+            })
+        });
+        draw_fullscreen(enc, "voxel lookup", ctx, &self.pipelines.lookup, group);
         Ok(())
     }
 }
