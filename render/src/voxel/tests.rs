@@ -626,10 +626,12 @@ fn the_whole_chain_at_extremes_never_gives_nan_and_scales_with_the_light() {
     }
     // Depth 1 (8 leaves at most) and one triangle under a bulb: no panic, nothing NaN.
     whole_chain(&bulb_in_a_box(1.0), 1);
-    let mut one = Mesh::default();
-    one.positions = vec![Vec3::ZERO, Vec3::X, Vec3::Z];
-    one.normals = vec![Vec3::Y; 3];
-    one.indices = vec![[0, 2, 1]];
+    let one = Mesh {
+        positions: vec![Vec3::ZERO, Vec3::X, Vec3::Z],
+        normals: vec![Vec3::Y; 3],
+        indices: vec![[0, 2, 1]],
+        ..Default::default()
+    };
     let mut s = scene_of(
         vec![object("one", one, 0)],
         vec![Material::diffuse("grey", Vec3::splat(0.5))],
