@@ -566,7 +566,7 @@ fn table2_of_voxels_prints_the_papers_voxel_block_beside_ours() {
 }
 
 #[test]
-fn voxel_quality_sweeps_depth_and_precision_and_reports_the_leak() {
+fn voxel_quality_sweeps_depth_cones_precision_and_bitrate_and_reports_the_leak() {
     let dir = tempfile::tempdir().unwrap();
     let out = cloudlight()
         .args([
@@ -585,7 +585,11 @@ fn voxel_quality_sweeps_depth_and_precision_and_reports_the_leak() {
             "--sweep",
             "mantissa_bits=4,23",
             "--sweep",
+            "cones=1,6",
+            "--sweep",
             "qp=24",
+            "--sweep",
+            "bitrate_mbps=0.2",
             "--out",
         ])
         .arg(dir.path())
@@ -593,17 +597,42 @@ fn voxel_quality_sweeps_depth_and_precision_and_reports_the_leak() {
         .unwrap();
     ok(&out);
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(text.contains("| depth | gather levels up |"), "{text}");
+    assert!(
+        text.contains("| depth | gather levels up | cones |"),
+        "{text}"
+    );
     let report = read_json(dir.path().join("quality.json"));
     let points = report["points"].as_array().unwrap();
-    assert_eq!(points.len(), 2, "{report}");
+    assert_eq!(points.len(), 8, "{report}");
+    let at = |bits: u64, cones: u64, video: &str| {
+        points
+            .iter()
+            .find(|p| p["mantissa_bits"] == bits && p["cones"] == cones && p["video"] == video)
+            .unwrap_or_else(|| panic!("no point {bits} bits, {cones} cones, {video}: {report}"))
+    };
     for p in points {
         assert!(p["before"]["relmse"].as_f64().unwrap().is_finite(), "{p}");
+        assert!(p["after"]["relmse"].as_f64().unwrap().is_finite(), "{p}");
         assert!(p["leak"].as_f64().unwrap() > 0.0, "{p}");
         assert!(p["gi_mbps"].as_f64().unwrap() > 0.0, "{p}");
+        assert!(p["video_mbps"].as_f64().unwrap() > 0.0, "{p}");
     }
-    // Fewer mantissa bits, fewer bytes.
-    assert!(points[0]["delta_kbytes"].as_f64() < points[1]["delta_kbytes"].as_f64());
+    for cones in [1, 6] {
+        // Fewer mantissa bits, fewer bytes.
+        assert!(
+            at(4, cones, "QP 24")["delta_kbytes"].as_f64()
+                < at(23, cones, "QP 24")["delta_kbytes"].as_f64()
+        );
+    }
+    // The cone count changes what is gathered.
+    assert_ne!(
+        at(23, 1, "QP 24")["before"]["relmse"],
+        at(23, 6, "QP 24")["before"]["relmse"]
+    );
+    // Rate control keeps a second of the still view near its target (0.2 Mbps; openh264
+    // overshoots on the key frame of a tiny picture, so within a factor).
+    let mbps = at(23, 6, "0.2 Mbps")["video_mbps"].as_f64().unwrap();
+    assert!(mbps < 0.6, "{mbps} Mbps");
     assert!(dir.path().join("quality.png").metadata().unwrap().len() > 1000);
     assert!(dir.path().join("reference_indirect.exr").exists());
 }

@@ -12,7 +12,7 @@
 //! every delta matters, so its edges should `block`), out [`BOUNCE`] (BounceMsg).
 
 use cloudlight_render::voxel::{
-    ConeSettings, DeltaEncoder, FULL_PRECISION, TransferSettings, gather, transfer,
+    ConeSettings, DeltaEncoder, FULL_PRECISION, MAX_CONES, TransferSettings, gather, transfer,
 };
 use cloudlight_runtime::{
     CheckParams, EdgeSettings, Input, Latency, Policy, Port, Stage, StageCtx, StageKind,
@@ -44,6 +44,8 @@ pub struct ConeTracerParams {
     pub levels_above_leaves: u32,
     /// Below this flatness, finer voxels gather instead.
     pub refine_below_flatness: f32,
+    /// Cones per side of a gathering voxel (6: the classic 60° set; 1 to 64).
+    pub cones: u32,
     /// Mantissa bits of the sent irradiance (23: exact).
     pub mantissa_bits: u32,
     /// Every this many updates all voxels are sent (0: only the first).
@@ -56,6 +58,7 @@ impl Default for ConeTracerParams {
         ConeTracerParams {
             levels_above_leaves: c.levels_above_leaves,
             refine_below_flatness: c.refine_below_flatness,
+            cones: c.cones,
             mantissa_bits: t.mantissa_bits,
             key_every: t.key_every,
         }
@@ -70,6 +73,13 @@ impl CheckParams for ConeTracerParams {
             0.0,
             8.0,
             "levels",
+        )?;
+        check_range(
+            "cones",
+            self.cones as f64,
+            1.0,
+            f64::from(MAX_CONES),
+            "cones",
         )?;
         check_range(
             "refine_below_flatness",
@@ -145,6 +155,7 @@ impl ConeTracer {
             cone: ConeSettings {
                 levels_above_leaves: params.levels_above_leaves,
                 refine_below_flatness: params.refine_below_flatness,
+                cones: params.cones,
                 ..Default::default()
             },
             encoder: DeltaEncoder::new(TransferSettings {

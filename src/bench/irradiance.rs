@@ -700,23 +700,42 @@ pub fn quality(
 
 /// `map` packed, coded as a key frame at `qp` and decoded; the map and the key frame's bytes.
 pub(super) fn through_h264(map: &HdrMap, qp: u8) -> anyhow::Result<(HdrMap, usize)> {
+    through_h264_at(map, RateControl::FixedQp(qp), 1, 30.0)
+}
+
+/// `map` as `frames` frames of a still H.264 stream at `fps` under `rate` (packed by
+/// [`hdr::pack`]): the last picture decoded, and the mean bytes per frame (the key frame
+/// and the frames refining it).
+pub(super) fn through_h264_at(
+    map: &HdrMap,
+    rate: RateControl,
+    frames: u32,
+    fps: f64,
+) -> anyhow::Result<(HdrMap, usize)> {
     let packed = hdr::pack(map)?;
     let mut enc = Encoder::new(EncoderSettings {
         width: map.width(),
         height: map.height(),
-        rate: RateControl::FixedQp(qp),
+        rate,
+        fps: fps as f32,
         ..Default::default()
     })?;
-    let unit = enc
-        .encode(&packed.yuv, 0.0)?
-        .context("the encoder skipped the map")?;
-    let picture = Decoder::new()?
-        .decode(&unit.data)?
-        .context("the decoder showed no map")?;
+    let mut decoder = Decoder::new()?;
+    let (mut bytes, mut last) = (0, None);
+    for f in 0..frames.max(1) {
+        let unit = enc
+            .encode(&packed.yuv, f64::from(f) / fps)?
+            .context("the encoder skipped the map")?;
+        bytes += unit.data.len();
+        if let Some(picture) = decoder.decode(&unit.data)? {
+            last = Some(picture);
+        }
+    }
+    let picture = last.context("the decoder showed no map")?;
     let texels = hdr::unpack(&picture, packed.range);
     Ok((
         HdrMap::new(map.width(), map.height(), &texels, &[])?,
-        unit.data.len(),
+        bytes / frames.max(1) as usize,
     ))
 }
 

@@ -18,6 +18,7 @@ use anyhow::Context;
 use cloudlight_render::HdrMap;
 use cloudlight_render::metrics::{ImageErrors, compare};
 use cloudlight_render::raster::{OneFrame, Raster, ShadowSettings};
+use cloudlight_render::video::RateControl;
 use cloudlight_render::voxel::{
     BYTES_PER_VOXEL, ConeSettings, DeltaDecoder, DeltaEncoder, Gathered, InjectSettings, Octree,
     TransferSettings, VoxelPass, VoxelSettings, VoxelVolume, Voxelizer, filter, gather, inject,
@@ -51,6 +52,8 @@ pub struct VoxelOptions {
     pub interval_ms: f64,
     /// Cones leave this many levels above the leaves.
     pub levels_above_leaves: u32,
+    /// Cones per side of a gathering voxel.
+    pub cones: u32,
     /// Mantissa bits of the deltas.
     pub mantissa_bits: u32,
     /// Updates between key updates.
@@ -82,6 +85,7 @@ impl Default for VoxelOptions {
             samples: i.samples,
             interval_ms: i.interval_ms,
             levels_above_leaves: c.levels_above_leaves,
+            cones: c.cones,
             mantissa_bits: c.mantissa_bits,
             key_every: c.key_every,
             volume_level: f.volume_level,
@@ -121,6 +125,7 @@ impl Technique for Voxels {
         };
         let cones = ConeTracerParams {
             levels_above_leaves: o.levels_above_leaves,
+            cones: o.cones,
             mantissa_bits: o.mantissa_bits,
             key_every: o.key_every,
             ..ConeTracerParams::default()
@@ -268,10 +273,11 @@ impl Technique for Voxels {
     fn default_sweep() -> Sweep {
         let ints = |v: &[i64]| v.iter().map(|&x| toml::Value::Integer(x)).collect();
         vec![
-            ("max_depth".into(), ints(&[5, 6, 7])),
-            ("levels_above_leaves".into(), ints(&[1, 2, 3])),
-            ("mantissa_bits".into(), ints(&[4, 8])),
-            ("qp".into(), ints(&[20, 28])),
+            ("max_depth".into(), ints(&[5, 6])),
+            ("levels_above_leaves".into(), ints(&[2, 3])),
+            ("cones".into(), ints(&[6, 16])),
+            ("mantissa_bits".into(), ints(&[8])),
+            ("bitrate_mbps".into(), ints(&[1, 3])),
         ]
     }
 
@@ -437,6 +443,7 @@ fn solve(scene: &Scene, bvh: &SceneBvh, o: &VoxelOptions, seed: u64) -> (Octree,
     let octree = Voxelizer::new(scene, &settings).octree_at(scene, 0.0);
     let cone = ConeSettings {
         levels_above_leaves: o.levels_above_leaves,
+        cones: o.cones,
         ..Default::default()
     };
     let inject_settings = InjectSettings {
@@ -454,6 +461,33 @@ fn solve(scene: &Scene, bvh: &SceneBvh, o: &VoxelOptions, seed: u64) -> (Octree,
     (octree, g, ms)
 }
 
+/// How the quality sweep codes the client's picture.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Video {
+    /// One key frame at a fixed QP.
+    Qp(u8),
+    /// A second of a still view at a target bitrate (openh264's rate control).
+    Mbps(f64),
+}
+
+impl Video {
+    fn tag(&self) -> String {
+        match self {
+            Video::Qp(qp) => format!("qp{qp}"),
+            Video::Mbps(m) => format!("{m}mbps"),
+        }
+    }
+}
+
+impl std::fmt::Display for Video {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Video::Qp(qp) => write!(f, "QP {qp}"),
+            Video::Mbps(m) => write!(f, "{m} Mbps"),
+        }
+    }
+}
+
 /// One point of the voxel quality sweep.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct VoxelPoint {
@@ -461,10 +495,12 @@ pub struct VoxelPoint {
     pub depth: u32,
     /// Cones leave this many levels above the leaves.
     pub levels_above_leaves: u32,
+    /// Cones per side of a gathering voxel.
+    pub cones: u32,
     /// Mantissa bits of the deltas.
     pub mantissa_bits: u32,
-    /// H.264 QP of the client's picture.
-    pub qp: u8,
+    /// How the client's picture was coded: `QP n` or `n Mbps` (rate control).
+    pub video: String,
     /// Voxels, all levels.
     pub voxels: u64,
     /// Update time (inject + filter + gather), mean, ms.
@@ -473,13 +509,15 @@ pub struct VoxelPoint {
     pub delta_kbytes: f64,
     /// GI node → frame renderer, Mbit/s: a key update per update at the rate.
     pub gi_mbps: f64,
-    /// The indirect picture as an H.264 key frame, kB.
+    /// The indirect picture through H.264, kB per frame: a key frame at a QP, the mean
+    /// frame of a second at a bitrate.
     pub video_kbytes: f64,
-    /// Server → client, Mbit/s: a key frame per update at the rate (an upper bound).
+    /// Server → client, Mbit/s: at a QP a key frame per update at the rate (an upper
+    /// bound); at a bitrate what the rate control spent.
     pub video_mbps: f64,
     /// The frame renderer's indirect light against the reference, before H.264.
     pub before: ImageErrors,
-    /// The same through H.264 at `qp`.
+    /// The same through H.264 as `video` says.
     pub after: ImageErrors,
     /// Light leaking through a wall 4 mm thick, per unit of the lit side's.
     pub leak: f64,
@@ -488,7 +526,7 @@ pub struct VoxelPoint {
 /// The voxel quality sweep: for each octree depth, gathering level and delta precision,
 /// the frame renderer's indirect light (after [`QUALITY_BOUNCES`] bounces, through the
 /// deltas and the volume lookup) against the path tracer's indirect image, before H.264 and
-/// through it at each QP; the update time, the bytes, the leak through a thin wall.
+/// through it at each QP or bitrate; the update time, the bytes, the leak through a thin wall.
 pub fn quality(
     raster: &Raster,
     scene_spec: &str,
@@ -498,7 +536,7 @@ pub fn quality(
     out: &Path,
 ) -> anyhow::Result<serde_json::Value> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let mut qps = Vec::new();
+    let mut videos = Vec::new();
     let mut gi_sweep = Sweep::new();
     for (key, values) in sweep {
         match key.as_str() {
@@ -508,19 +546,32 @@ pub fn quality(
                         .as_integer()
                         .filter(|q| (0..=51).contains(q))
                         .with_context(|| format!("QP `{v}` is not a whole number 0 to 51"))?;
-                    qps.push(qp as u8);
+                    videos.push(Video::Qp(qp as u8));
                 }
             }
-            "max_depth" | "levels_above_leaves" | "mantissa_bits" | "samples" | "volume_level" => {
-                gi_sweep.push((key.clone(), values.clone()))
+            "bitrate_mbps" => {
+                for v in values {
+                    let mbps = v
+                        .as_float()
+                        .or_else(|| v.as_integer().map(|i| i as f64))
+                        .filter(|m| (0.01..=200.0).contains(m))
+                        .with_context(|| format!("bitrate `{v}` is not 0.01 to 200 Mbit/s"))?;
+                    videos.push(Video::Mbps(mbps));
+                }
             }
+            "max_depth"
+            | "levels_above_leaves"
+            | "cones"
+            | "mantissa_bits"
+            | "samples"
+            | "volume_level" => gi_sweep.push((key.clone(), values.clone())),
             other => anyhow::bail!(
-                "the voxel quality sweep varies `max_depth`, `levels_above_leaves`, `mantissa_bits`, `samples`, `volume_level` and `qp`, not `{other}`"
+                "the voxel quality sweep varies `max_depth`, `levels_above_leaves`, `cones`, `mantissa_bits`, `samples`, `volume_level`, `qp` and `bitrate_mbps`, not `{other}`"
             ),
         }
     }
-    if qps.is_empty() {
-        qps.push(24);
+    if videos.is_empty() {
+        videos.push(Video::Qp(24));
     }
     let knobs = toml::Table::try_from(options)?;
     let settings = super::expand::<Voxels>(&knobs, &gi_sweep)?;
@@ -568,29 +619,44 @@ pub fn quality(
             .collect();
         let before = compare(&f.indirect, &view.reference, &mask, w, h);
         let tag = format!(
-            "d{}_a{}_m{}",
+            "d{}_a{}_c{}_m{}",
             octree.depth(),
             o.levels_above_leaves,
+            o.cones,
             o.mantissa_bits
         );
         exr(format!("indirect_{tag}.exr"), &f.indirect)?;
         let rate = common.rate_hz.min(1000.0 / update_ms.max(1e-3));
         let picture = HdrMap::new(w, h, &f.indirect, &mask)?;
-        for &qp in &qps {
-            let (coded, key_bytes) = super::irradiance::through_h264(&picture, qp)?;
+        for video in &videos {
+            let (coded, key_bytes) = match *video {
+                Video::Qp(qp) => super::irradiance::through_h264(&picture, qp)?,
+                // A second of a still view under rate control: the mean frame.
+                Video::Mbps(mbps) => super::irradiance::through_h264_at(
+                    &picture,
+                    RateControl::Bitrate((mbps * 1e6) as u32),
+                    common.rate_hz.round().max(1.0) as u32,
+                    common.rate_hz,
+                )?,
+            };
             let image: Vec<Vec3> = coded.texels();
-            exr(format!("indirect_{tag}_qp{qp}.exr"), &image)?;
+            exr(format!("indirect_{tag}_{}.exr", video.tag()), &image)?;
             points.push(VoxelPoint {
                 depth: octree.depth(),
                 levels_above_leaves: o.levels_above_leaves,
+                cones: o.cones,
                 mantissa_bits: o.mantissa_bits,
-                qp,
+                video: video.to_string(),
                 voxels: update.voxels,
                 update_ms,
                 delta_kbytes: update.bytes as f64 / 1e3,
                 gi_mbps: update.bytes as f64 * 8.0 * rate / 1e6,
                 video_kbytes: key_bytes as f64 / 1e3,
-                video_mbps: key_bytes as f64 * 8.0 * rate / 1e6,
+                video_mbps: key_bytes as f64 * 8.0 / 1e6
+                    * match video {
+                        Video::Qp(_) => rate,
+                        Video::Mbps(_) => common.rate_hz,
+                    },
                 before,
                 after: compare(&image, &view.reference, &mask, w, h),
                 leak,
@@ -609,7 +675,8 @@ pub fn quality(
         "relMSE of the frame renderer's indirect radiance ({w}x{h}, the volume lookup) against the path tracer's indirect image \
          ({} spp) of the same view, both divided by the reference's mean luminance over pixels that see geometry, after {QUALITY_BOUNCES} \
          bounces of a static scene at time 0; \"after\" adds H.264 at the QP (the indirect image as the client would see it in the \
-         picture). Mbps: a key update (deltas) or key frame (video) per update at {} Hz or as fast as the update allows. Leak: the \
+         picture), at a QP (one key frame) or a bitrate (a second of the still view under openh264's rate control, the last frame \
+         shown). Mbps: a key update (deltas) or key frame (QP) per update at {} Hz or as fast as the update allows; at a bitrate, the mean of the second's frames. Leak: the \
          light voxels give the dark half of a box split by a 4 mm wall, per unit of the lit half's. Paper's Cornell box: 19 ms, \
          2.8 Gbps GI-to-frame, 3 Mbps video.",
         common.spp, common.rate_hz
@@ -629,14 +696,15 @@ pub fn quality_markdown(points: &[VoxelPoint]) -> String {
     let mut t = Markdown::new(&[
         "depth",
         "gather levels up",
+        "cones",
         "mantissa bits",
         "voxels",
         "update ms",
         "deltas kB",
         "GI→frame Mbps",
-        "QP",
-        "video kB",
-        "video Mbps (≤)",
+        "video",
+        "video kB/frame",
+        "video Mbps",
         "relMSE before",
         "relMSE after",
         "FLIP after",
@@ -647,12 +715,13 @@ pub fn quality_markdown(points: &[VoxelPoint]) -> String {
         t.row(vec![
             p.depth.to_string(),
             p.levels_above_leaves.to_string(),
+            p.cones.to_string(),
             p.mantissa_bits.to_string(),
             p.voxels.to_string(),
             format!("{:.1}", p.update_ms),
             format!("{:.1}", p.delta_kbytes),
             format!("{:.1}", p.gi_mbps),
-            p.qp.to_string(),
+            p.video.clone(),
             format!("{:.1}", p.video_kbytes),
             format!("{:.2}", p.video_mbps),
             format!("{:.4}", p.before.relmse),
@@ -674,7 +743,7 @@ fn quality_plot(
     let mut depths: Vec<u32> = points.iter().map(|p| p.depth).collect();
     depths.sort_unstable();
     depths.dedup();
-    let qp = points.first().map_or(0, |p| p.qp);
+    let video = points.first().map(|p| p.video.clone()).unwrap_or_default();
     let series = |x: fn(&VoxelPoint) -> f64| -> Vec<Series> {
         depths
             .iter()
@@ -682,12 +751,15 @@ fn quality_plot(
                 label: format!("depth {d} (before H.264)"),
                 points: points
                     .iter()
-                    .filter(|p| p.depth == d && p.qp == qp)
+                    .filter(|p| p.depth == d && p.video == video)
                     .map(|p| {
                         (
                             x(p),
                             p.before.relmse,
-                            format!("↑{} {}b", p.levels_above_leaves, p.mantissa_bits),
+                            format!(
+                                "↑{} {}c {}b",
+                                p.levels_above_leaves, p.cones, p.mantissa_bits
+                            ),
                         )
                     })
                     .collect(),

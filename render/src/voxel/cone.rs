@@ -58,7 +58,15 @@ pub struct ConeSettings {
     ///
     /// [`VoxelSurface::flatness`]: super::octree::VoxelSurface::flatness
     pub refine_below_flatness: f32,
+    /// Cones per side of a gathering voxel: 6 (one along the normal and five at 60° from
+    /// it, 30° wide, as in Crassin et al. 2011) or any other count from 1 to
+    /// [`MAX_CONES`], laid out as a cosine-weighted Fibonacci spiral (equal weights, each
+    /// as wide as its share of the hemisphere). More cones are narrower: finer and slower.
+    pub cones: u32,
 }
+
+/// The most cones per side [`ConeSettings::cones`] takes.
+pub const MAX_CONES: u32 = 64;
 
 impl Default for ConeSettings {
     fn default() -> Self {
@@ -70,6 +78,7 @@ impl Default for ConeSettings {
             voxel_per_height: 0.5,
             levels_above_leaves: 2,
             refine_below_flatness: 0.95,
+            cones: 6,
         }
     }
 }
@@ -89,14 +98,58 @@ const SIDE_PHI: [(f32, f32); 5] = [
     (0.309_017, -0.951_056_5),
 ];
 
-fn cones(n: Vec3) -> [(Vec3, f32); 6] {
-    let (t, b) = basis(n);
-    let (s, c) = (0.866_025_4, 0.5); // sin 60°, cos 60°
-    let mut out = [(n, AXIS_WEIGHT); 6];
-    for (cone, (cos, sin)) in out.iter_mut().skip(1).zip(SIDE_PHI) {
-        *cone = (n * c + (t * cos + b * sin) * s, SIDE_WEIGHT);
+/// A hemisphere's cones in the frame of its normal (+Z): directions, weights summing to π
+/// (E = Σ w_k · L_k for a cosine-weighted hemisphere) and the tangent of their half-angle.
+#[derive(Clone, Debug, PartialEq)]
+struct ConeSet {
+    local: Vec<(Vec3, f32)>,
+    half_angle_tan: f32,
+}
+
+impl ConeSet {
+    fn new(count: u32) -> ConeSet {
+        let count = count.clamp(1, MAX_CONES);
+        if count == 6 {
+            let (s, c) = (0.866_025_4, 0.5); // sin 60°, cos 60°
+            let local = std::iter::once((Vec3::Z, AXIS_WEIGHT))
+                .chain(
+                    SIDE_PHI
+                        .iter()
+                        .map(|&(cos, sin)| (Vec3::new(cos * s, sin * s, c), SIDE_WEIGHT)),
+                )
+                .collect();
+            return ConeSet {
+                local,
+                half_angle_tan: HALF_ANGLE_TAN,
+            };
+        }
+        // Fibonacci points, area-uniform on the unit disc and lifted onto the hemisphere
+        // (Malley's method), are cosine-distributed: each carries π / count. A cone covers
+        // its share of the solid angle, 2π / count = 2π (1 − cos θ).
+        let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+        let local = (0..count)
+            .map(|k| {
+                let r2 = (k as f32 + 0.5) / count as f32;
+                let (sin_phi, cos_phi) = (golden * k as f32).sin_cos();
+                let r = r2.sqrt();
+                let d = Vec3::new(r * cos_phi, r * sin_phi, (1.0 - r2).sqrt());
+                (d, std::f32::consts::PI / count as f32)
+            })
+            .collect();
+        let cos = (1.0 - 1.0 / count as f32).max(0.5); // one cone: 60°, as wide as a side cone
+        ConeSet {
+            local,
+            half_angle_tan: (1.0 - cos * cos).sqrt() / cos,
+        }
     }
-    out
+
+    /// The cones around unit `n`, world space.
+    fn around(&self, n: Vec3) -> impl Iterator<Item = (Vec3, f32)> + '_ {
+        let (t, b) = basis(n);
+        self.local
+            .iter()
+            .map(move |&(d, w)| (t * d.x + b * d.y + n * d.z, w))
+    }
 }
 
 /// log₂ of a positive, normal `x`, within 10⁻⁵ (log₂ m = 2/ln 2 · atanh((m − 1)/(m + 1))
@@ -149,6 +202,7 @@ pub struct ConeTracer<'a> {
     cells_per_m: Vec<f32>,
     levels: &'a [Vec<VoxelRadiance>],
     settings: ConeSettings,
+    cones: ConeSet,
 }
 
 impl<'a> ConeTracer<'a> {
@@ -166,6 +220,7 @@ impl<'a> ConeTracer<'a> {
                 .collect(),
             levels,
             settings,
+            cones: ConeSet::new(settings.cones),
         }
     }
 
@@ -202,8 +257,8 @@ impl<'a> ConeTracer<'a> {
         (radiance / weight, opacity / weight)
     }
 
-    /// The mean radiance arriving at `origin` from the cone around unit `dir` (half-angle
-    /// 30°), W·m⁻²·sr⁻¹, and the number of samples taken. The cone leaves a surface of
+    /// The mean radiance arriving at `origin` from the cone around unit `dir` (as wide as
+    /// [`ConeSettings::cones`] makes it), W·m⁻²·sr⁻¹, and the number of samples taken. The cone leaves a surface of
     /// normal `n` from a voxel `start_m` wide.
     pub fn cone(&self, origin: Vec3, dir: Vec3, n: Vec3, start_m: f32) -> (Vec3, u32) {
         let g = &self.octree.grid;
@@ -216,7 +271,7 @@ impl<'a> ConeTracer<'a> {
         let (mut color, mut alpha) = (Vec3::ZERO, 0.0f32);
         let mut samples = 0;
         while t < max_t && alpha < self.settings.opaque {
-            let diameter = 2.0 * t * HALF_ANGLE_TAN;
+            let diameter = 2.0 * t * self.cones.half_angle_tan;
             // Voxels no larger than the footprint (fine ones near, coarse far), nor than a
             // fraction of the height over the surface left (see `voxel_per_height`).
             let height = t * cos + start_m * self.settings.offset_voxels;
@@ -261,7 +316,7 @@ impl<'a> ConeTracer<'a> {
     pub fn irradiance(&self, origin: Vec3, n: Vec3, start_m: f32) -> (Vec3, u32) {
         let mut e = Vec3::ZERO;
         let mut samples = 0;
-        for (dir, weight) in cones(n) {
+        for (dir, weight) in self.cones.around(n) {
             let (l, s) = self.cone(origin, dir, n, start_m);
             e += l * weight;
             samples += s;
@@ -411,10 +466,38 @@ mod tests {
                 assert!((transmitted(a, r) - want).abs() < 1e-4, "{a} {r}");
             }
         }
-        let cones = cones(Vec3::Z);
-        assert!((cones.iter().map(|c| c.1).sum::<f32>() - std::f32::consts::PI).abs() < 1e-5);
-        for (d, _) in &cones[1..] {
+        let six = ConeSet::new(6);
+        assert_eq!(six.local.len(), 6);
+        for (d, _) in &six.local[1..] {
             assert!((d.dot(Vec3::Z) - 0.5).abs() < 1e-5 && (d.length() - 1.0).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn every_cone_set_weighs_a_cosine_hemisphere() {
+        // Σ w = π, every direction in the hemisphere, and Σ w·d = (0, 0, 2π/3) as
+        // ∫ cos θ · ω dω over the hemisphere is: the set is not tilted.
+        for count in [1, 2, 6, 8, 16, 32, MAX_CONES, MAX_CONES + 5] {
+            let set = ConeSet::new(count);
+            assert_eq!(set.local.len() as u32, count.clamp(1, MAX_CONES));
+            let sum: f32 = set.local.iter().map(|c| c.1).sum();
+            assert!((sum - std::f32::consts::PI).abs() < 1e-4, "{count}: {sum}");
+            let mean: Vec3 = set.local.iter().map(|&(d, w)| d * w).sum();
+            assert!(
+                set.local
+                    .iter()
+                    .all(|(d, _)| d.z > 0.0 && (d.length() - 1.0).abs() < 1e-5)
+            );
+            if count >= 6 {
+                let want = Vec3::new(0.0, 0.0, 2.0 * std::f32::consts::PI / 3.0);
+                assert!((mean - want).length() < 0.12 * want.z, "{count}: {mean}");
+            }
+            assert!(set.half_angle_tan > 0.0 && set.half_angle_tan <= 3f32.sqrt());
+        }
+        // World space follows the normal.
+        let n = Vec3::new(1.0, 2.0, -0.5).normalize();
+        for (d, _) in ConeSet::new(16).around(n) {
+            assert!(d.dot(n) > 0.0 && (d.length() - 1.0).abs() < 1e-5);
         }
     }
 }

@@ -30,7 +30,7 @@ mod tests;
 
 use cloudlight_scenes::{Scene, WorldTriangle};
 
-pub use cone::{ConeSettings, ConeTracer, Gathered, gather};
+pub use cone::{ConeSettings, ConeTracer, Gathered, MAX_CONES, gather};
 pub use filter::filter;
 pub use inject::{DIRECTIONS, InjectSettings, Injection, VoxelRadiance, inject};
 pub use octree::{BYTES_PER_VOXEL, DENSE_LEVELS, Level, Locator, Octree, ParentLink, VoxelSurface};

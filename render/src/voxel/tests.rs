@@ -464,24 +464,34 @@ fn cones_inside_a_uniformly_bright_box_gather_pi_times_its_radiance() {
         })
         .collect();
     let levels = filter(&o, leaves);
-    let g = gather(&o, &levels, &ConeSettings::default());
-    let ratios: Vec<f32> = o
-        .leaves()
-        .surfaces
-        .iter()
-        .zip(g.leaves())
-        .map(|(s, e)| e[leak::side_facing(s, Vec3::splat(0.5))].x / (std::f32::consts::PI * b))
-        .collect();
-    let (p10, p50, p90) = (
-        quantile(ratios.clone(), 0.1),
-        quantile(ratios.clone(), 0.5),
-        quantile(ratios, 0.9),
-    );
-    eprintln!(
-        "E / πB: p10 {p10:.3}, p50 {p50:.3}, p90 {p90:.3}; {} samples",
-        g.samples
-    );
-    assert!((0.95..1.05).contains(&p50) && p10 > 0.9 && p90 < 1.06);
+    // Every cone count: the 6 classic cones, one wide cone, a spiral of 16.
+    for cones in [6, 1, 16] {
+        let settings = ConeSettings {
+            cones,
+            ..Default::default()
+        };
+        let g = gather(&o, &levels, &settings);
+        let ratios: Vec<f32> = o
+            .leaves()
+            .surfaces
+            .iter()
+            .zip(g.leaves())
+            .map(|(s, e)| e[leak::side_facing(s, Vec3::splat(0.5))].x / (std::f32::consts::PI * b))
+            .collect();
+        let (p10, p50, p90) = (
+            quantile(ratios.clone(), 0.1),
+            quantile(ratios.clone(), 0.5),
+            quantile(ratios, 0.9),
+        );
+        eprintln!(
+            "{cones} cones: E / πB: p10 {p10:.3}, p50 {p50:.3}, p90 {p90:.3}; {} samples",
+            g.samples
+        );
+        assert!(
+            (0.95..1.05).contains(&p50) && p10 > 0.9 && p90 < 1.06,
+            "{cones} cones"
+        );
+    }
 }
 
 #[test]
