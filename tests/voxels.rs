@@ -106,3 +106,91 @@ async fn zero_and_fifty_frame_renderers_follow_one_gi_node() {
         }
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_thin_client_in_an_outage_keeps_its_last_frame_reports_the_gap_and_recovers_at_a_key_frame()
+ {
+    // voxels-cloud in small: the GI stages and one client's frame renderer and encoder on
+    // `cloud` (10 frames a second, a key frame every second = 10 units), a thin
+    // `video_client` on `home`. A gate drops units 8 to 37 (three seconds): there is no
+    // fallback light, so the client shows its last frame, counts the gap, and shows
+    // pictures again from the next key frame.
+    let thin = r#"[[stage]]
+name = "render"
+kind = "frame_renderer"
+node = "cloud"
+params = { max_depth = 4, width = 64, height = 48, fps = 10.0 }
+[[stage]]
+name = "encode"
+kind = "video_encoder"
+node = "cloud"
+params = { qp = 24, keyframe_s = 1.0, fps = 10.0 }
+[[stage]]
+name = "gate"
+kind = "unit_gate"
+node = "cloud"
+params = { drop_from = 8, drop_until = 38 }
+[[stage]]
+name = "viewer"
+kind = "video_client"
+node = "home"
+params = { width = 64, height = 48, fps = 10.0 }
+[[edge]]
+from = "cones.out"
+to = "render.in"
+[[edge]]
+from = "render.frames"
+to = "encode.in"
+[[edge]]
+from = "encode.out"
+to = "gate.in"
+[[edge]]
+from = "gate.out"
+to = "viewer.in"
+policy = "block"
+capacity = 16
+"#;
+    let text = topology(0)
+        .replace(
+            "techniques = [\"voxels\"]",
+            "techniques = [\"voxels\", \"video\", \"test\"]",
+        )
+        .replace("duration_s = 2.5", "duration_s = 7.0")
+        + thin;
+    let mut registry = cloudlight::actors::registry();
+    common::register_unit_gate(&mut registry);
+    let run = run_plan(
+        &plan_text(&text, &registry),
+        &registry,
+        RunOptions::default(),
+    )
+    .await
+    .unwrap();
+    let encode = report(&run.metrics, "encode");
+    println!("encode: {encode}");
+    let viewer = report(&run.metrics, "viewer");
+    println!("viewer: {viewer}");
+    let decoder = &viewer["decoder"];
+    // It showed frames before the outage, through it (the last one stayed: the light's age
+    // climbed past the three seconds without data), and after it.
+    assert_eq!(viewer["indirect_shown"], true, "{viewer}");
+    assert!(f(viewer, "age_ms_max") >= 2500.0, "{viewer}");
+    // The gap is reported: one break of thirty units.
+    assert_eq!(f(viewer, "gaps"), 1.0, "{viewer}");
+    assert_eq!(f(viewer, "units_missed"), 30.0, "{viewer}");
+    // After it the decoder waited for the next key frame (at most a second of units) and
+    // then showed every picture, none broken.
+    let waiting = decoder["waiting_for_key"].as_f64().unwrap();
+    assert!(waiting < 10.0, "{viewer}");
+    assert_eq!(decoder["errors"], 0, "{viewer}");
+    let (units, pictures) = (
+        decoder["units"].as_f64().unwrap(),
+        decoder["pictures"].as_f64().unwrap(),
+    );
+    assert!(
+        units >= 8.0 + 10.0,
+        "units before and after the outage arrived: {viewer}"
+    );
+    assert_eq!(pictures, units - waiting, "{viewer}");
+    assert!(pictures > 8.0, "pictures after the outage: {viewer}");
+}

@@ -55,6 +55,12 @@ pub struct VideoClientReport {
     pub decode_ms_p99: f64,
     /// HDR units (light maps), which this client cannot show (an irradiance client can).
     pub hdr_units_ignored: u64,
+    /// Breaks in the stream (units missing between two that arrived: an outage, a lost
+    /// connection). There is no fallback light: the last picture stays on screen, its age
+    /// grows, and decoding resumes at the next key frame.
+    pub gaps: u64,
+    /// Units missing across those breaks.
+    pub units_missed: u64,
 }
 
 /// The video technique's part of a client.
@@ -68,6 +74,8 @@ pub struct VideoClient {
     /// Index of the unit expected next: after a gap (units lost upstream) the decoder waits
     /// for a key frame instead of showing broken pictures.
     next_index: Option<u64>,
+    gaps: u64,
+    units_missed: u64,
 }
 
 impl ClientTechnique for VideoClient {
@@ -87,6 +95,8 @@ impl ClientTechnique for VideoClient {
             hdr_ignored: 0,
             decode: cloudlight_runtime::Latency::new(),
             next_index: None,
+            gaps: 0,
+            units_missed: 0,
         })
     }
 
@@ -97,8 +107,22 @@ impl ClientTechnique for VideoClient {
             self.hdr_ignored += 1;
             return;
         }
-        if self.next_index.is_some_and(|n| n != unit.index) {
+        if let Some(expected) = self.next_index.filter(|&n| n != unit.index) {
             self.decoder.lose_sync();
+            self.gaps += 1;
+            let missed = unit.index.saturating_sub(expected);
+            self.units_missed += missed;
+            // Logged at 1, 2, 4, 8, ... gaps, as undecodable units are.
+            if self.gaps.is_power_of_two() {
+                tracing::warn!(
+                    stage,
+                    expected,
+                    got = unit.index,
+                    missed,
+                    gaps = self.gaps,
+                    "gap in the video stream: showing the last picture until the next key frame"
+                );
+            }
         }
         self.next_index = Some(unit.index + 1);
         let start = Instant::now();
@@ -157,17 +181,21 @@ impl ClientTechnique for VideoClient {
             decode_ms_p50: self.decode.p50_ms(),
             decode_ms_p99: self.decode.p99_ms(),
             hdr_units_ignored: self.hdr_ignored,
+            gaps: self.gaps,
+            units_missed: self.units_missed,
         }
     }
 
     fn summary(&self) -> String {
         let s = self.decoder.stats();
         format!(
-            "{} units → {} pictures, decode {:.2} ms p50, {} undecodable, {} dropped waiting for a key frame",
+            "{} units → {} pictures, decode {:.2} ms p50, {} undecodable, {} gaps ({} units missed), {} dropped waiting for a key frame",
             s.units,
             s.pictures,
             self.report().decode_ms_p50,
             s.errors,
+            self.gaps,
+            self.units_missed,
             s.waiting_for_key
         )
     }
