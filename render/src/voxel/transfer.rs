@@ -831,6 +831,60 @@ mod tests {
     }
 
     #[test]
+    fn a_fresh_receiver_shows_light_from_the_first_coarsest_delta() {
+        // What the frame renderer shows (its volume, looked up on each leaf's surface) after
+        // each delta of the first update: light everywhere there is light in the end, from
+        // the root alone on, at every level within a factor of the whole update's.
+        let (octree, g) = cornell(5);
+        let level = octree.depth();
+        let mut enc = DeltaEncoder::new(TransferSettings {
+            mantissa_bits: 8,
+            key_every: 0,
+        });
+        let update = enc.encode(&octree, &g, 0.0);
+        let leaves = octree.leaves();
+        let shown = |dec: &DeltaDecoder| -> Vec<f32> {
+            let volume = crate::voxel::VoxelVolume::new(
+                &octree,
+                dec.levels(),
+                dec.complete_level().unwrap(),
+                level,
+            );
+            leaves
+                .surfaces
+                .iter()
+                .map(|s| {
+                    let n = s.side_normal();
+                    (volume.irradiance(s.position, n) + volume.irradiance(s.position, -n))
+                        .element_sum()
+                })
+                .collect()
+        };
+        let mut whole = DeltaDecoder::new();
+        decode_all(&mut whole, &octree, &update);
+        let truth = shown(&whole);
+        let lit = truth.iter().filter(|&&e| e > 0.0).count();
+        assert!(lit > leaves.len() / 2, "{lit} of {} lit", leaves.len());
+        let total: f64 = truth.iter().map(|&e| f64::from(e)).sum();
+        let mut dec = DeltaDecoder::new();
+        for (k, d) in update.deltas.iter().enumerate() {
+            dec.apply(&octree, d).unwrap();
+            let now = shown(&dec);
+            let dark = now
+                .iter()
+                .zip(&truth)
+                .filter(|&(a, b)| *b > 0.0 && *a <= 0.0)
+                .count();
+            let ratio = now.iter().map(|&e| f64::from(e)).sum::<f64>() / total;
+            eprintln!(
+                "after delta {k}: {dark} of {lit} lit leaves dark, light {ratio:.3} of the whole"
+            );
+            assert_eq!(dark, 0, "after delta {k}");
+            assert!((0.5..2.0).contains(&ratio), "after delta {k}: {ratio}");
+        }
+    }
+
+    #[test]
     fn moving_geometry_changes_the_structure_and_receivers_follow_it() {
         // The Cornell box with its short block circling the floor.
         let mut scene = cloudlight_scenes::builtin("cornell").unwrap();
