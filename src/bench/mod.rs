@@ -703,7 +703,15 @@ pub fn scaling<T: Technique>(
         rows.push(T::scaling_row(&run, n)?);
     }
     let per_client = rows.iter().any(|r| r.server_per_client_ms.is_some());
-    let mut header = vec!["clients", "server ms / update", "kernel ms"];
+    // Figure 3's question: what a client costs the server, its share of the common work
+    // beside what is its own.
+    let shared = |r: &ScalingRow| r.server_update_ms / r.clients.max(1) as f64;
+    let mut header = vec![
+        "clients",
+        "server ms / update",
+        "kernel ms",
+        "shared ms per client",
+    ];
     if per_client {
         header.push("server ms per client frame (p50)");
     }
@@ -719,6 +727,11 @@ pub fn scaling<T: Technique>(
             r.clients.to_string(),
             format!("{:.2}", r.server_update_ms),
             format!("{:.2}", r.server_kernel_ms),
+            if r.clients == 0 {
+                "—".into()
+            } else {
+                format!("{:.2}", shared(r))
+            },
         ];
         if per_client {
             cells.push(
@@ -758,6 +771,14 @@ pub fn scaling<T: Technique>(
             series(|r| r.age_ms_p50_mean),
         ),
     ];
+    let with_clients: Vec<&ScalingRow> = rows.iter().filter(|r| r.clients > 0).collect();
+    lines.push((
+        "shared server ms per client (update / clients)",
+        with_clients
+            .iter()
+            .map(|r| (r.clients as f64, shared(r)))
+            .collect(),
+    ));
     if per_client {
         lines.push((
             "server ms per client frame",
