@@ -130,16 +130,6 @@ pub trait ClientTechnique: Send + Sized + 'static {
     fn csv_values(&self) -> String;
 }
 
-/// Runs `f`, which may block for milliseconds, without stalling the other tasks of this
-/// worker thread (`block_in_place` on a multi-threaded runtime; elsewhere it just runs).
-fn blocking<R>(f: impl FnOnce() -> R) -> R {
-    use tokio::runtime::{Handle, RuntimeFlavor};
-    match Handle::try_current().map(|h| h.runtime_flavor()) {
-        Ok(RuntimeFlavor::MultiThread) => tokio::task::block_in_place(f),
-        _ => f(),
-    }
-}
-
 /// A whole picture a client shows: sRGB-encoded RGB8, row-major from the top.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Picture {
@@ -468,8 +458,7 @@ impl<T: ClientTechnique> ClientShell<T> {
             } else {
                 None
             };
-        // Building the update may take milliseconds too (a voxel volume).
-        let update = blocking(|| self.technique.update());
+        let update = self.technique.update();
         let lights = self.lights_at(t).await?;
         let camera = self.camera_at(t);
         let write = self.output.frames_dir.is_some()
@@ -603,9 +592,7 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
 
     async fn on_input(&mut self, ctx: &mut StageCtx, input: Input) -> anyhow::Result<()> {
         let msg = input.on(input_port::<T>())?;
-        // Handling a message may take milliseconds (an H.264 map or a level of voxel deltas
-        // decoded): the worker hands its other tasks over first.
-        blocking(|| self.technique.on_message(ctx.name(), &msg));
+        self.technique.on_message(ctx.name(), &msg);
         Ok(())
     }
 
