@@ -230,15 +230,7 @@ capacity = 16
         10.0,
         &(gated("out", 10, 60) + &gated("late", 0, 15)),
     );
-    let mut registry = cloudlight::actors::registry();
-    common::register_unit_gate(&mut registry);
-    let run = run_plan(
-        &plan_text(&text, &registry),
-        &registry,
-        RunOptions::default(),
-    )
-    .await
-    .unwrap();
+    let run = common::run_gated(&text).await;
     let out = report(&run.metrics, "out");
     println!("out: {out}");
     // It showed light before, through and after the outage: its age climbed past the 5 s

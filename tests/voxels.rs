@@ -157,15 +157,7 @@ capacity = 16
         )
         .replace("duration_s = 2.5", "duration_s = 7.0")
         + thin;
-    let mut registry = cloudlight::actors::registry();
-    common::register_unit_gate(&mut registry);
-    let run = run_plan(
-        &plan_text(&text, &registry),
-        &registry,
-        RunOptions::default(),
-    )
-    .await
-    .unwrap();
+    let run = common::run_gated(&text).await;
     let encode = report(&run.metrics, "encode");
     println!("encode: {encode}");
     let viewer = report(&run.metrics, "viewer");

@@ -277,7 +277,7 @@ impl Technique for Voxels {
             ("levels_above_leaves".into(), ints(&[2, 3])),
             ("cones".into(), ints(&[6, 16])),
             ("mantissa_bits".into(), ints(&[8])),
-            ("bitrate_mbps".into(), ints(&[1, 3])),
+            ("qp".into(), ints(&[24, 36])),
         ]
     }
 

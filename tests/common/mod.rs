@@ -211,6 +211,20 @@ pub fn plan_text(text: &str, registry: &StageRegistry) -> Plan {
     Plan::from_str("test.toml", text, registry).unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// Runs a full topology text with the project's stages and the test stage `unit_gate`
+/// (which drops a window of access units: outages, late joins); it must end by itself.
+pub async fn run_gated(text: &str) -> RunReport {
+    let mut registry = cloudlight::actors::registry();
+    register_unit_gate(&mut registry);
+    run_plan(
+        &plan_text(text, &registry),
+        &registry,
+        RunOptions::default(),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"))
+}
+
 /// The report `stage` published in a run's metrics.
 pub fn report<'a>(
     m: &'a cloudlight::runtime::MetricsSnapshot,
