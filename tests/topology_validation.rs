@@ -548,3 +548,52 @@ fn a_node_list_longer_than_the_replica_limit_is_refused() {
     ));
     expect(&d, 8, "stage[0].nodes", "at most 10000");
 }
+
+#[test]
+fn links_may_name_a_profile_and_override_its_figures() {
+    use cloudlight::transport::LinkProfile;
+    // Every named profile: its figures, both directions.
+    for (name, profile) in LinkProfile::NAMED {
+        let text = format!(
+            "{GOOD_HEAD}[[link]]\nbetween = [\"cloud\", \"client\"]\nprofile = \"{name}\"\n"
+        );
+        let plan =
+            Plan::from_str("good.toml", &text, &registry()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            plan.topology.link("cloud", "client"),
+            Some(&profile),
+            "{name}"
+        );
+        assert_eq!(
+            plan.topology.link("client", "cloud"),
+            Some(&profile),
+            "{name}"
+        );
+    }
+    // Keys beside the profile override its figures; the rest stay.
+    let text = format!(
+        "{GOOD_HEAD}[[link]]\nfrom = \"cloud\"\nto = \"client\"\nprofile = \"continental-3600km\"\nlatency_ms = 500\n"
+    );
+    let plan = Plan::from_str("good.toml", &text, &registry()).unwrap_or_else(|e| panic!("{e}"));
+    let link = plan.topology.link("cloud", "client").unwrap();
+    assert_eq!(link.latency_ms, 500.0);
+    assert_eq!(
+        link.bandwidth_mbps,
+        LinkProfile::CONTINENTAL_3600KM.bandwidth_mbps
+    );
+    assert_eq!(link.loss, LinkProfile::CONTINENTAL_3600KM.loss);
+    // An unknown profile names its line and key and lists the known ones, beside the
+    // file's other problems.
+    let d = diagnostics(&format!(
+        "{GOOD_HEAD}[[link]]\nbetween = [\"cloud\", \"client\"]\nprofile = \"moon\"\nloss = 2\n"
+    ));
+    expect(&d, 10, "link[0].profile", "unknown link profile `moon`");
+    expect(&d, 10, "link[0].profile", "home-wifi, campus, city");
+    expect(&d, 11, "link[0].loss", "");
+    // The profiles get slower and farther in the order the paper lists its networks.
+    let latencies: Vec<f64> = LinkProfile::NAMED
+        .iter()
+        .map(|(_, p)| p.latency_ms)
+        .collect();
+    assert!(latencies.windows(2).all(|w| w[0] < w[1]), "{latencies:?}");
+}

@@ -50,6 +50,78 @@ impl LinkProfile {
         reorder: 0.0,
     };
 
+    /// One router at home: 2 ms ± 2 ms one way, 200 Mbit/s, 0.5% loss (what 802.11ac
+    /// leaves after its own retries; wireless clients vary most, CloudLight §5.1).
+    pub const HOME_WIFI: LinkProfile = LinkProfile {
+        latency_ms: 2.0,
+        jitter_ms: 2.0,
+        bandwidth_mbps: Some(200.0),
+        loss: 0.005,
+        duplicate: 0.0,
+        reorder: 0.0,
+    };
+
+    /// A server elsewhere in the town, through an access provider: 10 ms ± 2 ms one way,
+    /// 100 Mbit/s, 0.1% loss (CloudLight §5.1's "most plausible deployment").
+    pub const CITY: LinkProfile = LinkProfile {
+        latency_ms: 10.0,
+        jitter_ms: 2.0,
+        bandwidth_mbps: Some(100.0),
+        loss: 0.001,
+        duplicate: 0.0,
+        reorder: 0.0,
+    };
+
+    /// 1,200 km (the paper's Santa Clara to Salt Lake City): 15 ms ± 2 ms one way (a
+    /// 30 ms ping: the route is longer than the distance, and light in fibre covers 200 km
+    /// per ms), 50 Mbit/s, 0.1% loss.
+    pub const CONTINENTAL_1200KM: LinkProfile = LinkProfile {
+        latency_ms: 15.0,
+        jitter_ms: 2.0,
+        bandwidth_mbps: Some(50.0),
+        loss: 0.001,
+        duplicate: 0.0,
+        reorder: 0.0,
+    };
+
+    /// 3,600 km (the paper's Salt Lake City to Williamstown): 35 ms ± 4 ms one way (a
+    /// 70 ms ping), 50 Mbit/s, 0.2% loss.
+    pub const CONTINENTAL_3600KM: LinkProfile = LinkProfile {
+        latency_ms: 35.0,
+        jitter_ms: 4.0,
+        bandwidth_mbps: Some(50.0),
+        loss: 0.002,
+        duplicate: 0.0,
+        reorder: 0.0,
+    };
+
+    /// The named profiles a topology's `[[link]]` may give as `profile`, after the networks
+    /// CloudLight §5.1 tested on (it names them, not their figures: these are typical ones).
+    pub const NAMED: [(&'static str, LinkProfile); 5] = [
+        ("home-wifi", LinkProfile::HOME_WIFI),
+        ("campus", LinkProfile::CAMPUS),
+        ("city", LinkProfile::CITY),
+        ("continental-1200km", LinkProfile::CONTINENTAL_1200KM),
+        ("continental-3600km", LinkProfile::CONTINENTAL_3600KM),
+    ];
+
+    /// The named profile `name`, if there is one.
+    pub fn named(name: &str) -> Option<LinkProfile> {
+        LinkProfile::NAMED
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, p)| *p)
+    }
+
+    /// The names of [`LinkProfile::NAMED`], comma-separated (for messages).
+    pub fn names() -> String {
+        LinkProfile::NAMED
+            .iter()
+            .map(|(n, _)| *n)
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
     /// True when the profile changes nothing (the emulator can be bypassed).
     pub fn is_transparent(&self) -> bool {
         *self == LinkProfile::default()

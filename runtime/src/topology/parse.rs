@@ -644,8 +644,24 @@ fn parse_links(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
         let between = t.strings(w, "between");
         let from = t.string(w, "from");
         let to = t.string(w, "to");
-        let mut profile = LinkProfile::default();
         let mut ok = true;
+        // A named profile is the base; the keys given beside it override its figures.
+        let mut profile = match t.string(w, "profile") {
+            None => LinkProfile::default(),
+            Some(name) => LinkProfile::named(name.get_ref()).unwrap_or_else(|| {
+                w.err(
+                    &name.span(),
+                    &t.key("profile"),
+                    format!(
+                        "unknown link profile `{}` (known: {})",
+                        name.get_ref(),
+                        LinkProfile::names()
+                    ),
+                );
+                ok = false;
+                LinkProfile::default()
+            }),
+        };
         for (k, slot, range, unit) in [
             (
                 "latency_ms",
@@ -693,6 +709,7 @@ fn parse_links(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
                 "between",
                 "from",
                 "to",
+                "profile",
                 "latency_ms",
                 "jitter_ms",
                 "bandwidth_mbps",
