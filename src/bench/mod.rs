@@ -39,6 +39,7 @@ pub mod client;
 pub mod irradiance;
 pub mod paper;
 pub mod photons;
+pub mod reference_cache;
 pub mod table;
 pub mod video;
 pub mod voxels;
@@ -853,12 +854,15 @@ pub struct QualityView {
     pub camera: Camera,
     /// The path tracer's indirect-only radiance.
     pub reference: Vec<Vec3>,
-    /// Seconds the reference took.
+    /// Seconds the reference took (reading it back from [`reference_cache`] included).
     pub reference_s: f64,
+    /// Whether it came from the cache.
+    pub reference_cached: bool,
 }
 
 impl QualityView {
-    /// Renders the reference of `scene` at `width × height`, `spp` samples per pixel.
+    /// The reference of `scene` at `width × height`, `spp` samples per pixel: rendered, or
+    /// read back from the reference cache ([`reference_cache::dir`]).
     pub fn new(scene: Scene, width: u32, height: u32, spp: u32) -> anyhow::Result<Self> {
         let camera = scene
             .cameras
@@ -875,13 +879,15 @@ impl QualityView {
             seed: 77,
             max_bounces: 64,
         };
-        let reference = cloudlight_render::render(&scene, &bvh, settings, spp).indirect();
+        let cache = reference_cache::dir();
+        let reference = reference_cache::reference(&scene, &bvh, settings, spp, cache.as_deref());
         Ok(QualityView {
             scene,
             bvh,
             camera,
-            reference,
+            reference: reference.indirect,
             reference_s: start.elapsed().as_secs_f64(),
+            reference_cached: reference.cached,
         })
     }
 }

@@ -627,7 +627,15 @@ pub fn quality(
         o.width, o.height, o.spp
     );
     let view = QualityView::new(scene, o.width, o.height, o.spp)?;
-    eprintln!("reference took {:.1} s", view.reference_s);
+    eprintln!(
+        "reference {} in {:.1} s",
+        if view.reference_cached {
+            "read from the cache"
+        } else {
+            "rendered"
+        },
+        view.reference_s
+    );
     let exr = |name: String, img: &[Vec3]| {
         cloudlight_render::image_io::write_exr(&out.join(name), o.width, o.height, img)
     };
