@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod experiment;
 mod kinds;
 mod plan;
 mod ranges;
@@ -47,6 +48,11 @@ enum Command {
     /// Render the reference images of a scene with the path tracer: full, direct-only and
     /// indirect-only radiance as OpenEXR, plus tone-mapped PNGs.
     Reference(reference::Args),
+    /// Expand a placement experiment (techniques × cuts × link profiles × client counts)
+    /// into one topology file per run, written to --emit DIR.
+    ///
+    /// Exits 2 with every problem of the file (file, line, key) when it is not valid.
+    Experiment(experiment::Args),
     /// Measure parts of the system.
     Bench {
         #[command(subcommand)]
@@ -65,6 +71,7 @@ impl Cli {
             Command::Kinds => kinds::run(),
             Command::Plan(a) => plan::run(a),
             Command::Reference(a) => reference::run(a),
+            Command::Experiment(a) => experiment::run(a),
             Command::Bench { what } => bench::run(what),
         }
     }

@@ -9,7 +9,7 @@
 
 mod parse;
 mod plan;
-mod reader;
+pub mod reader;
 mod spec;
 
 use std::fmt;

@@ -8,12 +8,11 @@
 use std::net::SocketAddr;
 
 use toml::Spanned;
-use toml::de::DeTable;
 
 use super::reader::{Tbl, Walker, check_name, kind, plain};
 use super::{
-    Diagnostic, EdgeDecl, EdgeDefaults, LinkDecl, LinkProfile, NodeDecl, PortRef, SourceMap,
-    StageDecl, Topology, TransportSettings,
+    Diagnostic, EdgeDecl, EdgeDefaults, LinkDecl, LinkProfile, NodeDecl, PortRef, StageDecl,
+    Topology, TransportSettings,
 };
 use crate::edge::Policy;
 
@@ -37,10 +36,7 @@ const TOP_KEYS: &[&str] = &[
 ];
 
 pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
-    let mut w = Walker {
-        map: SourceMap::new(file, text),
-        diags: Vec::new(),
-    };
+    let mut w = Walker::new(file, text);
     let mut topo = Topology {
         source: w.map.clone(),
         techniques: Vec::new(),
@@ -61,15 +57,9 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
         edges: Vec::new(),
         links: Vec::new(),
     };
-    let (root, errors) = DeTable::parse_recoverable(text);
-    if !errors.is_empty() {
-        for e in errors {
-            let span = e.span().unwrap_or(0..0);
-            let msg = e.message().trim().to_string();
-            w.err(&span, "<syntax>", format!("invalid TOML: {msg}"));
-        }
+    let Some(root) = w.document(text) else {
         return (topo, w.diags);
-    }
+    };
     let mut top = Tbl::new(root.get_ref(), root.span(), String::new());
 
     // Techniques and scene.

@@ -1,6 +1,7 @@
 //! A spanned TOML table reader: typed getters that report wrong types, missing keys and
 //! unknown keys as diagnostics with their line, so that a file's every problem is found in
-//! one pass.
+//! one pass. Topology files are read with it, and so is any other file the project
+//! validates the same way (an experiment file).
 
 use std::collections::HashSet;
 use std::ops::Range;
@@ -10,30 +11,72 @@ use toml::de::{DeTable, DeValue};
 
 use super::{Diagnostic, SourceMap};
 
-pub(super) type Value<'i> = Spanned<DeValue<'i>>;
+/// A TOML value with its byte span.
+pub type Value<'i> = Spanned<DeValue<'i>>;
 
-pub(super) struct Walker {
-    pub(super) map: SourceMap,
-    pub(super) diags: Vec<Diagnostic>,
+/// Walks one file: where its bytes are, and the problems found so far.
+pub struct Walker {
+    /// Byte offsets to lines.
+    pub map: SourceMap,
+    /// The problems found so far.
+    pub diags: Vec<Diagnostic>,
 }
 
 impl Walker {
-    pub(super) fn err(&mut self, span: &Range<usize>, key: &str, message: impl Into<String>) {
+    /// A walker of `text`, read from `file` (for diagnostics).
+    pub fn new(file: &str, text: &str) -> Walker {
+        Walker {
+            map: SourceMap::new(file, text),
+            diags: Vec::new(),
+        }
+    }
+
+    /// The root table of `text` (a TOML document; read it with
+    /// `Tbl::new(root.get_ref(), root.span(), String::new())`), or `None` after reporting
+    /// its syntax errors.
+    pub fn document<'i>(&mut self, text: &'i str) -> Option<Spanned<DeTable<'i>>> {
+        let (root, errors) = DeTable::parse_recoverable(text);
+        if errors.is_empty() {
+            return Some(root);
+        }
+        for e in errors {
+            let span = e.span().unwrap_or(0..0);
+            let msg = e.message().trim().to_string();
+            self.err(&span, "<syntax>", format!("invalid TOML: {msg}"));
+        }
+        None
+    }
+
+    /// Every problem found, or `Ok` when there was none.
+    pub fn finish(self) -> Result<(), super::TopologyErrors> {
+        if self.diags.is_empty() {
+            Ok(())
+        } else {
+            Err(super::TopologyErrors(self.diags))
+        }
+    }
+
+    /// Reports a problem at byte span `span` of key `key`.
+    pub fn err(&mut self, span: &Range<usize>, key: &str, message: impl Into<String>) {
         let d = self.map.diag(span, key, message);
         self.diags.push(d);
     }
 }
 
 /// A table being read: remembers which keys were used so the rest can be reported.
-pub(super) struct Tbl<'t, 'i> {
-    pub(super) table: &'t DeTable<'i>,
-    pub(super) span: Range<usize>,
-    pub(super) path: String,
+pub struct Tbl<'t, 'i> {
+    /// The table.
+    pub table: &'t DeTable<'i>,
+    /// Its bytes in the file.
+    pub span: Range<usize>,
+    /// Its dotted key path (`""` for the root, `stage[1]`, ...).
+    pub path: String,
     used: HashSet<&'t str>,
 }
 
 impl<'t, 'i> Tbl<'t, 'i> {
-    pub(super) fn new(table: &'t DeTable<'i>, span: Range<usize>, path: String) -> Self {
+    /// Reads `table` (at `span`, named `path` in diagnostics).
+    pub fn new(table: &'t DeTable<'i>, span: Range<usize>, path: String) -> Self {
         Tbl {
             table,
             span,
@@ -42,7 +85,8 @@ impl<'t, 'i> Tbl<'t, 'i> {
         }
     }
 
-    pub(super) fn key(&self, k: &str) -> String {
+    /// The dotted path of key `k` of this table.
+    pub fn key(&self, k: &str) -> String {
         if self.path.is_empty() {
             k.to_string()
         } else {
@@ -50,12 +94,14 @@ impl<'t, 'i> Tbl<'t, 'i> {
         }
     }
 
-    pub(super) fn get(&mut self, k: &'t str) -> Option<&'t Value<'i>> {
+    /// Key `k`'s value, marking it used.
+    pub fn get(&mut self, k: &'t str) -> Option<&'t Value<'i>> {
         self.used.insert(k);
         self.table.get(k)
     }
 
-    pub(super) fn finish(&self, w: &mut Walker, allowed: &[&str]) {
+    /// Reports every key not read as unknown, listing the `allowed` ones.
+    pub fn finish(&self, w: &mut Walker, allowed: &[&str]) {
         for (k, _) in self.table.iter() {
             if !self.used.contains(k.get_ref().as_ref()) {
                 let key = self.key(k.get_ref());
@@ -68,12 +114,14 @@ impl<'t, 'i> Tbl<'t, 'i> {
         }
     }
 
-    pub(super) fn missing(&self, w: &mut Walker, k: &str) {
+    /// Reports that the required key `k` is missing.
+    pub fn missing(&self, w: &mut Walker, k: &str) {
         let key = self.key(k);
         w.err(&self.span, &key, "missing required key");
     }
 
-    pub(super) fn string(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<String>> {
+    /// Key `k` as a string (a problem if it is something else).
+    pub fn string(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<String>> {
         let v = self.get(k)?;
         match v.get_ref() {
             DeValue::String(s) => Some(Spanned::new(v.span(), s.to_string())),
@@ -88,7 +136,8 @@ impl<'t, 'i> Tbl<'t, 'i> {
         }
     }
 
-    pub(super) fn boolean(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<bool>> {
+    /// Key `k` as a boolean.
+    pub fn boolean(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<bool>> {
         let v = self.get(k)?;
         match v.get_ref() {
             DeValue::Boolean(b) => Some(Spanned::new(v.span(), *b)),
@@ -103,14 +152,16 @@ impl<'t, 'i> Tbl<'t, 'i> {
         }
     }
 
-    pub(super) fn req_string(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<String>> {
+    /// Key `k` as a string, which must be there.
+    pub fn req_string(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<String>> {
         if self.table.get(k).is_none() {
             self.missing(w, k);
         }
         self.string(w, k)
     }
 
-    pub(super) fn float(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<f64>> {
+    /// Key `k` as a finite number (an integer is taken too).
+    pub fn float(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<f64>> {
         let v = self.get(k)?;
         let parsed = match v.get_ref() {
             DeValue::Float(f) => f.as_str().parse::<f64>().ok(),
@@ -135,7 +186,8 @@ impl<'t, 'i> Tbl<'t, 'i> {
         }
     }
 
-    pub(super) fn uint(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<u64>> {
+    /// Key `k` as a non-negative integer.
+    pub fn uint(&mut self, w: &mut Walker, k: &'t str) -> Option<Spanned<u64>> {
         let v = self.get(k)?;
         match v.get_ref() {
             DeValue::Integer(i) => match u64::from_str_radix(i.as_str(), i.radix()) {
@@ -160,7 +212,8 @@ impl<'t, 'i> Tbl<'t, 'i> {
         }
     }
 
-    pub(super) fn strings(&mut self, w: &mut Walker, k: &'t str) -> Option<Vec<Spanned<String>>> {
+    /// Key `k` as an array of strings.
+    pub fn strings(&mut self, w: &mut Walker, k: &'t str) -> Option<Vec<Spanned<String>>> {
         let v = self.get(k)?;
         let DeValue::Array(items) = v.get_ref() else {
             w.err(
@@ -185,11 +238,7 @@ impl<'t, 'i> Tbl<'t, 'i> {
     }
 
     /// An array of tables (`[[k]]`), as (index, table) pairs.
-    pub(super) fn tables(
-        &mut self,
-        w: &mut Walker,
-        k: &'t str,
-    ) -> Vec<(Tbl<'t, 'i>, Range<usize>)> {
+    pub fn tables(&mut self, w: &mut Walker, k: &'t str) -> Vec<(Tbl<'t, 'i>, Range<usize>)> {
         let Some(v) = self.get(k) else {
             return Vec::new();
         };
@@ -219,7 +268,8 @@ impl<'t, 'i> Tbl<'t, 'i> {
         out
     }
 
-    pub(super) fn table(&mut self, w: &mut Walker, k: &'t str) -> Option<Tbl<'t, 'i>> {
+    /// Key `k` as a table.
+    pub fn table(&mut self, w: &mut Walker, k: &'t str) -> Option<Tbl<'t, 'i>> {
         let v = self.get(k)?;
         match v.get_ref() {
             DeValue::Table(t) => Some(Tbl::new(t, v.span(), self.key(k))),
@@ -235,7 +285,8 @@ impl<'t, 'i> Tbl<'t, 'i> {
     }
 }
 
-pub(super) fn kind(v: &DeValue<'_>) -> &'static str {
+/// What `v` is, for messages ("a string", "an array", ...).
+pub fn kind(v: &DeValue<'_>) -> &'static str {
     match v {
         DeValue::String(_) => "a string",
         DeValue::Integer(_) => "an integer",
@@ -248,7 +299,7 @@ pub(super) fn kind(v: &DeValue<'_>) -> &'static str {
 }
 
 /// Converts a spanned TOML value into a plain `toml::Value` (for stage parameters).
-pub(super) fn plain(v: &DeValue<'_>) -> Option<toml::Value> {
+pub fn plain(v: &DeValue<'_>) -> Option<toml::Value> {
     Some(match v {
         DeValue::String(s) => toml::Value::String(s.to_string()),
         DeValue::Integer(i) => {
@@ -271,9 +322,10 @@ pub(super) fn plain(v: &DeValue<'_>) -> Option<toml::Value> {
 }
 
 /// Longest name: node names travel in the handshake, which carries at most 255 bytes.
-pub(super) const MAX_NAME_BYTES: usize = 255;
+pub const MAX_NAME_BYTES: usize = 255;
 
-pub(super) fn valid_name(s: &str) -> bool {
+/// Whether `s` is a valid name: 1 to 255 bytes of letters, digits, `_` and `-`.
+pub fn valid_name(s: &str) -> bool {
     !s.is_empty()
         && s.len() <= MAX_NAME_BYTES
         && s.chars()
@@ -289,7 +341,8 @@ fn shorten(s: &str) -> String {
     }
 }
 
-pub(super) fn check_name(w: &mut Walker, name: &Spanned<String>, key: &str) {
+/// Reports `name` (at `key`) unless it is a [`valid_name`].
+pub fn check_name(w: &mut Walker, name: &Spanned<String>, key: &str) {
     if !valid_name(name.get_ref()) {
         w.err(
             &name.span(),

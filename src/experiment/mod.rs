@@ -1,0 +1,336 @@
+//! Placement experiments: an experiment file names a scene, techniques and the cuts of each
+//! to try ([`cuts`]), link profiles and client counts; it expands into one topology per
+//! (technique, cut, link, clients), each a file `cloudlight run` or `cloudlight node` runs
+//! alone.
+//!
+//! ```toml
+//! scene = "cornell-animated"
+//! duration_s = 5.0
+//! seed = 1
+//! clients = [1, 2]
+//! links = ["home-wifi", "campus", "city"]
+//!
+//! [[technique]]
+//! name = "photons"
+//! cuts = ["cloud", "local", "video"]
+//! set = { photons = 10000 }      # the technique's knobs, as `bench --set`
+//! ```
+//!
+//! The file is validated like a topology: every problem at once, each with file, line and
+//! key (an unknown technique, cut or profile names the known ones).
+
+pub mod cuts;
+
+use std::path::Path;
+
+use cloudlight_runtime::TopologyErrors;
+use cloudlight_runtime::topology::TopologySpec;
+use cloudlight_runtime::topology::reader::{Tbl, Walker, kind, plain};
+use cloudlight_transport::LinkProfile;
+
+use crate::bench::ClusterOptions;
+
+/// Longest run an experiment asks for, seconds.
+pub const MAX_DURATION_S: f64 = 3600.0;
+/// Most clients in one run.
+pub const MAX_CLIENTS: u64 = 1000;
+
+/// One technique of an experiment and the cuts of it to try.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TechniqueCuts {
+    /// The technique.
+    pub name: String,
+    /// Its cuts to try, in the file's order.
+    pub cuts: Vec<String>,
+    /// Its knobs over its defaults.
+    pub knobs: toml::Table,
+}
+
+/// A placement experiment.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Experiment {
+    /// Its name (the file's stem unless it says).
+    pub name: String,
+    /// Scene spec.
+    pub scene: String,
+    /// Seconds each run lasts.
+    pub duration_s: f64,
+    /// Run seed.
+    pub seed: u64,
+    /// Client counts.
+    pub clients: Vec<usize>,
+    /// Link profiles between the cloud and the clients, by name.
+    pub links: Vec<String>,
+    /// The techniques and their cuts.
+    pub techniques: Vec<TechniqueCuts>,
+}
+
+/// One run of an experiment.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Run {
+    /// Technique.
+    pub technique: String,
+    /// Its cut.
+    pub cut: String,
+    /// Link profile.
+    pub link: String,
+    /// Clients.
+    pub clients: usize,
+}
+
+impl Run {
+    /// A name for the run's files: `photons-cloud-campus-2c`.
+    pub fn id(&self) -> String {
+        format!(
+            "{}-{}-{}-{}c",
+            self.technique, self.cut, self.link, self.clients
+        )
+    }
+}
+
+impl Experiment {
+    /// Reads and validates the experiment file at `path`.
+    pub fn load(path: &Path) -> Result<Experiment, TopologyErrors> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|e| {
+            let mut w = Walker::new(&file, "");
+            w.err(&(0..0), "<file>", format!("cannot read it: {e}"));
+            TopologyErrors(w.diags)
+        })?;
+        let stem = path
+            .file_stem()
+            .map_or("experiment".into(), |s| s.to_string_lossy().into_owned());
+        Experiment::parse(&file, &text, &stem)
+    }
+
+    /// Parses and validates `text` (named `file` in diagnostics; `stem` names the
+    /// experiment unless it says).
+    pub fn parse(file: &str, text: &str, stem: &str) -> Result<Experiment, TopologyErrors> {
+        let mut w = Walker::new(file, text);
+        let Some(root) = w.document(text) else {
+            return Err(TopologyErrors(w.diags));
+        };
+        let mut top = Tbl::new(root.get_ref(), root.span(), String::new());
+        let mut e = Experiment {
+            name: stem.to_string(),
+            scene: "cornell-animated".into(),
+            duration_s: 5.0,
+            seed: 0,
+            clients: vec![1],
+            links: vec!["campus".into()],
+            techniques: Vec::new(),
+        };
+        if let Some(name) = top.string(&mut w, "name") {
+            cloudlight_runtime::topology::reader::check_name(&mut w, &name, "name");
+            e.name = name.into_inner();
+        }
+        if let Some(scene) = top.string(&mut w, "scene") {
+            e.scene = scene.into_inner();
+        }
+        if let Some(d) = top.float(&mut w, "duration_s") {
+            if *d.get_ref() > 0.0 && *d.get_ref() <= MAX_DURATION_S {
+                e.duration_s = d.into_inner();
+            } else {
+                w.err(
+                    &d.span(),
+                    "duration_s",
+                    format!(
+                        "{} is out of range: must be in (0, {MAX_DURATION_S}] s",
+                        d.get_ref()
+                    ),
+                );
+            }
+        }
+        if let Some(seed) = top.uint(&mut w, "seed") {
+            e.seed = seed.into_inner();
+        }
+        if let Some(v) = top.get("clients") {
+            match v.get_ref() {
+                toml::de::DeValue::Array(items) if !items.is_empty() => {
+                    e.clients.clear();
+                    for (i, item) in items.iter().enumerate() {
+                        match plain(item.get_ref()).and_then(|p| p.as_integer()) {
+                            Some(n) if (0..=MAX_CLIENTS as i64).contains(&n) => {
+                                e.clients.push(n as usize)
+                            }
+                            _ => w.err(
+                                &item.span(),
+                                &format!("clients[{i}]"),
+                                format!("expected a client count 0 to {MAX_CLIENTS}"),
+                            ),
+                        }
+                    }
+                }
+                other => w.err(
+                    &v.span(),
+                    "clients",
+                    format!(
+                        "expected a non-empty array of client counts, found {}",
+                        kind(other)
+                    ),
+                ),
+            }
+        }
+        if let Some(links) = top.strings(&mut w, "links") {
+            if links.is_empty() {
+                let span = top.table.get("links").map(|v| v.span()).unwrap_or_default();
+                w.err(&span, "links", "names no link profile");
+            }
+            e.links.clear();
+            for (i, l) in links.into_iter().enumerate() {
+                if LinkProfile::named(l.get_ref()).is_none() {
+                    w.err(
+                        &l.span(),
+                        &format!("links[{i}]"),
+                        format!(
+                            "unknown link profile `{}` (known: {})",
+                            l.get_ref(),
+                            LinkProfile::names()
+                        ),
+                    );
+                }
+                e.links.push(l.into_inner());
+            }
+        }
+        let tables = top.tables(&mut w, "technique");
+        if tables.is_empty() && top.table.get("technique").is_none() {
+            w.err(
+                &(0..0),
+                "technique",
+                "missing: name at least one `[[technique]]` with its `cuts`",
+            );
+        }
+        for (mut t, span) in tables {
+            let name = t.req_string(&mut w, "name");
+            let cut_list = t.strings(&mut w, "cuts");
+            let mut knobs = toml::Table::new();
+            if let Some(set) = t.table(&mut w, "set") {
+                for (k, v) in set.table.iter() {
+                    if let Some(value) = plain(v.get_ref()) {
+                        knobs.insert(k.get_ref().to_string(), value);
+                    }
+                }
+            }
+            t.finish(&mut w, &["name", "cuts", "set"]);
+            let Some(name) = name else { continue };
+            let Some(known) = cuts::cuts(name.get_ref()) else {
+                w.err(
+                    &name.span(),
+                    &t.key("name"),
+                    format!(
+                        "unknown technique `{}` (one of: {})",
+                        name.get_ref(),
+                        cuts::TECHNIQUES.join(", ")
+                    ),
+                );
+                continue;
+            };
+            if let Err(err) = cuts::check_knobs(name.get_ref(), &knobs) {
+                let span = t.table.get("set").map(|v| v.span()).unwrap_or(span.clone());
+                w.err(&span, &t.key("set"), format!("{err:#}"));
+            }
+            let cut_list = match cut_list {
+                Some(list) if !list.is_empty() => list,
+                Some(_) | None => {
+                    w.err(
+                        &span,
+                        &t.key("cuts"),
+                        format!(
+                            "name the cuts to try (of `{}`: {})",
+                            name.get_ref(),
+                            cuts::cut_names(name.get_ref())
+                        ),
+                    );
+                    continue;
+                }
+            };
+            let mut chosen = Vec::new();
+            for (i, c) in cut_list.into_iter().enumerate() {
+                if !known.iter().any(|k| k.name == c.get_ref()) {
+                    w.err(
+                        &c.span(),
+                        &format!("{}[{i}]", t.key("cuts")),
+                        format!(
+                            "`{}` has no cut `{}` (its cuts: {})",
+                            name.get_ref(),
+                            c.get_ref(),
+                            cuts::cut_names(name.get_ref())
+                        ),
+                    );
+                } else if chosen.contains(c.get_ref()) {
+                    w.err(
+                        &c.span(),
+                        &format!("{}[{i}]", t.key("cuts")),
+                        format!("cut `{}` is named twice", c.get_ref()),
+                    );
+                } else {
+                    chosen.push(c.into_inner());
+                }
+            }
+            e.techniques.push(TechniqueCuts {
+                name: name.into_inner(),
+                cuts: chosen,
+                knobs,
+            });
+        }
+        top.finish(
+            &mut w,
+            &[
+                "name",
+                "scene",
+                "duration_s",
+                "seed",
+                "clients",
+                "links",
+                "technique",
+            ],
+        );
+        w.finish().map(|()| e)
+    }
+
+    /// Every run, technique by technique, cut by cut, link by link, client count by count.
+    pub fn runs(&self) -> Vec<Run> {
+        let mut out = Vec::new();
+        for t in &self.techniques {
+            for cut in &t.cuts {
+                for link in &self.links {
+                    for &clients in &self.clients {
+                        out.push(Run {
+                            technique: t.name.clone(),
+                            cut: cut.clone(),
+                            link: link.clone(),
+                            clients,
+                        });
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// The topology of `run`: the cut's graph with `run.clients` clients on `home`, the link
+    /// profile between `cloud` and `home`.
+    pub fn topology(&self, run: &Run) -> anyhow::Result<TopologySpec> {
+        let knobs = self
+            .techniques
+            .iter()
+            .find(|t| t.name == run.technique)
+            .map(|t| t.knobs.clone())
+            .unwrap_or_default();
+        let link = LinkProfile::named(&run.link)
+            .ok_or_else(|| anyhow::anyhow!("unknown link profile `{}`", run.link))?;
+        let cluster = ClusterOptions {
+            scene: self.scene.clone(),
+            seconds: self.duration_s,
+            link: Some(link),
+            seed: self.seed,
+        };
+        let mut spec = cuts::graph(&run.technique, &run.cut, &knobs)?.topology(
+            &run.id(),
+            &cluster,
+            run.clients,
+        )?;
+        spec.cluster = format!("{}-{}", self.name, run.id());
+        Ok(spec)
+    }
+}
