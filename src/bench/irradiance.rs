@@ -585,20 +585,7 @@ pub fn quality(
         rays_per_texel,
         ..options.clone()
     }));
-    eprintln!(
-        "reference: {}x{}, {} spp, indirect only...",
-        common.width, common.height, common.spp
-    );
     let view = QualityView::new(scene, common.width, common.height, common.spp)?;
-    eprintln!(
-        "reference {} in {:.1} s",
-        if view.reference_cached {
-            "read from the cache"
-        } else {
-            "rendered"
-        },
-        view.reference_s
-    );
     let (w, h) = (common.width, common.height);
     let exr = |name: String, img: &[Vec3]| {
         cloudlight_render::image_io::write_exr(&out.join(name), w, h, img)

@@ -870,6 +870,7 @@ impl QualityView {
             .map(|c| c.at(0.0))
             .with_context(|| format!("scene `{}` has no camera", scene.name))?;
         let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+        eprintln!("reference: {width}x{height}, {spp} spp, indirect only...");
         let start = Instant::now();
         let settings = cloudlight_render::RenderSettings {
             width,
@@ -881,12 +882,21 @@ impl QualityView {
         };
         let cache = reference_cache::dir();
         let reference = reference_cache::reference(&scene, &bvh, settings, spp, cache.as_deref());
+        let reference_s = start.elapsed().as_secs_f64();
+        eprintln!(
+            "reference {} in {reference_s:.1} s",
+            if reference.cached {
+                "read from the cache"
+            } else {
+                "rendered"
+            }
+        );
         Ok(QualityView {
             scene,
             bvh,
             camera,
             reference: reference.indirect,
-            reference_s: start.elapsed().as_secs_f64(),
+            reference_s,
             reference_cached: reference.cached,
         })
     }

@@ -622,20 +622,7 @@ pub fn quality(
 ) -> anyhow::Result<Vec<QualityRow>> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let scene = cloudlight_scenes::load(scene_spec)?;
-    eprintln!(
-        "reference: {}x{}, {} spp, indirect only...",
-        o.width, o.height, o.spp
-    );
     let view = QualityView::new(scene, o.width, o.height, o.spp)?;
-    eprintln!(
-        "reference {} in {:.1} s",
-        if view.reference_cached {
-            "read from the cache"
-        } else {
-            "rendered"
-        },
-        view.reference_s
-    );
     let exr = |name: String, img: &[Vec3]| {
         cloudlight_render::image_io::write_exr(&out.join(name), o.width, o.height, img)
     };
