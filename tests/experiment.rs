@@ -84,6 +84,49 @@ fn the_paper_cuts_expand_into_valid_topologies_that_place_each_cut_where_it_says
 }
 
 #[test]
+fn added_latency_lengthens_each_link_by_it_and_names_its_runs() {
+    let e = Experiment::load(std::path::Path::new("examples/experiments/latency.toml"))
+        .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(e.extra_latency_ms, [0.0, 100.0, 250.0, 500.0, 1000.0]);
+    let runs = e.runs();
+    assert_eq!(runs.len(), 15, "3 cuts × 5 latencies");
+    let registry = cloudlight::actors::registry();
+    let campus = cloudlight::transport::LinkProfile::CAMPUS;
+    for run in &runs {
+        let plan = e.topology(run).unwrap().plan("t.toml", &registry).unwrap();
+        let link = plan.topology.link("cloud", "home").unwrap();
+        assert_eq!(
+            link.latency_ms,
+            campus.latency_ms + f64::from(run.extra_latency_ms),
+            "{}",
+            run.id()
+        );
+        assert_eq!(link.bandwidth_mbps, campus.bandwidth_mbps);
+    }
+    let ids: Vec<String> = runs.iter().map(|r| r.id()).collect();
+    assert!(
+        ids.contains(&"photons-cloud-campus-1c".to_string()),
+        "{ids:?}"
+    );
+    assert!(
+        ids.contains(&"voxels-video-campus-1000ms-1c".to_string()),
+        "{ids:?}"
+    );
+    let p = problems(
+        "extra_latency_ms = [0, -5, 20000]\n[[technique]]\nname = \"photons\"\ncuts = [\"cloud\"]\n",
+    );
+    has(
+        &p,
+        &["bad.toml:1:", "`extra_latency_ms[1]`", "milliseconds"],
+    );
+    has(
+        &p,
+        &["bad.toml:1:", "`extra_latency_ms[2]`", "milliseconds"],
+    );
+    assert_eq!(p.len(), 2, "{}", p.join("\n"));
+}
+
+#[test]
 fn bad_experiment_files_name_every_problem_with_its_line_and_key() {
     let text = r#"scene = "cornell"
 colour = 3

@@ -9,6 +9,7 @@
 //! seed = 1
 //! clients = [1, 2]
 //! links = ["home-wifi", "campus", "city"]
+//! extra_latency_ms = [0, 250]    # added to each link's one-way latency (the paper's latency video)
 //!
 //! [[technique]]
 //! name = "photons"
@@ -34,6 +35,8 @@ use crate::bench::ClusterOptions;
 pub const MAX_DURATION_S: f64 = 3600.0;
 /// Most clients in one run.
 pub const MAX_CLIENTS: u64 = 1000;
+/// Most latency an experiment adds to a link, ms.
+pub const MAX_EXTRA_LATENCY_MS: f64 = 10_000.0;
 
 /// One technique of an experiment and the cuts of it to try.
 #[derive(Clone, Debug, PartialEq)]
@@ -61,6 +64,9 @@ pub struct Experiment {
     pub clients: Vec<usize>,
     /// Link profiles between the cloud and the clients, by name.
     pub links: Vec<String>,
+    /// Latencies added to each link's one-way latency, ms (the paper's injected latency:
+    /// with the direct light on the client, what crosses is the indirect light).
+    pub extra_latency_ms: Vec<f64>,
     /// The techniques and their cuts.
     pub techniques: Vec<TechniqueCuts>,
 }
@@ -74,15 +80,23 @@ pub struct Run {
     pub cut: String,
     /// Link profile.
     pub link: String,
+    /// Latency added to the link's, ms.
+    pub extra_latency_ms: u32,
     /// Clients.
     pub clients: usize,
 }
 
 impl Run {
-    /// A name for the run's files: `photons-cloud-campus-2c`.
+    /// A name for the run's files: `photons-cloud-campus-2c`, and `-250ms` with added
+    /// latency.
     pub fn id(&self) -> String {
+        let extra = if self.extra_latency_ms > 0 {
+            format!("-{}ms", self.extra_latency_ms)
+        } else {
+            String::new()
+        };
         format!(
-            "{}-{}-{}-{}c",
+            "{}-{}-{}{extra}-{}c",
             self.technique, self.cut, self.link, self.clients
         )
     }
@@ -118,6 +132,7 @@ impl Experiment {
             seed: 0,
             clients: vec![1],
             links: vec!["campus".into()],
+            extra_latency_ms: vec![0.0],
             techniques: Vec::new(),
         };
         if let Some(name) = top.string(&mut w, "name") {
@@ -190,6 +205,36 @@ impl Experiment {
                     );
                 }
                 e.links.push(l.into_inner());
+            }
+        }
+        if let Some(v) = top.get("extra_latency_ms") {
+            match v.get_ref() {
+                toml::de::DeValue::Array(items) if !items.is_empty() => {
+                    e.extra_latency_ms.clear();
+                    for (i, item) in items.iter().enumerate() {
+                        let ms = plain(item.get_ref()).and_then(|p| {
+                            p.as_float().or_else(|| p.as_integer().map(|i| i as f64))
+                        });
+                        match ms {
+                            Some(ms) if (0.0..=MAX_EXTRA_LATENCY_MS).contains(&ms) => {
+                                e.extra_latency_ms.push(ms.round())
+                            }
+                            _ => w.err(
+                                &item.span(),
+                                &format!("extra_latency_ms[{i}]"),
+                                format!("expected milliseconds, 0 to {MAX_EXTRA_LATENCY_MS}"),
+                            ),
+                        }
+                    }
+                }
+                other => w.err(
+                    &v.span(),
+                    "extra_latency_ms",
+                    format!(
+                        "expected a non-empty array of milliseconds, found {}",
+                        kind(other)
+                    ),
+                ),
             }
         }
         let tables = top.tables(&mut w, "technique");
@@ -282,25 +327,30 @@ impl Experiment {
                 "seed",
                 "clients",
                 "links",
+                "extra_latency_ms",
                 "technique",
             ],
         );
         w.finish().map(|()| e)
     }
 
-    /// Every run, technique by technique, cut by cut, link by link, client count by count.
+    /// Every run, technique by technique, cut by cut, link by link, added latency by added
+    /// latency, client count by client count.
     pub fn runs(&self) -> Vec<Run> {
         let mut out = Vec::new();
         for t in &self.techniques {
             for cut in &t.cuts {
                 for link in &self.links {
-                    for &clients in &self.clients {
-                        out.push(Run {
-                            technique: t.name.clone(),
-                            cut: cut.clone(),
-                            link: link.clone(),
-                            clients,
-                        });
+                    for &extra in &self.extra_latency_ms {
+                        for &clients in &self.clients {
+                            out.push(Run {
+                                technique: t.name.clone(),
+                                cut: cut.clone(),
+                                link: link.clone(),
+                                extra_latency_ms: extra as u32,
+                                clients,
+                            });
+                        }
                     }
                 }
             }
@@ -317,8 +367,9 @@ impl Experiment {
             .find(|t| t.name == run.technique)
             .map(|t| t.knobs.clone())
             .unwrap_or_default();
-        let link = LinkProfile::named(&run.link)
+        let mut link = LinkProfile::named(&run.link)
             .ok_or_else(|| anyhow::anyhow!("unknown link profile `{}`", run.link))?;
+        link.latency_ms += f64::from(run.extra_latency_ms);
         let cluster = ClusterOptions {
             scene: self.scene.clone(),
             seconds: self.duration_s,
