@@ -8,7 +8,7 @@
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 
 use crate::hdr_map::HdrMap;
-use crate::raster::pass::{CachedBindGroup, draw_fullscreen};
+use crate::raster::pass::{CachedBindGroup, draw_fullscreen, lookup_bind_group};
 use crate::raster::pipelines::{
     D2, FRAGMENT, UINT, buffer_entry, fullscreen_pipeline, layout, pipeline_layout, texture_entry,
 };
@@ -201,28 +201,19 @@ impl IndirectPass for LightmapPass {
         };
         let group = self.bound.get(ctx.renderer_id, self.generation, || {
             let g = ctx.gbuffer;
-            let tex = |binding, view| wgpu::BindGroupEntry {
-                binding,
-                resource: wgpu::BindingResource::TextureView(view),
-            };
-            raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("lightmap lookup"),
-                layout: &self.pipelines.layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: self.params.as_entire_binding(),
-                    },
-                    tex(1, &g.position.view),
-                    tex(2, &g.albedo.view),
-                    tex(3, &g.lightmap_uv.view),
-                    tex(4, &map.view),
-                    wgpu::BindGroupEntry {
-                        binding: 5,
-                        resource: wgpu::BindingResource::Sampler(&self.pipelines.sampler),
-                    },
+            lookup_bind_group(
+                raster,
+                "lightmap lookup",
+                &self.pipelines.layout,
+                &self.params,
+                &[
+                    &g.position.view,
+                    &g.albedo.view,
+                    &g.lightmap_uv.view,
+                    &map.view,
                 ],
-            })
+                &self.pipelines.sampler,
+            )
         });
         draw_fullscreen(enc, "lightmap lookup", ctx, &self.pipelines.lookup, group);
         Ok(())

@@ -75,6 +75,37 @@ pub(crate) fn draw_fullscreen(
     pass.draw(0..3, 0..1);
 }
 
+/// The bind group of a full-screen lookup pass: `params` at binding 0, the texture views
+/// `views` at 1, 2, ... in order, and `sampler` after them.
+pub(crate) fn lookup_bind_group(
+    raster: &Raster,
+    label: &str,
+    layout: &wgpu::BindGroupLayout,
+    params: &wgpu::Buffer,
+    views: &[&wgpu::TextureView],
+    sampler: &wgpu::Sampler,
+) -> wgpu::BindGroup {
+    let mut entries = vec![wgpu::BindGroupEntry {
+        binding: 0,
+        resource: params.as_entire_binding(),
+    }];
+    for (i, view) in views.iter().enumerate() {
+        entries.push(wgpu::BindGroupEntry {
+            binding: 1 + i as u32,
+            resource: wgpu::BindingResource::TextureView(view),
+        });
+    }
+    entries.push(wgpu::BindGroupEntry {
+        binding: 1 + views.len() as u32,
+        resource: wgpu::BindingResource::Sampler(sampler),
+    });
+    raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &entries,
+    })
+}
+
 /// No indirect light (direct-only frames).
 pub struct NoIndirect;
 

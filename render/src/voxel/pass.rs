@@ -5,7 +5,7 @@
 //! every pixel gets no indirect light. The pass owns its pipeline ([`LookupPipelines`],
 //! built once per device).
 
-use crate::raster::pass::{CachedBindGroup, draw_fullscreen};
+use crate::raster::pass::{CachedBindGroup, draw_fullscreen, lookup_bind_group};
 use crate::raster::pipelines::{
     FRAGMENT, UINT, buffer_entry, fullscreen_pipeline, layout, pipeline_layout, texture_entry,
 };
@@ -202,28 +202,19 @@ impl IndirectPass for VoxelPass {
         };
         let group = self.bound.get(ctx.renderer_id, self.generation, || {
             let g = ctx.gbuffer;
-            let tex = |binding, view| wgpu::BindGroupEntry {
-                binding,
-                resource: wgpu::BindingResource::TextureView(view),
-            };
-            raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("voxel lookup"),
-                layout: &self.pipelines.layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: self.params.as_entire_binding(),
-                    },
-                    tex(1, &g.position.view),
-                    tex(2, &g.normal.view),
-                    tex(3, &g.albedo.view),
-                    tex(4, &volume.view),
-                    wgpu::BindGroupEntry {
-                        binding: 5,
-                        resource: wgpu::BindingResource::Sampler(&self.pipelines.sampler),
-                    },
+            lookup_bind_group(
+                raster,
+                "voxel lookup",
+                &self.pipelines.layout,
+                &self.params,
+                &[
+                    &g.position.view,
+                    &g.normal.view,
+                    &g.albedo.view,
+                    &volume.view,
                 ],
-            })
+                &self.pipelines.sampler,
+            )
         });
         draw_fullscreen(enc, "voxel lookup", ctx, &self.pipelines.lookup, group);
         Ok(())
