@@ -16,11 +16,15 @@ const FONT_PATHS: [&str; 3] = [
     "/usr/share/fonts/dejavu/DejaVuSans.ttf",
 ];
 
-const COLOURS: [RGBColor; 4] = [
+const COLOURS: [RGBColor; 8] = [
     RGBColor(200, 30, 30),
     RGBColor(30, 90, 200),
     RGBColor(30, 140, 60),
     RGBColor(140, 60, 160),
+    RGBColor(230, 140, 20),
+    RGBColor(20, 160, 170),
+    RGBColor(120, 80, 40),
+    RGBColor(90, 90, 90),
 ];
 
 /// Registers DejaVu Sans as plotters' `sans-serif` once.
@@ -300,6 +304,66 @@ pub fn pareto(path: &Path, title: &str, panels: &[ParetoPanel]) -> anyhow::Resul
                 .draw()?;
             pareto_panel(&mut chart, panel, &y_range)?;
         }
+        root.present()?;
+        Ok(())
+    };
+    draw().map_err(draw_error(path))?;
+    Ok(path.to_path_buf())
+}
+
+/// Draws `series` (legend text, points) as lines on linear axes from 0, each in its own
+/// colour with a legend, and writes `path` (PNG).
+pub fn linear(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> anyhow::Result<PathBuf> {
+    font()?;
+    let root = BitMapBackend::new(path, (900, 560)).into_drawing_area();
+    let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
+    let points = || series.iter().flat_map(|(_, p)| p.iter().filter(finite));
+    let right = points().map(|p| p.0).fold(0.0f64, f64::max);
+    let top = points().map(|p| p.1).fold(0.0f64, f64::max);
+    let x_range = 0.0..if right > 0.0 { right * 1.05 } else { 1.0 };
+    let y_range = 0.0..log_range([top.max(1e-6) * 1.1].into_iter()).end;
+    let draw = || -> Result<(), Box<dyn std::error::Error + '_>> {
+        root.fill(&WHITE)?;
+        let root = root.titled(title, ("sans-serif", 22))?;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(16)
+            .x_label_area_size(48)
+            .y_label_area_size(80)
+            .build_cartesian_2d(x_range.clone(), y_range.clone())?;
+        chart
+            .configure_mesh()
+            .x_labels(12)
+            .y_labels(8)
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .x_label_formatter(&tick)
+            .y_label_formatter(&tick)
+            .label_style(("sans-serif", 14))
+            .draw()?;
+        for (i, (label, pts)) in series.iter().enumerate() {
+            let colour = COLOURS[i % COLOURS.len()];
+            let pts: Vec<(f64, f64)> = pts.iter().filter(finite).copied().collect();
+            chart
+                .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))?
+                .label(label.as_str())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                });
+            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 13))
+            .position(SeriesLabelPosition::UpperLeft)
+            .draw()?;
         root.present()?;
         Ok(())
     };

@@ -112,6 +112,47 @@ pub fn srgb8(x: f32) -> u8 {
     (s * 255.0 + 0.5) as u8
 }
 
+/// The inverse of [`aces`] on [0, 1) (the larger root of the curve's quadratic); 1 and
+/// above map to infinity.
+pub fn aces_inverse(y: f32) -> f32 {
+    let y = y.max(0.0) as f64;
+    let a = 2.51 - 2.43 * y;
+    if a <= 0.0 || y >= 1.0 {
+        return f32::INFINITY;
+    }
+    let b = 0.03 - 0.59 * y;
+    let c = -0.14 * y;
+    ((-b + (b * b - 4.0 * a * c).sqrt()) / (2.0 * a)) as f32
+}
+
+/// An sRGB-encoded byte → linear [0, 1].
+pub fn srgb8_to_linear(v: u8) -> f32 {
+    let s = v as f32 / 255.0;
+    if s <= 0.040_45 {
+        s / 12.92
+    } else {
+        ((s + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// The radiance a picture of [`tonemap`] at exposure `2^stops` shows: each pixel mapped
+/// back through sRGB, ACES and the exposure, and whether it is saturated (a channel at
+/// 255, whose radiance is only known to be at least what it maps to).
+pub fn untonemap(rgb: &[u8], stops: f32) -> (Vec<Vec3>, Vec<bool>) {
+    let k = 2f32.powf(-stops);
+    let lut: Vec<f32> = (0..=255u8)
+        .map(|v| aces_inverse(srgb8_to_linear(v).min(0.999_9)) * k)
+        .collect();
+    rgb.chunks_exact(3)
+        .map(|p| {
+            (
+                Vec3::new(lut[p[0] as usize], lut[p[1] as usize], lut[p[2] as usize]),
+                p.contains(&255),
+            )
+        })
+        .unzip()
+}
+
 /// Tone-maps a linear image at exposure `2^stops` with ACES to sRGB8 RGB bytes.
 pub fn tonemap(image: &[Vec3], stops: f32) -> Vec<u8> {
     let k = 2f32.powf(stops);
@@ -274,6 +315,29 @@ pub fn flip_hdr(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn untonemap_inverts_tonemap_up_to_quantization() {
+        for x in [0.0f32, 0.01, 0.1, 0.5, 1.0, 3.0] {
+            let y = aces(x);
+            assert!((aces_inverse(y) - x).abs() <= 1e-4 * (1.0 + x), "{x}");
+        }
+        for v in 0..=255u8 {
+            assert_eq!(srgb8(srgb8_to_linear(v)), v);
+        }
+        let image = vec![
+            Vec3::new(0.05, 0.2, 0.7),
+            Vec3::new(0.4, 0.4, 0.4),
+            Vec3::splat(500.0),
+        ];
+        let (back, saturated) = untonemap(&tonemap(&image, 1.0), 1.0);
+        assert_eq!(saturated, vec![false, false, true]);
+        for (a, b) in image.iter().zip(&back).take(2) {
+            for c in 0..3 {
+                assert!((a[c] - b[c]).abs() <= 0.03 * a[c], "{a} {b}");
+            }
+        }
+    }
 
     fn flat(v: f32, n: usize) -> Vec<Vec3> {
         vec![Vec3::splat(v); n]

@@ -34,6 +34,33 @@ impl Markdown {
     }
 }
 
+impl Markdown {
+    /// The same table as HTML (cells escaped).
+    pub fn html(&self) -> String {
+        let row = |tag: &str, cells: &[String]| {
+            let cells: String = cells
+                .iter()
+                .map(|c| format!("<{tag}>{}</{tag}>", escape_html(c)))
+                .collect();
+            format!("<tr>{cells}</tr>\n")
+        };
+        let mut s = String::from("<table>\n");
+        s += &row("th", &self.header);
+        for r in &self.rows {
+            s += &row("td", r);
+        }
+        s + "</table>\n"
+    }
+}
+
+/// `text` with HTML's special characters escaped.
+pub fn escape_html(text: &str) -> String {
+    text.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
 /// `v` with thousands as `k` (`9.8k`), below as an integer.
 pub fn count(v: f64) -> String {
     if v >= 1e3 {

@@ -61,6 +61,15 @@ enum Command {
 }
 
 impl Cli {
+    /// What is logged unless `RUST_LOG` says: the runtime's progress, except for a sweep of
+    /// many runs (`experiment`), which shows a progress bar and a line per run instead.
+    pub fn default_log_filter(&self) -> &'static str {
+        match self.command {
+            Command::Experiment(_) => "warn",
+            _ => "warn,cloudlight=info,cloudlight_runtime=info,cloudlight_actors=info",
+        }
+    }
+
     /// Runs the command; the exit code says how it went (0 ok, 2 bad input, 3 a stage
     /// failed, 4 a transport bench found damage, 1 anything else).
     pub fn run(self) -> ExitCode {

@@ -11,6 +11,47 @@ use crate::bench::photons::Photons;
 use crate::bench::voxels::Voxels;
 use crate::bench::{CLIENT, Placement, Side, StageGraph, Technique, options_from};
 
+/// What a cut asks of the client's machine (the paper's client classes).
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum ClientClass {
+    /// Decodes video and shows it.
+    Thin,
+    /// Rasterizes the scene with its own direct light and a looked-up indirect term.
+    Medium,
+    /// Splats photons, or runs the whole technique itself.
+    Powerful,
+}
+
+impl ClientClass {
+    /// Every class, weakest first.
+    pub const ALL: [ClientClass; 3] = [
+        ClientClass::Thin,
+        ClientClass::Medium,
+        ClientClass::Powerful,
+    ];
+
+    /// Its name.
+    pub fn name(self) -> &'static str {
+        match self {
+            ClientClass::Thin => "thin",
+            ClientClass::Medium => "medium",
+            ClientClass::Powerful => "powerful",
+        }
+    }
+
+    /// What a client of the class does, in a few words.
+    pub fn about(self) -> &'static str {
+        match self {
+            ClientClass::Thin => "decode only",
+            ClientClass::Medium => "raster",
+            ClientClass::Powerful => "splatting, or the whole technique",
+        }
+    }
+}
+
 /// One cut of a technique.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Cut {
@@ -18,20 +59,31 @@ pub struct Cut {
     pub name: &'static str,
     /// What crosses the network, and what runs where.
     pub about: &'static str,
+    /// The least client that can run it.
+    pub client: ClientClass,
+    /// Whether whole frames cross the network (so the camera, not only the indirect light,
+    /// is as late as the link).
+    pub frames_cross: bool,
 }
 
 const PHOTON_CUTS: &[Cut] = &[
     Cut {
         name: "cloud",
         about: "the batcher traces photons on the cloud; bit-packed photons cross the network to clients that splat them",
+        client: ClientClass::Powerful,
+        frames_cross: false,
     },
     Cut {
         name: "local",
         about: "each client traces its own photons: nothing crosses the network",
+        client: ClientClass::Powerful,
+        frames_cross: false,
     },
     Cut {
         name: "video",
         about: "full frames rendered in the cloud per client, H.264 to thin clients (the baseline)",
+        client: ClientClass::Thin,
+        frames_cross: true,
     },
 ];
 
@@ -39,14 +91,20 @@ const IRRADIANCE_CUTS: &[Cut] = &[
     Cut {
         name: "h264",
         about: "the gatherer's light map crosses the network as H.264 to clients that look it up",
+        client: ClientClass::Medium,
+        frames_cross: false,
     },
     Cut {
         name: "raw",
         about: "the light map crosses the network as raw f16 texels",
+        client: ClientClass::Medium,
+        frames_cross: false,
     },
     Cut {
         name: "local",
         about: "each client gathers its own light map: nothing crosses the network",
+        client: ClientClass::Powerful,
+        frames_cross: false,
     },
 ];
 
@@ -54,14 +112,20 @@ const VOXEL_CUTS: &[Cut] = &[
     Cut {
         name: "video",
         about: "GI and each client's frame in the cloud, H.264 to thin clients (the paper's voxel pipeline)",
+        client: ClientClass::Thin,
+        frames_cross: true,
     },
     Cut {
         name: "deltas",
         about: "Haar voxel deltas cross the network to a frame renderer on each client",
+        client: ClientClass::Medium,
+        frames_cross: false,
     },
     Cut {
         name: "local",
         about: "each client runs the GI stages and its frame renderer: nothing crosses the network",
+        client: ClientClass::Powerful,
+        frames_cross: false,
     },
 ];
 
@@ -86,6 +150,26 @@ pub fn cut_names(technique: &str) -> String {
         .map(|c| c.name)
         .collect::<Vec<_>>()
         .join(", ")
+}
+
+/// Where a technique's time per lighting update is reported: (stage, report key) pairs
+/// whose values add up (the first instance of a replicated stage is read).
+pub fn update_cost(technique: &str) -> &'static [(&'static str, &'static str)] {
+    match technique {
+        Photons::NAME => &[("server", "iteration_ms_mean")],
+        Irradiance::NAME => &[("gather", "update_ms_mean")],
+        Voxels::NAME => &[
+            ("inject", "inject_ms_mean"),
+            ("filter", "filter_ms_p50"),
+            ("cones", "gather_ms_mean"),
+        ],
+        _ => &[],
+    }
+}
+
+/// The cut `cut` of `technique`, if it has it.
+pub fn find(technique: &str, cut: &str) -> Option<&'static Cut> {
+    cuts(technique)?.iter().find(|c| c.name == cut)
 }
 
 /// Checks `knobs` against `technique`'s options (the error names the knob and lists them).

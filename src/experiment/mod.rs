@@ -21,6 +21,9 @@
 //! key (an unknown technique, cut or profile names the known ones).
 
 pub mod cuts;
+pub mod reference;
+pub mod report;
+pub mod run;
 
 use std::path::Path;
 
@@ -29,7 +32,9 @@ use cloudlight_runtime::topology::TopologySpec;
 use cloudlight_runtime::topology::reader::{Tbl, Walker, kind, plain};
 use cloudlight_transport::LinkProfile;
 
-use crate::bench::ClusterOptions;
+use cloudlight_actors::client::MAX_FRAME_PX;
+
+use crate::bench::{CLIENT, ClusterOptions, StageGraph};
 
 /// Longest run an experiment asks for, seconds.
 pub const MAX_DURATION_S: f64 = 3600.0;
@@ -37,6 +42,40 @@ pub const MAX_DURATION_S: f64 = 3600.0;
 pub const MAX_CLIENTS: u64 = 1000;
 /// Most latency an experiment adds to a link, ms.
 pub const MAX_EXTRA_LATENCY_MS: f64 = 10_000.0;
+
+/// How an experiment's clients show and sample what they show, and how the reference is
+/// made: the same for every run, so that runs compare.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Measure {
+    /// Client frame width, pixels.
+    pub width: u32,
+    /// Client frame height, pixels.
+    pub height: u32,
+    /// Client frames per second.
+    pub fps: f64,
+    /// A client frame is compared with the reference every this many seconds of scene time.
+    pub sample_every_s: f64,
+    /// Samples before this scene time are left out (the pipeline filling).
+    pub warmup_s: f64,
+    /// Reference samples per pixel.
+    pub reference_spp: u32,
+    /// Frames per second of the reference's video of the camera path.
+    pub reference_fps: f64,
+}
+
+impl Default for Measure {
+    fn default() -> Self {
+        Measure {
+            width: 256,
+            height: 144,
+            fps: 10.0,
+            sample_every_s: 1.0,
+            warmup_s: 1.5,
+            reference_spp: 128,
+            reference_fps: 4.0,
+        }
+    }
+}
 
 /// One technique of an experiment and the cuts of it to try.
 #[derive(Clone, Debug, PartialEq)]
@@ -69,6 +108,8 @@ pub struct Experiment {
     pub extra_latency_ms: Vec<f64>,
     /// The techniques and their cuts.
     pub techniques: Vec<TechniqueCuts>,
+    /// How clients are sampled and compared with the reference.
+    pub measure: Measure,
 }
 
 /// One run of an experiment.
@@ -134,6 +175,7 @@ impl Experiment {
             links: vec!["campus".into()],
             extra_latency_ms: vec![0.0],
             techniques: Vec::new(),
+            measure: Measure::default(),
         };
         if let Some(name) = top.string(&mut w, "name") {
             cloudlight_runtime::topology::reader::check_name(&mut w, &name, "name");
@@ -154,6 +196,72 @@ impl Experiment {
                         d.get_ref()
                     ),
                 );
+            }
+        }
+        let m = &mut e.measure;
+        let size = |w: &mut Walker, top: &mut Tbl, key: &'static str, into: &mut u32| {
+            if let Some(v) = top.uint(w, key) {
+                match u32::try_from(*v.get_ref()) {
+                    Ok(px) if (16..=MAX_FRAME_PX).contains(&px) && px % 2 == 0 => *into = px,
+                    _ => w.err(
+                        &v.span(),
+                        key,
+                        format!(
+                            "{} is out of range: an even number of pixels, 16 to {MAX_FRAME_PX}",
+                            v.get_ref()
+                        ),
+                    ),
+                }
+            }
+        };
+        size(&mut w, &mut top, "width", &mut m.width);
+        size(&mut w, &mut top, "height", &mut m.height);
+        let float = |w: &mut Walker,
+                     top: &mut Tbl,
+                     key: &'static str,
+                     range: (f64, f64),
+                     into: &mut f64| {
+            if let Some(v) = top.float(w, key) {
+                if (range.0..=range.1).contains(v.get_ref()) {
+                    *into = v.into_inner();
+                } else {
+                    w.err(
+                        &v.span(),
+                        key,
+                        format!(
+                            "{} is out of range: {} to {}",
+                            v.get_ref(),
+                            range.0,
+                            range.1
+                        ),
+                    );
+                }
+            }
+        };
+        float(&mut w, &mut top, "fps", (1.0, 120.0), &mut m.fps);
+        float(
+            &mut w,
+            &mut top,
+            "sample_every_s",
+            (0.05, 60.0),
+            &mut m.sample_every_s,
+        );
+        float(&mut w, &mut top, "warmup_s", (0.0, 60.0), &mut m.warmup_s);
+        float(
+            &mut w,
+            &mut top,
+            "reference_fps",
+            (0.1, 60.0),
+            &mut m.reference_fps,
+        );
+        if let Some(v) = top.uint(&mut w, "reference_spp") {
+            match u32::try_from(*v.get_ref()) {
+                Ok(spp) if (1..=1 << 16).contains(&spp) => m.reference_spp = spp,
+                _ => w.err(
+                    &v.span(),
+                    "reference_spp",
+                    "out of range: 1 to 65536 samples per pixel",
+                ),
             }
         }
         if let Some(seed) = top.uint(&mut w, "seed") {
@@ -329,6 +437,13 @@ impl Experiment {
                 "links",
                 "extra_latency_ms",
                 "technique",
+                "width",
+                "height",
+                "fps",
+                "sample_every_s",
+                "warmup_s",
+                "reference_spp",
+                "reference_fps",
             ],
         );
         w.finish().map(|()| e)
@@ -359,8 +474,11 @@ impl Experiment {
     }
 
     /// The topology of `run`: the cut's graph with `run.clients` clients on `home`, the link
-    /// profile between `cloud` and `home`.
-    pub fn topology(&self, run: &Run) -> anyhow::Result<TopologySpec> {
+    /// profile between `cloud` and `home`. Every stage that shows frames (a client, or a
+    /// frame renderer in the cloud) renders at the experiment's size and rate with exposure
+    /// `exposure` (chosen from the first frame when `None`); each client records
+    /// [`RECORDING`] and writes a sample every `sample_every_s`.
+    pub fn topology(&self, run: &Run, exposure: Option<f32>) -> anyhow::Result<TopologySpec> {
         let knobs = self
             .techniques
             .iter()
@@ -376,12 +494,45 @@ impl Experiment {
             link: Some(link),
             seed: self.seed,
         };
-        let mut spec = cuts::graph(&run.technique, &run.cut, &knobs)?.topology(
-            &run.id(),
-            &cluster,
-            run.clients,
-        )?;
+        let mut graph = cuts::graph(&run.technique, &run.cut, &knobs)?;
+        self.set_clients(&mut graph, exposure);
+        let mut spec = graph.topology(&run.id(), &cluster, run.clients)?;
         spec.cluster = format!("{}-{}", self.name, run.id());
         Ok(spec)
     }
+
+    /// Sets the shell keys of every stage of `graph` that shows frames, and the video
+    /// encoders' rate.
+    fn set_clients(&self, graph: &mut StageGraph, exposure: Option<f32>) {
+        let registry = cloudlight_actors::registry();
+        let frames = cloudlight_actors::client::FRAMES.name();
+        let m = &self.measure;
+        for stage in &mut graph.stages {
+            let Some(kind) = registry.get(&stage.kind) else {
+                continue;
+            };
+            let p = &mut stage.params;
+            if kind.name == "video_encoder" {
+                p.insert("fps".into(), m.fps.into());
+            }
+            if !kind.outputs.iter().any(|o| o.name == frames) {
+                continue;
+            }
+            p.insert("width".into(), i64::from(m.width).into());
+            p.insert("height".into(), i64::from(m.height).into());
+            p.insert("fps".into(), m.fps.into());
+            p.insert("render".into(), true.into());
+            match exposure {
+                Some(stops) => p.insert("exposure_stops".into(), f64::from(stops).into()),
+                None => p.remove("exposure_stops"),
+            };
+            if stage.name == CLIENT {
+                p.insert("sample_every_s".into(), m.sample_every_s.into());
+                p.insert("record".into(), RECORDING.into());
+            }
+        }
+    }
 }
+
+/// The MP4 each client of an experiment records, in its folder of the run's output.
+pub const RECORDING: &str = "client.mp4";

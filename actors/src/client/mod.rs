@@ -174,6 +174,12 @@ pub struct ClientReport<R> {
     pub first_indirect_s: Option<f64>,
     /// Times the shadow maps were rendered.
     pub shadow_renders: u64,
+    /// Samples written ([`ClientParams::sample_every_s`]).
+    #[serde(default)]
+    pub samples_written: u64,
+    /// The exposure of its pictures, stops (set, or chosen from the first frame).
+    #[serde(default)]
+    pub exposure_stops: Option<f32>,
     /// The technique's figures.
     #[serde(flatten)]
     pub technique: R,
@@ -207,15 +213,24 @@ struct Output {
     log: Option<std::io::BufWriter<std::fs::File>>,
     /// Where the MP4 recording goes, when asked for.
     record: Option<PathBuf>,
+    /// The client's folder and its `samples.csv`, when it writes samples.
+    samples: Option<(PathBuf, std::io::BufWriter<std::fs::File>)>,
 }
 
 impl Output {
     fn open<T: ClientTechnique>(setup: &StageSetup, params: &ClientParams) -> anyhow::Result<Self> {
         let Some(out) = &setup.out_dir else {
+            if params.sample_every_s.is_some() {
+                tracing::warn!(
+                    stage = %setup.info.name,
+                    "`sample_every_s` is set but the run writes no output folder: no samples"
+                );
+            }
             return Ok(Output {
                 frames_dir: None,
                 log: None,
                 record: params.record.as_ref().map(PathBuf::from),
+                samples: None,
             });
         };
         let name = setup.info.name.replace(['[', ']'], "-");
@@ -232,11 +247,23 @@ impl Output {
             "frame,scene_time_s,frame_ms,age_ms,{}",
             T::csv_columns()
         )?;
+        let shows = params.render || T::SHOWS_PICTURES;
+        let samples = match params.sample_every_s {
+            Some(_) if shows => {
+                let path = dir.join("samples.csv");
+                let file = std::fs::File::create(&path)
+                    .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+                let mut log = std::io::BufWriter::new(file);
+                writeln!(log, "sample,scene_time_s,shown_at_s,age_ms,file")?;
+                Some((dir.clone(), log))
+            }
+            _ => None,
+        };
         Ok(Output {
-            frames_dir: (params.write_frames && (params.render || T::SHOWS_PICTURES))
-                .then_some(dir.clone()),
+            frames_dir: (params.write_frames && shows).then_some(dir.clone()),
             log: Some(log),
             record: params.record.as_ref().map(|name| dir.join(name)),
+            samples,
         })
     }
 }
@@ -255,6 +282,9 @@ struct Figures {
     started: Instant,
     first_indirect_s: Option<f64>,
     shadow_renders: u64,
+    /// Index of the next sample due ([`ClientParams::sample_every_s`]).
+    next_sample: u64,
+    samples_written: u64,
 }
 
 /// A client stage: the shell around technique `T`.
@@ -316,6 +346,7 @@ impl<T: ClientTechnique> ClientShell<T> {
         let overview = scene.overview_camera();
         let drawn = technique.drawn_scene().unwrap_or_else(|| scene.clone());
         let cadence = Cadence::hz(params.client.fps);
+        let exposure = params.client.exposure_stops;
         Ok(ClientShell {
             params: params.client,
             technique,
@@ -327,7 +358,7 @@ impl<T: ClientTechnique> ClientShell<T> {
             surface_lights: None,
             overview,
             output,
-            exposure: None,
+            exposure,
             recorder: None,
             figures: Figures {
                 frames: 0,
@@ -339,6 +370,8 @@ impl<T: ClientTechnique> ClientShell<T> {
                 started: Instant::now(),
                 first_indirect_s: None,
                 shadow_renders: 0,
+                next_sample: 1,
+                samples_written: 0,
             },
             cadence,
         })
@@ -380,6 +413,8 @@ impl<T: ClientTechnique> ClientShell<T> {
             indirect_shown: self.technique.valid_as_of().is_some(),
             first_indirect_s: f.first_indirect_s,
             shadow_renders: f.shadow_renders,
+            samples_written: f.samples_written,
+            exposure_stops: self.exposure,
             technique: self.technique.report(),
         }
     }
@@ -564,6 +599,50 @@ impl<T: ClientTechnique> ClientShell<T> {
         Ok(())
     }
 
+    /// The sample due at `t`, if any: the newest multiple `k × sample_every_s` at or before
+    /// `t` not sampled yet, as (k, its scene time).
+    fn due_sample(&mut self, t: f64) -> Option<(u64, f64)> {
+        let every = self.params.sample_every_s?;
+        self.output.samples.as_ref()?;
+        let k = (t / every + 1e-9).floor().max(0.0) as u64;
+        if k < self.figures.next_sample {
+            return None;
+        }
+        self.figures.next_sample = k + 1;
+        Some((k, k as f64 * every))
+    }
+
+    /// Writes `picture` as sample `k` of scene time `ts`, shown at `t`.
+    async fn write_sample(
+        &mut self,
+        k: u64,
+        ts: f64,
+        t: f64,
+        picture: Picture,
+    ) -> anyhow::Result<()> {
+        let age = self.light_time(ts).map_or(String::new(), |v| {
+            format!("{:.3}", (ts - v).max(0.0) * 1000.0)
+        });
+        let Some((dir, _)) = &self.output.samples else {
+            return Ok(());
+        };
+        let name = format!("sample_{k:05}.png");
+        let path = dir.join(&name);
+        tokio::task::spawn_blocking(move || {
+            image::RgbImage::from_raw(picture.width, picture.height, picture.rgb)
+                .ok_or_else(|| anyhow::anyhow!("a picture of the wrong size"))?
+                .save(&path)
+                .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))
+        })
+        .await??;
+        let Some((_, log)) = &mut self.output.samples else {
+            return Ok(());
+        };
+        writeln!(log, "{k},{ts:.4},{t:.4},{age},{name}")?;
+        self.figures.samples_written += 1;
+        Ok(())
+    }
+
     fn log_frame(&mut self, t: f64, frame_ms: Option<f64>) -> anyhow::Result<()> {
         let age = self.light_time(t).map_or(String::new(), |v| {
             format!("{:.3}", (t - v).max(0.0) * 1000.0)
@@ -604,15 +683,25 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
         let t = ctx.clock().scene_time_at_s(now_unix_ns());
         self.record_age(t);
         let recording = self.output.record.is_some();
+        let sample = self.due_sample(t);
         let frame_ms = if T::SHOWS_PICTURES {
             let ms = self.show_picture().await?;
             if let (true, Some(picture)) = (recording && ms.is_some(), self.technique.picture()) {
                 self.record(&picture, t)?;
             }
+            if let (Some((k, ts)), Some(picture)) = (sample, self.technique.picture()) {
+                self.write_sample(k, ts, t, Picture::clone(&picture))
+                    .await?;
+            }
             ms
         } else {
             let send = ctx.has_consumers(FRAMES);
-            match self.render(t, send || recording).await? {
+            // A sample's frame is rendered for the sample's time (at most a frame earlier).
+            let t = sample.map_or(t, |(_, ts)| ts);
+            match self
+                .render(t, send || recording || sample.is_some())
+                .await?
+            {
                 Some((ms, Some(image))) => {
                     let stops = self.exposure.unwrap_or(0.0);
                     let rgb = tokio::task::spawn_blocking(move || {
@@ -626,6 +715,9 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
                     };
                     if recording {
                         self.record(&picture, t)?;
+                    }
+                    if let Some((k, ts)) = sample {
+                        self.write_sample(k, ts, t, picture.clone()).await?;
                     }
                     if send {
                         let Picture { width, height, rgb } = picture;
@@ -651,6 +743,9 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
 
     async fn on_stop(&mut self, ctx: &mut StageCtx) -> anyhow::Result<()> {
         if let Some(log) = &mut self.output.log {
+            log.flush()?;
+        }
+        if let Some((_, log)) = &mut self.output.samples {
             log.flush()?;
         }
         if let (Some(recorder), Some(path)) = (self.recorder.take(), &self.output.record) {
@@ -697,6 +792,8 @@ mod tests {
         let table = toml::Table::try_from(ClientParams {
             camera: Some(1),
             record: Some("c.mp4".into()),
+            exposure_stops: Some(1.5),
+            sample_every_s: Some(1.0),
             ..Default::default()
         })
         .unwrap();

@@ -42,10 +42,22 @@ pub struct ClientParams {
     /// the run's output, or as given when the run writes none).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub record: Option<String>,
+    /// Exposure of the pictures shown, written and recorded, in stops (`2^stops` before
+    /// ACES tone mapping); default: chosen from the first frame. A placement experiment
+    /// sets one exposure for every cut and the reference, so that their pictures compare.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exposure_stops: Option<f32>,
+    /// Every this many seconds of scene time, the frame shown at that time is written as
+    /// `sample_NNNNN.png` with a line in `samples.csv` (the client's folder of the run's
+    /// output): a rendering client renders its first frame at or after `k × sample_every_s`
+    /// for exactly that time, a client that shows pictures writes the picture it shows then.
+    /// What a placement experiment compares with the reference.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sample_every_s: Option<f64>,
 }
 
 /// The keys of [`ClientParams`] (a test keeps the two in step).
-pub const CLIENT_KEYS: [&str; 10] = [
+pub const CLIENT_KEYS: [&str; 12] = [
     "width",
     "height",
     "fps",
@@ -56,6 +68,8 @@ pub const CLIENT_KEYS: [&str; 10] = [
     "light_samples",
     "shadow_size",
     "record",
+    "exposure_stops",
+    "sample_every_s",
 ];
 
 fn default_width() -> u32 {
@@ -100,6 +114,8 @@ impl Default for ClientParams {
             light_samples: default_light_samples(),
             shadow_size: default_shadow_size(),
             record: None,
+            exposure_stops: None,
+            sample_every_s: None,
         }
     }
 }
@@ -130,6 +146,12 @@ impl CheckParams for ClientParams {
             }
             cloudlight_render::video::yuv::check_size(self.width, self.height)
                 .map_err(|e| format!("`record`: {e}"))?;
+        }
+        if let Some(stops) = self.exposure_stops {
+            check_range("exposure_stops", stops as f64, -64.0, 64.0, "stops")?;
+        }
+        if let Some(every) = self.sample_every_s {
+            check_range("sample_every_s", every, 0.01, 3600.0, "s")?;
         }
         if let Some(c) = self.camera {
             check_range("camera", c as f64, 0.0, 1e6, "(index)")?;
