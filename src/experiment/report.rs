@@ -518,6 +518,7 @@ fn latency_section(
     let mut t = Markdown::new(&header);
     let mut series = Vec::new();
     let mut answers = Vec::new();
+    let mut rows_of_videos = Vec::new();
     let clients = experiment.clients.first().copied().unwrap_or(1);
     for tech in &experiment.techniques {
         for cut in &tech.cuts {
@@ -567,7 +568,7 @@ fn latency_section(
                     })
                     .collect();
                 if !videos.is_empty() {
-                    b.push(Block::Videos(
+                    rows_of_videos.push(Block::Videos(
                         format!("{} {cut} over {link}, latency added", tech.name),
                         videos,
                     ));
@@ -590,6 +591,7 @@ fn latency_section(
         )?);
         b.push(Block::Image(name, "error against injected latency".into()));
     }
+    b.extend(rows_of_videos);
     Ok(())
 }
 
