@@ -532,3 +532,101 @@ to = "sink"
     assert_eq!(report["corrupt"], 0);
     drop(ns);
 }
+
+#[test]
+fn nodes_listen_on_their_bind_address_with_the_secret_from_the_environment() {
+    // Each node listens on every interface (`bind` in the file for `c`, `--bind` for `b`)
+    // while its peers dial its loopback `address`; the secret is in no file.
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_ports(3);
+    let text = three_node_topology(&ports)
+        .replace(
+            "secret = \"shared\"",
+            "secret_env = \"CLOUDLIGHT_TEST_SECRET\"",
+        )
+        .replace(
+            &format!("address = \"127.0.0.1:{}\"", ports[2]),
+            &format!(
+                "address = \"127.0.0.1:{}\"\nbind = \"0.0.0.0:{}\"",
+                ports[2], ports[2]
+            ),
+        );
+    let topo = dir.path().join("three.toml");
+    std::fs::write(&topo, &text).unwrap();
+    let bind_b = format!("0.0.0.0:{}", ports[1]);
+    let children: Vec<(String, Child)> = ["c", "b", "a"]
+        .iter()
+        .map(|n| {
+            let extra: Vec<&str> = if *n == "b" {
+                vec!["--bind", &bind_b]
+            } else {
+                vec![]
+            };
+            let mut cmd = Command::new(bin());
+            cmd.args(["node"])
+                .arg(&topo)
+                .args(["--node", n, "--connect-timeout", "20", "--out"])
+                .arg(dir.path().join(n))
+                .args(&extra)
+                .env("RUST_LOG", "info")
+                .env("CLOUDLIGHT_TEST_SECRET", "from-the-environment")
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped());
+            (n.to_string(), cmd.spawn().unwrap())
+        })
+        .collect();
+    for (name, child) in children {
+        let out = finish(child, Duration::from_secs(60));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "node {name} failed:\n{err}");
+        if name != "a" {
+            assert!(
+                err.contains(&format!(
+                    "0.0.0.0:{}",
+                    ports[if name == "b" { 1 } else { 2 }]
+                )),
+                "node {name} listens on every interface:\n{err}"
+            );
+        }
+        assert!(
+            !err.contains("from-the-environment"),
+            "the secret is printed:\n{err}"
+        );
+    }
+    let report = sink_report(dir.path(), "c", "sink");
+    assert!(report["received"].as_u64().unwrap() > 100, "{report}");
+    assert_eq!(report["corrupt"], 0);
+
+    // Without the variable: exit 2 naming the file, line and key, before anything starts.
+    let out = Command::new(bin())
+        .args(["node"])
+        .arg(&topo)
+        .args(["--node", "a"])
+        .env_remove("CLOUDLIGHT_TEST_SECRET")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("three.toml:3:")
+            && err.contains("`secret_env`")
+            && err.contains("CLOUDLIGHT_TEST_SECRET")
+            && err.contains("not set"),
+        "{err}"
+    );
+    // A bind address another socket holds: a clear error, non-zero, before any stage runs.
+    let held = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    let taken = held.local_addr().unwrap().to_string();
+    let out = Command::new(bin())
+        .args(["node"])
+        .arg(&topo)
+        .args(["--node", "a", "--bind", &taken, "--out"])
+        .arg(dir.path().join("clash"))
+        .env("CLOUDLIGHT_TEST_SECRET", "from-the-environment")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(err.contains(&taken) && err.contains("in use"), "{err}");
+    assert!(!err.contains("cluster started"), "{err}");
+}

@@ -64,7 +64,7 @@ fn unknown_top_level_key() {
         &d,
         8,
         "node[1].colour",
-        "unknown key (expected one of: name, address)",
+        "unknown key (expected one of: name, address, bind)",
     );
 }
 
@@ -596,4 +596,80 @@ fn links_may_name_a_profile_and_override_its_figures() {
         .map(|(_, p)| p.latency_ms)
         .collect();
     assert!(latencies.windows(2).all(|w| w[0] < w[1]), "{latencies:?}");
+}
+
+#[test]
+fn the_secret_comes_from_the_file_an_environment_variable_or_a_file_and_is_never_printed() {
+    let registry = cloudlight::actors::registry();
+    let dir = tempfile::tempdir().unwrap();
+    let body = "[[node]]\nname = \"a\"\naddress = \"127.0.0.1:0\"\n[[stage]]\nname = \"s\"\nkind = \"probe_source\"\nnode = \"a\"\n";
+    let topo = |first: &str| format!("techniques = [\"probe\"]\n{first}\n{body}");
+    // From a file beside the topology (one trailing line break dropped).
+    std::fs::write(dir.path().join("cluster.secret"), "from-a-file\n").unwrap();
+    let path = dir.path().join("t.toml");
+    std::fs::write(&path, topo("secret_file = \"cluster.secret\"")).unwrap();
+    let plan = cloudlight::runtime::Plan::load(&path, &registry).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(plan.topology.secret, "from-a-file");
+    let summary = plan.summary();
+    assert!(
+        summary.contains("secret: file `")
+            && summary.contains("cluster.secret` (`secret_file`), 11 bytes"),
+        "{summary}"
+    );
+    assert!(!summary.contains("from-a-file"), "{summary}");
+    // From an environment variable (one every process has; the multi-process test sets its
+    // own in the nodes' environment).
+    let plan =
+        cloudlight::runtime::Plan::from_str("t.toml", &topo("secret_env = \"PATH\""), &registry)
+            .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(plan.topology.secret, std::env::var("PATH").unwrap());
+    let summary = plan.summary();
+    assert!(
+        summary.contains("secret: environment variable `PATH` (`secret_env`)"),
+        "{summary}"
+    );
+    assert!(!summary.contains(&plan.topology.secret), "{summary}");
+    // Problems, each at its line and key: an unset variable, a missing file, two sources,
+    // an empty secret.
+    let problems = |first: &str| {
+        cloudlight::runtime::Plan::from_str("t.toml", &topo(first), &registry)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_else(|| panic!("accepted {first}"))
+    };
+    let e = problems("secret_env = \"CLOUDLIGHT_NO_SUCH_VARIABLE\"");
+    assert!(
+        e.contains("t.toml:2:")
+            && e.contains("`secret_env`")
+            && e.contains("CLOUDLIGHT_NO_SUCH_VARIABLE` is not set"),
+        "{e}"
+    );
+    let e = problems("secret_file = \"/nonexistent/cluster.secret\"");
+    assert!(
+        e.contains("t.toml:2:") && e.contains("`secret_file`") && e.contains("cannot read"),
+        "{e}"
+    );
+    let e = problems("secret = \"x\"\nsecret_env = \"PATH\"");
+    assert!(
+        e.contains("t.toml:3:") && e.contains("already given by `secret`"),
+        "{e}"
+    );
+    let e = problems("secret = \"\"");
+    assert!(e.contains("t.toml:2:") && e.contains("is empty"), "{e}");
+    // A bind address is an IP and a port.
+    let e = cloudlight::runtime::Plan::from_str(
+        "t.toml",
+        &topo("secret = \"x\"").replace(
+            "address = \"127.0.0.1:0\"",
+            "address = \"127.0.0.1:0\"\nbind = \"anywhere:7200\"",
+        ),
+        &registry,
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(
+        e.contains("t.toml:6:") && e.contains("`node[0].bind`") && e.contains("IP:port"),
+        "{e}"
+    );
 }

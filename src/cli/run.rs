@@ -50,6 +50,11 @@ pub struct NodeCommand {
     /// Name of the node to run, as declared in the file.
     #[arg(long)]
     node: String,
+    /// Address to listen on (`IP:port`), over the node's `bind` in the file (default: its
+    /// `address`): e.g. `0.0.0.0:7200` in a container or behind NAT, while peers dial the
+    /// node's `address`.
+    #[arg(long, value_name = "IP:PORT")]
+    bind: Option<std::net::SocketAddr>,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -72,7 +77,7 @@ pub fn run(c: RunCommand) -> ExitCode {
         .as_deref()
         .and_then(Path::file_stem)
         .map_or("default".to_string(), |s| s.to_string_lossy().into_owned());
-    execute(plan, c.run, None, &stem)
+    execute(plan, c.run, None, None, &stem)
 }
 
 pub fn node(c: NodeCommand) -> ExitCode {
@@ -82,7 +87,7 @@ pub fn node(c: NodeCommand) -> ExitCode {
         .topology
         .file_stem()
         .map_or("node".to_string(), |s| s.to_string_lossy().into_owned());
-    execute(plan, c.run, Some(c.node), &stem)
+    execute(plan, c.run, Some(c.node), c.bind, &stem)
 }
 
 /// The progress bar of a run of `duration` (a spinner when it has none).
@@ -113,6 +118,7 @@ fn execute(
     plan: Result<Plan, TopologyErrors>,
     args: RunArgs,
     only_node: Option<String>,
+    bind: Option<std::net::SocketAddr>,
     stem: &str,
 ) -> ExitCode {
     let plan = match plan {
@@ -138,6 +144,7 @@ fn execute(
         duration,
         out_dir: Some(out.clone()),
         only_node,
+        bind,
         connect_timeout: args.connect_timeout.map(Duration::from_secs_f64),
         metrics_interval: Duration::from_secs_f64(args.metrics_interval),
         on_progress: Some(Arc::new(move |snap| {

@@ -155,11 +155,55 @@ pub(crate) fn backends(requested: wgpu::Backends) -> wgpu::Backends {
     wgpu::Backends::from_env().unwrap_or(requested)
 }
 
+/// Routes libwayland-client's log into `tracing` (debug), once per process.
+///
+/// Opening a Vulkan instance with its window-system extensions makes Mesa's drivers try the
+/// Wayland display; on a machine without a desktop session libwayland then prints "error:
+/// XDG_RUNTIME_DIR is invalid or not set in the environment." on stderr, which reads as if
+/// the run failed. The library's log goes through a handler any user of it may set
+/// (`wl_log_set_handler_client`); ours keeps the line at debug level. Without the library
+/// there is nothing to quiet.
+#[cfg(target_os = "linux")]
+#[allow(
+    unsafe_code,
+    reason = "a C library's log hook: loading it, setting it, reading a C string"
+)]
+fn quiet_wayland_log() {
+    use std::ffi::{CStr, c_char, c_void};
+    use std::sync::OnceLock;
+    static LIBRARY: OnceLock<Option<libloading::Library>> = OnceLock::new();
+    // `va_list` is passed as a pointer on the ABIs Linux runs on; the arguments are left
+    // unread (the line is kept as its format string).
+    extern "C" fn handler(format: *const c_char, _args: *mut c_void) {
+        if format.is_null() {
+            return;
+        }
+        // SAFETY: libwayland passes a NUL-terminated format string.
+        let line = unsafe { CStr::from_ptr(format) }.to_string_lossy();
+        tracing::debug!(target: "wayland", "{}", line.trim_end());
+    }
+    LIBRARY.get_or_init(|| {
+        // SAFETY: loading libwayland-client runs no initialisers with requirements of ours,
+        // and `wl_log_set_handler_client` has this signature in every release since 1.0.
+        unsafe {
+            let library = libloading::Library::new("libwayland-client.so.0").ok()?;
+            let set: libloading::Symbol<
+                unsafe extern "C" fn(extern "C" fn(*const c_char, *mut c_void)),
+            > = library.get(b"wl_log_set_handler_client\0").ok()?;
+            set(handler);
+            // Kept loaded for the process's life, so the handler stays set.
+            Some(library)
+        }
+    });
+}
+
 /// The adapters of `backends` that the raster can run on, best first, each with its formats
 /// and required features; and, for each one it cannot run on, why.
 pub(crate) async fn usable_adapters(
     backends: wgpu::Backends,
 ) -> (Vec<(wgpu::Adapter, Formats, wgpu::Features)>, Vec<String>) {
+    #[cfg(target_os = "linux")]
+    quiet_wayland_log();
     let instance =
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
     let mut adapters = instance.enumerate_adapters(backends).await;

@@ -51,6 +51,9 @@ pub struct RunOptions {
     pub on_progress: Option<ProgressFn>,
     /// Longest wait for peers at start; `None` uses the topology's `connect_timeout_s`.
     pub connect_timeout: Option<Duration>,
+    /// What the node of `only_node` listens on, over its topology's `bind` (its peers still
+    /// dial its `address`).
+    pub bind: Option<std::net::SocketAddr>,
 }
 
 impl Default for RunOptions {
@@ -63,6 +66,7 @@ impl Default for RunOptions {
             drain_timeout: Duration::from_secs(10),
             on_progress: None,
             connect_timeout: None,
+            bind: None,
         }
     }
 }

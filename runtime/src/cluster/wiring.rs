@@ -86,7 +86,13 @@ pub(super) async fn wire_edges(
     let digest = plan.digest();
     for node in &net_nodes {
         let decl = t.node(node).expect("plan nodes are declared");
-        let addr = decl.resolve().map_err(RunError::Resolve)?;
+        let advertised = decl.resolve().map_err(RunError::Resolve)?;
+        // What it listens on: `--bind` for the one node a process runs, else its `bind`,
+        // else the address its peers dial.
+        let addr = match (&options.only_node, options.bind) {
+            (Some(only), Some(bind)) if only == node => bind,
+            _ => decl.bind.unwrap_or(advertised),
+        };
         let net = NodeNet::bind(NetArgs {
             node,
             addr,
@@ -106,8 +112,21 @@ pub(super) async fn wire_edges(
         tracing::info!(%node, addr = %net.local_addr(), "transport bound");
         nets.push(net);
     }
+    // A peer in this process is dialled where it listens (on loopback when it listens on
+    // every interface).
     let addr_of = |peer: &str, nets: &[NodeNet]| -> Option<std::net::SocketAddr> {
-        nets.iter().find(|n| n.node == peer).map(|n| n.local_addr())
+        nets.iter().find(|n| n.node == peer).map(|n| {
+            let a = n.local_addr();
+            match a.ip() {
+                std::net::IpAddr::V4(ip) if ip.is_unspecified() => {
+                    std::net::SocketAddr::from((std::net::Ipv4Addr::LOCALHOST, a.port()))
+                }
+                std::net::IpAddr::V6(ip) if ip.is_unspecified() => {
+                    std::net::SocketAddr::from((std::net::Ipv6Addr::LOCALHOST, a.port()))
+                }
+                _ => a,
+            }
+        })
     };
     for (i, e) in plan.edges.iter().enumerate() {
         if !e.cut {

@@ -141,6 +141,34 @@ impl SourceMap {
     }
 }
 
+/// Where a topology's secret comes from: written in the file (`secret`), an environment
+/// variable (`secret_env`) or a file (`secret_file`), so that the topology itself can be kept
+/// in version control or a ConfigMap.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub enum SecretSource {
+    /// No secret.
+    #[default]
+    None,
+    /// `secret = "..."`.
+    Inline,
+    /// `secret_env = "NAME"`.
+    Env(String),
+    /// `secret_file = "PATH"` (as resolved: relative to the topology file's folder).
+    File(std::path::PathBuf),
+}
+
+impl SecretSource {
+    /// Where the secret came from, in words (never the secret).
+    pub fn describe(&self) -> String {
+        match self {
+            SecretSource::None => "none".into(),
+            SecretSource::Inline => "written in the file (`secret`)".into(),
+            SecretSource::Env(name) => format!("environment variable `{name}` (`secret_env`)"),
+            SecretSource::File(path) => format!("file `{}` (`secret_file`)", path.display()),
+        }
+    }
+}
+
 /// A node: one process of the cluster with one UDP address.
 #[derive(Clone, Debug, PartialEq)]
 pub struct NodeDecl {
@@ -151,6 +179,9 @@ pub struct NodeDecl {
     pub address: SocketAddr,
     /// The host name when the address was given as `host:port` (resolved at start).
     pub host: Option<String>,
+    /// What the node listens on when that is not its address (behind NAT, in a container:
+    /// `0.0.0.0:7200` while peers dial `cloud.example.net:7200`); `None`: its address.
+    pub bind: Option<SocketAddr>,
     /// Where it is declared.
     pub span: Range<usize>,
 }
@@ -326,6 +357,8 @@ pub struct Topology {
     pub secret: String,
     /// Where `secret` is set (empty when it is not).
     pub secret_span: Range<usize>,
+    /// Where the secret was read from.
+    pub secret_source: SecretSource,
     /// Whether cut edges may run without a secret (loopback demos).
     pub insecure: bool,
     /// Transport settings.

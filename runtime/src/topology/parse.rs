@@ -11,8 +11,8 @@ use toml::Spanned;
 
 use super::reader::{Tbl, Walker, check_name, kind, plain};
 use super::{
-    Diagnostic, EdgeDecl, EdgeDefaults, LinkDecl, LinkProfile, NodeDecl, PortRef, StageDecl,
-    Topology, TransportSettings,
+    Diagnostic, EdgeDecl, EdgeDefaults, LinkDecl, LinkProfile, NodeDecl, PortRef, SecretSource,
+    StageDecl, Topology, TransportSettings,
 };
 use crate::edge::Policy;
 
@@ -22,6 +22,8 @@ const TOP_KEYS: &[&str] = &[
     "scene",
     "cluster",
     "secret",
+    "secret_env",
+    "secret_file",
     "insecure",
     "transport",
     "seed",
@@ -45,6 +47,7 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
         cluster: "cloudlight".into(),
         secret: String::new(),
         secret_span: 0..0,
+        secret_source: SecretSource::None,
         insecure: false,
         transport: TransportSettings::default(),
         seed: 0,
@@ -115,10 +118,7 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
         }
         topo.cluster = c.into_inner();
     }
-    if let Some(s) = top.string(&mut w, "secret") {
-        topo.secret_span = s.span();
-        topo.secret = s.into_inner();
-    }
+    secret(&mut w, &mut top, &mut topo, file);
     if let Some(b) = top.boolean(&mut w, "insecure") {
         topo.insecure = b.into_inner();
     }
@@ -359,12 +359,105 @@ fn policy(w: &mut Walker, t: &mut Tbl<'_, '_>) -> Option<Policy> {
     }
 }
 
+/// The secret: inline (`secret`), from an environment variable (`secret_env`) or from a file
+/// (`secret_file`, relative to the topology file's folder; one trailing line break dropped).
+/// One of them at most; a variable that is unset, a file that cannot be read, or an empty
+/// secret is an error at its key.
+fn secret(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology, file: &str) {
+    let given: Vec<(&str, Spanned<String>)> = ["secret", "secret_env", "secret_file"]
+        .into_iter()
+        .filter_map(|k| top.string(w, k).map(|v| (k, v)))
+        .collect();
+    for (key, value) in given.iter().skip(1) {
+        w.err(
+            &value.span(),
+            key,
+            format!(
+                "the secret is already given by `{}`: give it one way (`secret`, `secret_env` or `secret_file`)",
+                given[0].0
+            ),
+        );
+    }
+    let Some((key, value)) = given.into_iter().next() else {
+        return;
+    };
+    let span = value.span();
+    let (secret, source) = match key {
+        "secret" => (value.into_inner(), SecretSource::Inline),
+        "secret_env" => {
+            let name = value.into_inner();
+            match std::env::var(&name) {
+                Ok(v) => (v, SecretSource::Env(name)),
+                Err(std::env::VarError::NotPresent) => {
+                    w.err(
+                        &span,
+                        key,
+                        format!("environment variable `{name}` is not set (it holds the cluster's secret)"),
+                    );
+                    return;
+                }
+                Err(std::env::VarError::NotUnicode(_)) => {
+                    w.err(
+                        &span,
+                        key,
+                        format!("environment variable `{name}` is not UTF-8"),
+                    );
+                    return;
+                }
+            }
+        }
+        _ => {
+            let given = std::path::PathBuf::from(value.into_inner());
+            let path = match std::path::Path::new(file).parent() {
+                Some(dir) if given.is_relative() && !dir.as_os_str().is_empty() => dir.join(&given),
+                _ => given,
+            };
+            match std::fs::read_to_string(&path) {
+                Ok(text) => {
+                    let text = text.strip_suffix('\n').unwrap_or(&text);
+                    let text = text.strip_suffix('\r').unwrap_or(text);
+                    (text.to_string(), SecretSource::File(path))
+                }
+                Err(e) => {
+                    w.err(&span, key, format!("cannot read `{}`: {e}", path.display()));
+                    return;
+                }
+            }
+        }
+    };
+    if secret.is_empty() {
+        w.err(
+            &span,
+            key,
+            format!("the secret from {} is empty", source.describe()),
+        );
+        return;
+    }
+    topo.secret = secret;
+    topo.secret_span = span;
+    topo.secret_source = source;
+}
+
 fn parse_nodes(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
     let mut addresses: Vec<(String, String)> = Vec::new();
     for (mut t, span) in top.tables(w, "node") {
         let name = t.req_string(w, "name");
         let address = t.req_string(w, "address");
-        t.finish(w, &["name", "address"]);
+        let bind = t.string(w, "bind").and_then(|b| match b.get_ref().parse::<SocketAddr>() {
+            Ok(a) => Some(a),
+            Err(_) => {
+                w.err(
+                    &b.span(),
+                    &t.key("bind"),
+                    format!(
+                        "`{}` is not an IP:port address to listen on (e.g. 0.0.0.0:7200; peers dial `address`)",
+                        b.get_ref()
+                    ),
+                );
+                None
+            }
+        });
+        t.finish(w, &["name", "address", "bind"]);
         let Some(name) = name else { continue };
         check_name(w, &name, &t.key("name"));
         if topo.node(name.get_ref()).is_some() {
@@ -408,6 +501,7 @@ fn parse_nodes(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
             name: name.into_inner(),
             address: addr,
             host,
+            bind,
             span,
         });
     }

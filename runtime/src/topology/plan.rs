@@ -475,6 +475,16 @@ impl Plan {
             t.scene,
             t.seed
         );
+        let _ = writeln!(
+            s,
+            "secret: {}{}",
+            t.secret_source.describe(),
+            if t.secret.is_empty() {
+                String::new()
+            } else {
+                format!(", {} bytes", t.secret.len())
+            }
+        );
         for node in &t.nodes {
             let here: Vec<_> = self
                 .instances

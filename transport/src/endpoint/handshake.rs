@@ -163,11 +163,17 @@ impl Endpoint {
 
     fn on_hello(&mut self, now: Instant, p: usize, from: SocketAddr, nonce_i: [u8; NONCE_BYTES]) {
         let peer = &self.peers[p];
-        if peer.session.is_none() && peer.initiation.is_some() && self.config.node < peer.name {
-            // Both initiating: the peer answers ours.
+        let known_addr = from == peer.addr;
+        if peer.session.is_none()
+            && peer.initiation.is_some()
+            && self.config.node < peer.name
+            && known_addr
+        {
+            // Both initiating: the peer answers ours. Not when its HELLO comes from another
+            // address than the one ours go to (a peer behind NAT, whose advertised address
+            // ours may never reach): that one is answered.
             return;
         }
-        let known_addr = from == peer.addr;
         let reuse = peer
             .pending
             .iter()

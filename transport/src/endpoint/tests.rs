@@ -16,6 +16,9 @@ struct Sim {
     now: Instant,
     /// While true, everything b sends is dropped and nothing reaches it (b is "dead").
     b_dead: bool,
+    /// b behind a NAT: its packets reach a from this port, a reaches it only there (its
+    /// advertised address, port `B`, is unreachable).
+    b_nat: Option<u16>,
     a_events: Vec<Event>,
     b_events: Vec<Event>,
 }
@@ -63,6 +66,7 @@ impl Sim {
             ba: LinkEmulator::new(profile, seed ^ 0xFFFF),
             now,
             b_dead: false,
+            b_nat: None,
             a_events: Vec::new(),
             b_events: Vec::new(),
         }
@@ -73,8 +77,10 @@ impl Sim {
         let now = self.now;
         self.a.handle_timeout(now);
         self.b.handle_timeout(now);
-        while let Some((_, d)) = self.a.poll_transmit(now) {
-            self.ab.send(now, d);
+        while let Some((to, d)) = self.a.poll_transmit(now) {
+            if self.b_nat.is_none_or(|port| to == addr(port)) {
+                self.ab.send(now, d);
+            }
         }
         while let Some((_, d)) = self.b.poll_transmit(now) {
             if !self.b_dead {
@@ -87,7 +93,8 @@ impl Sim {
             }
         }
         while let Some(d) = self.ba.poll(now) {
-            self.a.handle_datagram(now, addr(B), &d);
+            self.a
+                .handle_datagram(now, addr(self.b_nat.unwrap_or(B)), &d);
         }
         while let Some(e) = self.a.poll_event() {
             self.a_events.push(e);
@@ -639,4 +646,19 @@ fn a_link_with_a_second_of_latency_each_way_comes_up_and_delivers() {
     assert!(ok, "a: {:?}\nb: {:?}", s.a_events, s.b_events);
     let sessions = s.a.peer_stats("b").unwrap().handshakes;
     assert_eq!(sessions, 1, "one handshake, not one per confirm timeout");
+}
+
+#[test]
+fn a_node_behind_nat_comes_up_and_delivers_though_its_advertised_address_is_unreachable() {
+    // b's packets reach a from a NAT's address, and a reaches b only there; a (whose name
+    // sorts first, so it would wait for b to answer its own HELLO) answers b's instead.
+    let mut s = Sim::new(LinkProfile::default(), 5);
+    s.b_nat = Some(99);
+    let up = s.run_until(Duration::from_secs(10), |s| {
+        s.a.is_up("b") && s.b.is_up("a")
+    });
+    assert!(up, "no session through the NAT");
+    let messages: Vec<Vec<u8>> = (0..20).map(|i| pattern(3000, i)).collect();
+    assert!(s.transfer(&messages, Duration::from_secs(20)));
+    assert_eq!(s.delivered().len(), 20);
 }
