@@ -630,3 +630,141 @@ fn nodes_listen_on_their_bind_address_with_the_secret_from_the_environment() {
     assert!(err.contains(&taken) && err.contains("in use"), "{err}");
     assert!(!err.contains("cluster started"), "{err}");
 }
+
+/// `GET path` from `addr`: (status, body); `None` when nothing answers.
+fn http_get(addr: &str, path: &str) -> Option<(u16, String)> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: test\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    let mut text = String::new();
+    s.read_to_string(&mut text).ok()?;
+    let (head, body) = text.split_once("\r\n\r\n")?;
+    let status = head.split_whitespace().nth(1)?.parse().ok()?;
+    Some((status, body.to_string()))
+}
+
+fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+#[test]
+fn metrics_and_health_are_served_over_http_and_health_turns_503_when_a_peer_dies() {
+    let dir = tempfile::tempdir().unwrap();
+    let topo = dir.path().join("three.toml");
+    std::fs::write(&topo, three_node_topology(&free_ports(3))).unwrap();
+    let listen = format!("127.0.0.1:{}", free_tcp_port());
+    let c = node(
+        &topo,
+        "c",
+        dir.path(),
+        &[
+            "--duration",
+            "30",
+            "--metrics-listen",
+            &listen,
+            "--metrics-interval",
+            "0.5",
+        ],
+    );
+    let b = node(&topo, "b", dir.path(), &["--duration", "30"]);
+    let a = node(&topo, "a", dir.path(), &["--duration", "30"]);
+    let until = |what: &str, limit: Duration, ok: &dyn Fn() -> bool| {
+        let start = Instant::now();
+        while !ok() {
+            assert!(start.elapsed() < limit, "{what} not within {limit:?}");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    };
+    // Healthy once its peer is up and the run is running.
+    until("/healthz 200", Duration::from_secs(30), &|| {
+        http_get(&listen, "/healthz").is_some_and(|(code, _)| code == 200)
+    });
+    // /metrics parses as Prometheus text and agrees with metrics.json at the same moment
+    // (the same snapshot: same elapsed time).
+    let json_path = dir.path().join("c").join("metrics.json");
+    let mut agreed = false;
+    for _ in 0..100 {
+        let (code, text) = http_get(&listen, "/metrics").unwrap();
+        assert_eq!(code, 200);
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&json_path).unwrap()).unwrap();
+        let scrape = prometheus_parse::Scrape::parse(text.lines().map(|l| Ok(l.to_string())))
+            .unwrap_or_else(|e| panic!("{e}:\n{text}"));
+        let value = |name: &str, stage: Option<&str>| {
+            scrape
+                .samples
+                .iter()
+                .find(|s| {
+                    s.metric == name && stage.is_none_or(|st| s.labels.get("stage") == Some(st))
+                })
+                .map(|s| match s.value {
+                    prometheus_parse::Value::Counter(v)
+                    | prometheus_parse::Value::Gauge(v)
+                    | prometheus_parse::Value::Untyped(v) => v,
+                    _ => f64::NAN,
+                })
+                .unwrap_or_else(|| panic!("no {name} in:\n{text}"))
+        };
+        if value("cloudlight_run_elapsed_seconds", None) != json["elapsed_s"].as_f64().unwrap() {
+            continue; // a snapshot was taken between the two reads
+        }
+        let sink = json["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == "sink")
+            .unwrap();
+        assert_eq!(
+            value("cloudlight_stage_handled_total", Some("sink")),
+            sink["handled"].as_f64().unwrap(),
+            "{text}"
+        );
+        if sink["handled"].as_u64().unwrap() == 0 {
+            std::thread::sleep(Duration::from_millis(200));
+            continue; // nothing has arrived yet
+        }
+        assert_eq!(value("cloudlight_run_up", None), 1.0);
+        agreed = true;
+        break;
+    }
+    assert!(agreed, "/metrics never matched metrics.json");
+    // The relay is killed: c's health turns 503 and names it.
+    let mut b = b;
+    b.kill().unwrap();
+    let _ = b.wait();
+    until("/healthz 503 naming b", Duration::from_secs(20), &|| {
+        http_get(&listen, "/healthz")
+            .is_some_and(|(code, body)| code == 503 && body.contains("peer `b`"))
+    });
+    for mut child in [a, c] {
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+
+    // A metrics address another socket holds: a clear error, non-zero, before any stage.
+    let held = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let taken = held.local_addr().unwrap().to_string();
+    let out = Command::new(bin())
+        .args(["node"])
+        .arg(&topo)
+        .args(["--node", "a", "--metrics-listen", &taken, "--out"])
+        .arg(dir.path().join("clash"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("cannot serve /metrics") && err.contains(&taken),
+        "{err}"
+    );
+    assert!(!err.contains("cluster started"), "{err}");
+}

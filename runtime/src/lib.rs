@@ -15,6 +15,7 @@ pub mod edge;
 pub mod message;
 pub mod metrics;
 mod net;
+pub mod observe;
 pub mod stage;
 pub mod toolkit;
 pub mod topology;

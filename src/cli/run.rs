@@ -27,6 +27,11 @@ pub struct RunArgs {
     /// topology's `[transport] connect_timeout_s`, default 60).
     #[arg(long, value_name = "SECONDS", value_parser = ranges::above(0.0, 86_400.0, "seconds"))]
     connect_timeout: Option<f64>,
+    /// Serve `/metrics` (Prometheus text format) and `/healthz` (200 while running with every
+    /// peer up, else 503 and why) on this TCP address, e.g. `0.0.0.0:9100`; both show the
+    /// newest metrics snapshot (every `--metrics-interval`).
+    #[arg(long, value_name = "IP:PORT")]
+    metrics_listen: Option<std::net::SocketAddr>,
     /// Seconds between metrics snapshots written during the run.
     #[arg(long, value_name = "SECONDS", default_value_t = 2.0,
           value_parser = ranges::closed(0.01, 3_600.0, "seconds"))]
@@ -145,6 +150,7 @@ fn execute(
         out_dir: Some(out.clone()),
         only_node,
         bind,
+        metrics_listen: args.metrics_listen,
         connect_timeout: args.connect_timeout.map(Duration::from_secs_f64),
         metrics_interval: Duration::from_secs_f64(args.metrics_interval),
         on_progress: Some(Arc::new(move |snap| {

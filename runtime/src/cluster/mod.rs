@@ -54,6 +54,9 @@ pub struct RunOptions {
     /// What the node of `only_node` listens on, over its topology's `bind` (its peers still
     /// dial its `address`).
     pub bind: Option<std::net::SocketAddr>,
+    /// Serve `/metrics` (Prometheus) and `/healthz` on this TCP address
+    /// ([`crate::observe`]), from before the peers are awaited until the run ends.
+    pub metrics_listen: Option<std::net::SocketAddr>,
 }
 
 impl Default for RunOptions {
@@ -67,6 +70,7 @@ impl Default for RunOptions {
             on_progress: None,
             connect_timeout: None,
             bind: None,
+            metrics_listen: None,
         }
     }
 }
@@ -107,6 +111,14 @@ pub enum RunError {
     /// `only_node` names no node of the topology.
     #[error("node `{0}` is not in the topology")]
     UnknownNode(String),
+    /// The metrics endpoint could not listen (e.g. its address is taken).
+    #[error("cannot serve /metrics and /healthz on {addr}: {error}")]
+    Metrics {
+        /// Address it tried to listen on.
+        addr: std::net::SocketAddr,
+        /// Why.
+        error: String,
+    },
     /// A node's transport could not start (e.g. its address is taken).
     #[error("node `{node}` cannot start its transport on {addr}: {error}")]
     Transport {
@@ -224,6 +236,8 @@ pub struct Cluster {
     net_failures: mpsc::UnboundedReceiver<String>,
     supervisor: (ActorRef<()>, JoinHandle<()>),
     started: Instant,
+    /// The metrics endpoint, when asked for.
+    observer: Option<crate::observe::Observer>,
 }
 
 impl Cluster {
@@ -240,6 +254,17 @@ impl Cluster {
         {
             return Err(RunError::UnknownNode(n.clone()));
         }
+        // The endpoint first: an address in use fails the run before anything starts, and
+        // the orchestrator hears "starting" while the peers are awaited.
+        let observer = match options.metrics_listen {
+            Some(addr) => Some(crate::observe::Observer::serve(addr).await.map_err(|e| {
+                RunError::Metrics {
+                    addr,
+                    error: e.to_string(),
+                }
+            })?),
+            None => None,
+        };
         let only_node = options.only_node.clone();
         let local = |i: usize| {
             only_node
@@ -286,6 +311,7 @@ impl Cluster {
             net_failures,
             supervisor,
             started: Instant::now(),
+            observer,
         };
         for (idx, inst) in plan.instances.iter().enumerate() {
             if !local(idx) {
@@ -503,6 +529,9 @@ impl Cluster {
     }
 
     fn write_metrics(&self, snap: &MetricsSnapshot) -> std::io::Result<()> {
+        if let Some(o) = &self.observer {
+            o.publish(snap);
+        }
         if let Some(path) = self.metrics_path() {
             if let Some(dir) = path.parent() {
                 std::fs::create_dir_all(dir)?;
