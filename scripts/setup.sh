@@ -1,18 +1,39 @@
 #!/usr/bin/env bash
-# The system packages CloudLight-rs and its tests need, in one list (the README's commands and
-# .ci/run both start here):
-#   mesa-vulkan-drivers libvulkan1   Vulkan lavapipe: the software GPU wgpu prefers on a GPU-less box
-#   libegl-mesa0 libgl1-mesa-dri     EGL/GL llvmpipe: the second software adapter (WGPU_BACKEND=gl)
-#   fonts-dejavu-core                text of the benchmark plots
-#   iproute2                         `ip netns` + veth for the network-namespace cluster test
-#   nasm                             openh264's x86 assembly (SIMD encode/decode), built from source
-#   ffmpeg                           ffprobe/ffmpeg: the independent decoder the video tests compare with
+# The system packages CloudLight-rs needs, in one list (the README's commands, .ci/run and the
+# Dockerfile all start here), by role:
+#   runtime: what `cloudlight` needs to run
+#     mesa-vulkan-drivers libvulkan1   Vulkan lavapipe: the software GPU wgpu prefers on a GPU-less box
+#     libegl-mesa0 libgl1-mesa-dri     EGL/GL llvmpipe: the second software adapter (WGPU_BACKEND=gl)
+#     fonts-dejavu-core                text of the benchmark plots
+#   build: what building it needs besides Rust
+#     nasm g++                         openh264's C++ and x86 assembly (SIMD encode/decode), built from source
+#   test: what its tests need
+#     iproute2                         `ip netns` + veth for the network-namespace cluster test
+#     ffmpeg                           ffprobe/ffmpeg: the independent decoder the video tests compare with
+# Usage: scripts/setup.sh [runtime|build|all] (default all: runtime + build + test);
+#        scripts/setup.sh --list ROLE prints the packages of ROLE and does nothing else.
 # Installed from Debian's archive with apt-get when run as root; otherwise prints the exact
 # apt-get line and exits 1. Does nothing when everything is there already.
 # CLOUDLIGHT_SKIP_SETUP=1 skips the check (a machine that provides the same libraries otherwise).
 set -euo pipefail
-packages=(mesa-vulkan-drivers libvulkan1 libegl-mesa0 libgl1-mesa-dri fonts-dejavu-core iproute2
-  nasm ffmpeg)
+runtime=(mesa-vulkan-drivers libvulkan1 libegl-mesa0 libgl1-mesa-dri fonts-dejavu-core)
+build=(nasm g++)
+test=(iproute2 ffmpeg)
+role_packages() {
+  case "$1" in
+    runtime) echo "${runtime[*]}" ;;
+    build) echo "${runtime[*]} ${build[*]}" ;;
+    all) echo "${runtime[*]} ${build[*]} ${test[*]}" ;;
+    *) echo "setup: unknown role \`$1\` (runtime, build or all)" >&2; exit 2 ;;
+  esac
+}
+if [ "${1:-}" = --list ]; then
+  role_packages "${2:-all}"
+  exit 0
+fi
+role="${1:-all}"
+role_packages "$role" >/dev/null
+read -r -a packages <<< "$(role_packages "$role")"
 
 if [ "${CLOUDLIGHT_SKIP_SETUP:-0}" = 1 ]; then
   echo "setup: skipped (CLOUDLIGHT_SKIP_SETUP=1)" >&2

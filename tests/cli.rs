@@ -1283,3 +1283,43 @@ fn the_full_frame_baseline_streams_cloud_rendered_frames_to_thin_clients() {
         }
     }
 }
+
+#[test]
+fn the_container_image_installs_the_packages_of_the_one_list_and_runs_cloudlight() {
+    let dockerfile = std::fs::read_to_string("Dockerfile").unwrap();
+    // No second list: packages come from scripts/setup.sh, by role.
+    assert!(!dockerfile.contains("apt-get"), "{dockerfile}");
+    assert!(dockerfile.contains("setup.sh build"), "{dockerfile}");
+    assert!(dockerfile.contains("setup.sh runtime"), "{dockerfile}");
+    assert!(
+        dockerfile.contains("ENTRYPOINT [\"cloudlight\"]"),
+        "{dockerfile}"
+    );
+    let list = |role: &str| {
+        let out = std::process::Command::new("bash")
+            .args(["scripts/setup.sh", "--list", role])
+            .output()
+            .unwrap();
+        assert!(out.status.success());
+        String::from_utf8(out.stdout)
+            .unwrap()
+            .split_whitespace()
+            .map(String::from)
+            .collect::<Vec<_>>()
+    };
+    let (runtime, build, all) = (list("runtime"), list("build"), list("all"));
+    assert!(
+        runtime.iter().any(|p| p == "mesa-vulkan-drivers"),
+        "{runtime:?}"
+    );
+    assert!(
+        !runtime.iter().any(|p| p == "nasm" || p == "ffmpeg"),
+        "{runtime:?}"
+    );
+    assert!(runtime.iter().all(|p| build.contains(p)) && build.iter().all(|p| all.contains(p)));
+    // The build context leaves out what is built or fetched.
+    let ignore = std::fs::read_to_string(".dockerignore").unwrap();
+    for path in ["target", ".git", "assets", "runs"] {
+        assert!(ignore.lines().any(|l| l.trim() == path), "{ignore}");
+    }
+}
