@@ -218,6 +218,43 @@ fn every_command_documents_its_options() {
 }
 
 #[test]
+fn bench_transport_judges_nothing_it_did_not_receive() {
+    // Everything lost: exit 4, and the report does not call nothing "byte-identical".
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("bench.json");
+    let out = cloudlight()
+        .args([
+            "bench",
+            "transport",
+            "--loss",
+            "1.0",
+            "--count",
+            "3",
+            "--size",
+            "100",
+        ])
+        .args([
+            "--time-limit-s",
+            "1",
+            "--no-baseline",
+            "--rtt-rounds",
+            "1",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(4));
+    let r = read_json(&json);
+    assert_eq!(r["delivered"], 0);
+    assert!(
+        r["byte_identical"].is_null() && r["in_order"].is_null(),
+        "{r}"
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("none delivered"));
+}
+
+#[test]
 fn bench_transport_reports_an_intact_transfer_through_a_lossy_link() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("bench.json");

@@ -768,3 +768,22 @@ fn metrics_and_health_are_served_over_http_and_health_turns_503_when_a_peer_dies
     );
     assert!(!err.contains("cluster started"), "{err}");
 }
+
+#[test]
+fn nodes_of_different_topologies_refuse_each_other_and_exit_5() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_ports(3);
+    let mine = dir.path().join("mine.toml");
+    let theirs = dir.path().join("theirs.toml");
+    let text = three_node_topology(&ports);
+    std::fs::write(&mine, &text).unwrap();
+    std::fs::write(&theirs, text.replace("rate_hz = 200.0", "rate_hz = 100.0")).unwrap();
+    let a = node(&mine, "a", dir.path(), &[]);
+    let b = node(&theirs, "b", dir.path(), &[]);
+    for (name, child) in [("a", a), ("b", b)] {
+        let out = finish(child, Duration::from_secs(60));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(5), "node {name}:\n{err}");
+        assert!(err.contains("different topology"), "node {name}:\n{err}");
+    }
+}

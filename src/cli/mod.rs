@@ -71,7 +71,7 @@ impl Cli {
     }
 
     /// Runs the command; the exit code says how it went (0 ok, 2 bad input, 3 a stage
-    /// failed, 4 a transport bench found damage, 1 anything else).
+    /// failed, 4 a transport bench found damage, 5 the network failed, 1 anything else).
     pub fn run(self) -> ExitCode {
         match self.command {
             Command::Validate(a) => validate::run(a),

@@ -230,6 +230,11 @@ fn print_result(result: Result<RunReport, RunError>, out: &Path) -> ExitCode {
             );
             ExitCode::from(5)
         }
+        // The network failed before the run could start: exit 5, as when it fails later.
+        Err(e @ (RunError::Link(_) | RunError::PeersUnreachable { .. })) => {
+            eprintln!("error: {e}");
+            ExitCode::from(5)
+        }
         Err(e) => {
             eprintln!("error: {e}");
             ExitCode::FAILURE

@@ -69,10 +69,11 @@ pub struct BenchReport {
     pub delivered: usize,
     /// Whether every one of `count` messages was delivered within the time limit.
     pub complete: bool,
-    /// Whether every delivered message equals what was sent (vacuous when none arrived).
-    pub byte_identical: bool,
-    /// Whether messages arrived in sending order, each once.
-    pub in_order: bool,
+    /// Whether every delivered message equals what was sent (`None`: none arrived, nothing
+    /// to judge).
+    pub byte_identical: Option<bool>,
+    /// Whether messages arrived in sending order, each once (`None`: none arrived).
+    pub in_order: Option<bool>,
     /// Seconds from the first send to the last delivery.
     pub elapsed_s: f64,
     /// Message bytes delivered per second, MB/s (10⁶ bytes).
@@ -342,8 +343,8 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
         sent: opts.count.min(sent),
         delivered,
         complete: delivered == opts.count,
-        byte_identical: identical,
-        in_order,
+        byte_identical: (delivered > 0).then_some(identical),
+        in_order: (delivered > 0).then_some(in_order),
         elapsed_s,
         goodput_mb_s: goodput,
         data_packets: peer.data_packets_sent,

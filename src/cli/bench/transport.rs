@@ -95,6 +95,7 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
 /// The report as a two-column table.
 fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Table {
     let yes = |b: bool| if b { "yes" } else { "NO" }.to_string();
+    let judged = |b: Option<bool>| b.map_or("– (none delivered)".to_string(), yes);
     let mut t = comfy_table::Table::new();
     t.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
         .set_header(["measure", "value"]);
@@ -106,9 +107,9 @@ fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Tab
         ("all delivered", yes(report.complete)),
         (
             "byte-identical (of those delivered)",
-            yes(report.byte_identical),
+            judged(report.byte_identical),
         ),
-        ("in order (of those delivered)", yes(report.in_order)),
+        ("in order (of those delivered)", judged(report.in_order)),
         ("goodput MB/s", format!("{:.1}", report.goodput_mb_s)),
         (
             "UDP blast MB/s (same datagrams)",
@@ -181,22 +182,21 @@ pub fn run(args: Args) -> ExitCode {
     if let Err(e) = super::write_json(args.json.as_ref(), &json) {
         return crate::cli::report_error(e);
     }
-    if report.complete && report.byte_identical && report.in_order {
+    let intact = report.byte_identical == Some(true) && report.in_order == Some(true);
+    if report.complete && intact {
         ExitCode::SUCCESS
     } else {
         eprintln!(
             "error: {} of {} messages delivered{}{}",
             report.delivered,
             report.options.count,
-            if report.byte_identical {
-                ""
-            } else {
-                ", some damaged"
+            match report.byte_identical {
+                Some(false) => ", some damaged",
+                _ => "",
             },
-            if report.in_order {
-                ""
-            } else {
-                ", out of order"
+            match report.in_order {
+                Some(false) => ", out of order",
+                _ => "",
             },
         );
         ExitCode::from(4)
