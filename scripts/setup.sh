@@ -10,6 +10,7 @@
 #   test: what its tests need
 #     iproute2                         `ip netns` + veth for the network-namespace cluster test
 #     ffmpeg                           ffprobe/ffmpeg: the independent decoder the video tests compare with
+#     python3-venv                     a virtual environment for PyPI's kubernetes-validate (below)
 # Usage: scripts/setup.sh [runtime|build|all] (default all: runtime + build + test);
 #        scripts/setup.sh --list ROLE prints the packages of ROLE and does nothing else.
 # Installed from Debian's archive with apt-get when run as root; otherwise prints the exact
@@ -18,7 +19,7 @@
 set -euo pipefail
 runtime=(mesa-vulkan-drivers libvulkan1 libegl-mesa0 libgl1-mesa-dri fonts-dejavu-core)
 build=(nasm g++)
-test=(iproute2 ffmpeg)
+test=(iproute2 ffmpeg python3-venv)
 role_packages() {
   case "$1" in
     runtime) echo "${runtime[*]}" ;;
@@ -50,19 +51,28 @@ for p in "${packages[@]}"; do
   status=$(dpkg-query -W -f='${Status}' "$p" 2>/dev/null || true)
   [ "$status" = "install ok installed" ] || missing+=("$p")
 done
-if [ ${#missing[@]} -eq 0 ]; then
-  exit 0
+if [ ${#missing[@]} -gt 0 ]; then
+  line="apt-get install -y --no-install-recommends ${missing[*]}"
+  if [ "$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1; then
+    echo "setup: missing system packages: ${missing[*]}" >&2
+    echo "install them as root, then run this command again:" >&2
+    echo "  sudo apt-get update && sudo $line" >&2
+    exit 1
+  fi
+  echo "setup: installing ${missing[*]}" >&2
+  export DEBIAN_FRONTEND=noninteractive
+  apt-get update -q >&2
+  # shellcheck disable=SC2086
+  apt-get install -y -q --no-install-recommends "${missing[@]}" >&2
+  echo "setup: done" >&2
 fi
-line="apt-get install -y --no-install-recommends ${missing[*]}"
-if [ "$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1; then
-  echo "setup: missing system packages: ${missing[*]}" >&2
-  echo "install them as root, then run this command again:" >&2
-  echo "  sudo apt-get update && sudo $line" >&2
-  exit 1
+# The tests' Python tool, in its own virtual environment (PyPI's kubernetes-validate checks the
+# generated Kubernetes manifests offline): $CLOUDLIGHT_VENV, default ~/.cache/cloudlight/venv.
+if [ "$role" = all ]; then
+  venv="${CLOUDLIGHT_VENV:-$HOME/.cache/cloudlight/venv}"
+  if [ ! -x "$venv/bin/kubernetes-validate" ]; then
+    echo "setup: installing kubernetes-validate into $venv" >&2
+    python3 -m venv "$venv" >&2
+    "$venv/bin/pip" install -q kubernetes-validate >&2
+  fi
 fi
-echo "setup: installing ${missing[*]}" >&2
-export DEBIAN_FRONTEND=noninteractive
-apt-get update -q >&2
-# shellcheck disable=SC2086
-apt-get install -y -q --no-install-recommends "${missing[@]}" >&2
-echo "setup: done" >&2

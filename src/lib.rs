@@ -5,6 +5,7 @@
 //! which only parses and prints. See the README for the commands and the topology format.
 
 pub mod bench;
+pub mod deploy;
 pub mod experiment;
 pub mod plot;
 

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod deploy;
 mod experiment;
 mod kinds;
 mod plan;
@@ -48,11 +49,18 @@ enum Command {
     /// Render the reference images of a scene with the path tracer: full, direct-only and
     /// indirect-only radiance as OpenEXR, plus tone-mapped PNGs.
     Reference(reference::Args),
-    /// Expand a placement experiment (techniques × cuts × link profiles × client counts)
-    /// into one topology file per run, written to --emit DIR.
+    /// Run a placement experiment (techniques × cuts × link profiles × added latency ×
+    /// client counts) in this process, resuming where an earlier run of it stopped, and
+    /// write its report with a recommended cut per link profile and client class; or, with
+    /// --emit DIR, only write one topology file per run.
     ///
     /// Exits 2 with every problem of the file (file, line, key) when it is not valid.
     Experiment(experiment::Args),
+    /// Generate what an orchestrator needs to run a topology (Kubernetes manifests).
+    Deploy {
+        #[command(subcommand)]
+        to: deploy::DeployCommand,
+    },
     /// Measure parts of the system.
     Bench {
         #[command(subcommand)]
@@ -81,6 +89,7 @@ impl Cli {
             Command::Plan(a) => plan::run(a),
             Command::Reference(a) => reference::run(a),
             Command::Experiment(a) => experiment::run(a),
+            Command::Deploy { to } => deploy::run(to),
             Command::Bench { what } => bench::run(what),
         }
     }
