@@ -470,6 +470,8 @@ fn stage_parameters_out_of_range_are_refused_by_name() {
             "payload_bytes = 3000000000",
             "payload_bytes",
         ),
+        // The transport's limit itself: the message's envelope would push it over.
+        ("probe_source", "payload_bytes = 67108864", "payload_bytes"),
         ("probe_relay", "work_ms = inf", "work_ms"),
         ("probe_sink", "work_ms = -1.0", "work_ms"),
         ("photon_batcher", "resend_s = 1e300", "resend_s"),

@@ -196,8 +196,10 @@ pub const PROBE_EDGE: EdgeSettings = EdgeSettings {
     policy: Policy::Block,
 };
 
-/// Largest probe payload: the transport's message limit (a cut edge drops larger ones).
-const MAX_PAYLOAD_BYTES: usize = 64 << 20;
+/// Largest probe payload: the codec's and the transport's message limit less room for the
+/// message's envelope (sequence, send time, checksum, framing), so that the largest payload
+/// the file may ask for still crosses a cut edge (64 MiB exactly did not: 26 bytes over).
+const MAX_PAYLOAD_BYTES: usize = cloudlight_runtime::codec::MAX_MESSAGE_BYTES - 1024;
 /// Longest emulated service time per message, milliseconds.
 const MAX_WORK_MS: f64 = 60_000.0;
 
