@@ -169,9 +169,31 @@ fn node_runs_only_its_stages_and_names_the_peers_it_waits_for() {
         ])
         .output()
         .unwrap();
+    // The example carries no secret: a node on its own refuses to start without one.
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("node `home` is started on its own"), "{err}");
+    assert!(err.contains("secret_env"), "{err}");
+    let out = cloudlight()
+        .args(["node"])
+        .arg(example("probe-cluster.toml"))
+        .args([
+            "--node",
+            "home",
+            "--duration",
+            "1",
+            "--connect-timeout",
+            "0.5",
+            "--secret-env",
+            "CLOUDLIGHT_TEST_SECRET",
+        ])
+        .env("CLOUDLIGHT_TEST_SECRET", "a1b2c3d4e5f60718")
+        .output()
+        .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("peers not reachable"), "{err}");
+    assert!(!err.contains("no secret"), "{err}");
     assert!(err.contains("home -> edge @ 127.0.0.1:7201"), "{err}");
 
     let dir = tempfile::tempdir().unwrap();

@@ -266,6 +266,117 @@ to = "sink"
 }
 
 #[test]
+fn a_relay_killed_and_restarted_loses_nothing_that_is_not_counted() {
+    // a -> b -> c; b is killed with SIGKILL mid-run and started again. Every message the
+    // source sent is received, or counted missing at the sink (whether it was lost in a's
+    // transport, inside b, or on its way to c), or was sent after the sink's last one.
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_ports(3);
+    let text = three_node_topology(&ports)
+        .replace("duration_s = 3.0\n", "")
+        .replace(
+            "peer_timeout_ms = 3000",
+            "peer_timeout_ms = 500\nrejoin_timeout_s = 20",
+        );
+    let topo = dir.path().join("chain.toml");
+    std::fs::write(&topo, &text).unwrap();
+    let c = node(&topo, "c", dir.path(), &[]);
+    let mut b = node(&topo, "b", dir.path(), &[]);
+    let a = node(&topo, "a", dir.path(), &["--duration", "5"]);
+    std::thread::sleep(Duration::from_millis(2000));
+    b.kill().unwrap();
+    b.wait().unwrap();
+    std::thread::sleep(Duration::from_millis(700));
+    let b2 = node(&topo, "b", &dir.path().join("again"), &[]);
+    for (name, child) in [("a", a), ("b", b2), ("c", c)] {
+        let out = finish(child, Duration::from_secs(60));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "node {name}:\n{err}");
+    }
+    let source = sink_report(dir.path(), "a", "source");
+    let sink = sink_report(dir.path(), "c", "sink");
+    let sent = source["sent"].as_u64().unwrap();
+    let received = sink["received"].as_u64().unwrap();
+    let missing = sink["missing"].as_u64().unwrap();
+    let last = sink["last_index"].as_u64().unwrap();
+    assert_eq!(sink["corrupt"], 0);
+    assert!(received > 100, "{sink}");
+    assert_eq!(
+        received + missing + (sent - last - 1),
+        sent,
+        "source {source}\nsink {sink}"
+    );
+    // a gave up on what the old b had not confirmed consuming: the sink's count is the
+    // truth (b may have forwarded some of them just before it died).
+    let a: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("a/metrics.json")).unwrap()).unwrap();
+    let gave_up = a["edges"][0]["wire"]["lost"].as_u64().unwrap();
+    assert!(gave_up > 0, "b held messages when it was killed: {a}");
+}
+
+#[test]
+fn a_receiver_whose_upstream_fails_with_an_error_fails_too() {
+    // The relay on `cloud` fails after 5 messages: cloud exits 3 and says so in its goodbye;
+    // `home`, whose input ended early, must not report success (as it does for a crash).
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_ports(2);
+    let topo = dir.path().join("fail.toml");
+    std::fs::write(
+        &topo,
+        format!(
+            r#"techniques = ["probe"]
+cluster = "upstream-failure-test"
+secret = "5d41402abc4b2a76"
+[[node]]
+name = "cloud"
+address = "127.0.0.1:{}"
+[[node]]
+name = "home"
+address = "127.0.0.1:{}"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "cloud"
+params = {{ rate_hz = 50.0 }}
+[[stage]]
+name = "relay"
+kind = "probe_relay"
+node = "cloud"
+params = {{ fail_after = 5 }}
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "home"
+[[edge]]
+from = "source"
+to = "relay"
+[[edge]]
+from = "relay"
+to = "sink"
+"#,
+            ports[0], ports[1]
+        ),
+    )
+    .unwrap();
+    let home = node(&topo, "home", dir.path(), &["--duration", "60"]);
+    let cloud = node(&topo, "cloud", dir.path(), &["--duration", "60"]);
+    let out = finish(cloud, Duration::from_secs(60));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{err}");
+    let out = finish(home, Duration::from_secs(30));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(5), "{err}");
+    assert!(
+        err.contains("upstream peer `cloud` stopped because its run failed"),
+        "{err}"
+    );
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("home/metrics.json")).unwrap())
+            .unwrap();
+    assert_eq!(m["status"], "failed", "{m}");
+}
+
+#[test]
 fn a_photon_client_that_rejoins_gets_the_current_set() {
     // The static Cornell box: the batcher traces its one batch once and never again. A client
     // node killed and restarted still gets the current set, from the batcher's re-send.

@@ -111,7 +111,8 @@ address = "127.0.0.1:0"
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_message_over_the_transport_limit_is_dropped_counted_and_returns_its_credit() {
+async fn messages_over_the_transport_limit_are_dropped_counted_return_their_credit_and_fail_the_run()
+ {
     // Messages of 64 MiB of payload, which encode to a few bytes more than the transport
     // carries, on a cut `block` edge of capacity 2: if a dropped message kept its credit, the
     // source would block for good after two. (A file may not ask for such a payload any more:
@@ -150,9 +151,16 @@ policy = "block"
         cloudlight::runtime::run(&p, &registry, RunOptions::default(), std::future::pending()),
     )
     .await
-    .expect("the run ends by itself")
-    .expect("dropping is not a failure");
-    assert_eq!(report.end, EndReason::Finished);
+    .expect("the run ends by itself (no credit was kept)");
+    // Every message was dropped: a run that carried nothing across its cut has failed.
+    let Err(RunError::NetworkFailed { error, report }) = report else {
+        panic!("a run that delivered nothing succeeded: {report:?}");
+    };
+    assert!(
+        error.contains("cut edge `source.out -> sink.in` delivered none of its 5 messages (5 over"),
+        "{error}"
+    );
+    assert_eq!(report.end, EndReason::Finished, "it ended by itself");
     let edge = report
         .metrics
         .edges
@@ -203,4 +211,72 @@ to = "sink"
         other => panic!("expected a network failure, got {:?}", other.map(|r| r.end)),
     }
     assert!(started.elapsed() < Duration::from_secs(5));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edge_holds_no_more_bytes_than_its_bound_whatever_its_capacity() {
+    // 100 kB messages into a relay that takes 100 ms each, across a cut edge of capacity
+    // 100,000 but 1 MiB: the source may run ahead of the relay by about ten messages, not by
+    // 100,000 (which would be 10 GB).
+    let p = plan(&two_nodes(
+        r#"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "a"
+params = { payload_bytes = 100000 }
+[[stage]]
+name = "relay"
+kind = "probe_relay"
+node = "b"
+params = { work_ms = 100.0 }
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "b"
+[[edge]]
+from = "source"
+to = "relay"
+capacity = 100000
+max_bytes = 1048576
+[[edge]]
+from = "relay"
+to = "sink"
+"#,
+    ));
+    assert!(
+        p.warnings
+            .iter()
+            .any(|w| w.message.contains("it holds 10 at a time")),
+        "{:?}",
+        p.warnings
+    );
+    let registry = cloudlight::actors::registry();
+    let options = RunOptions {
+        duration: Some(Duration::from_secs(2)),
+        ..RunOptions::default()
+    };
+    let report = tokio::time::timeout(
+        Duration::from_secs(60),
+        cloudlight::runtime::run(&p, &registry, options, std::future::pending()),
+    )
+    .await
+    .expect("the run ends")
+    .unwrap_or_else(|e| panic!("{e}"));
+    let stage = |name: &str| {
+        report
+            .metrics
+            .stages
+            .iter()
+            .find(|s| s.name == name)
+            .unwrap()
+            .clone()
+    };
+    let sent = stage("source").report.unwrap()["sent"].as_u64().unwrap();
+    let relayed = stage("relay").handled;
+    assert!(relayed >= 5, "{relayed}");
+    assert!(
+        sent <= relayed + 12,
+        "the source ran {sent} messages ahead of a relay that handled {relayed}"
+    );
 }

@@ -121,13 +121,18 @@ pub struct SinkParams {
     pub work_ms: f64,
 }
 
-/// Receives messages and reports count, order, integrity, hop latency and scene-time age.
+/// Receives messages and reports count, order, integrity, hop latency and scene-time age,
+/// and which of its source's messages never arrived.
 pub struct ProbeSink {
     params: SinkParams,
     received: u64,
     bytes: u64,
     out_of_order: u64,
     corrupt: u64,
+    /// Messages skipped in the source's sequence (gaps in `index` per upstream instance):
+    /// dropped by a `latest` edge, lost with a restarted peer, or lost inside a node that
+    /// crashed — wherever on the path, so that every message sent is counted somewhere.
+    missing: u64,
     last_index: HashMap<String, u64>,
     hop_latency: Latency,
     age: Latency,
@@ -140,6 +145,8 @@ impl ProbeSink {
             "bytes": self.bytes,
             "out_of_order": self.out_of_order,
             "corrupt": self.corrupt,
+            "missing": self.missing,
+            "last_index": self.last_index.values().max(),
             "hop_latency_ms_p50": self.hop_latency.p50_ms(),
             "hop_latency_ms_p99": self.hop_latency.p99_ms(),
             "age_ms_p50": self.age.p50_ms(),
@@ -155,13 +162,16 @@ impl Stage for ProbeSink {
         let now = now_unix_ns();
         self.received += 1;
         self.bytes += msg.body.payload.len() as u64;
-        if let Some(&last) = self.last_index.get(input.from())
-            && msg.body.index <= last
-        {
-            self.out_of_order += 1;
+        let last = self.last_index.get(input.from()).copied();
+        match last {
+            Some(last) if msg.body.index <= last => self.out_of_order += 1,
+            // The first message from this upstream is index 0 unless some went missing.
+            _ => self.missing += msg.body.index - last.map_or(0, |l| l + 1),
         }
-        self.last_index
-            .insert(input.from().to_string(), msg.body.index);
+        if last.is_none_or(|l| msg.body.index > l) {
+            self.last_index
+                .insert(input.from().to_string(), msg.body.index);
+        }
         if !msg.body.is_intact(ctx.seed()) {
             self.corrupt += 1;
             tracing::warn!(
@@ -248,7 +258,15 @@ pub fn register(registry: &mut StageRegistry) {
             },
         )
         .output(OUT)
-        .checked_params::<SourceParams>(),
+        .checked_params::<SourceParams>()
+        .message_bytes(|t| {
+            // The payload and the message's envelope (index, send time, scene time, framing).
+            let payload = match t.get("payload_bytes") {
+                Some(v) => u64::try_from(v.as_integer()?).ok()?,
+                None => default_payload() as u64,
+            };
+            Some(payload + 64)
+        }),
     );
     registry.register(
         StageKind::new(
@@ -278,6 +296,7 @@ pub fn register(registry: &mut StageRegistry) {
                     bytes: 0,
                     out_of_order: 0,
                     corrupt: 0,
+                    missing: 0,
                     last_index: HashMap::new(),
                     hop_latency: Latency::new(),
                     age: Latency::new(),

@@ -11,6 +11,10 @@
 //!   fast producer waits for a slow consumer (backpressure).
 //! - `latest`: the producer never waits; when the queue holds `capacity` messages the oldest
 //!   one is dropped and counted. Newer lighting and frames supersede older ones.
+//! - An edge may also be bounded in bytes (the encoded size of its messages): under `block`
+//!   the producer also waits for that many bytes of room (a message larger than the bound
+//!   takes all of it, so it travels alone); under `latest` the oldest messages are dropped
+//!   until the new one fits. So capacity × message size cannot exhaust memory.
 //!
 //! This module knows nothing about actors: the consumer registers a wake-up callback.
 
@@ -72,9 +76,13 @@ pub struct EdgeSettings {
 #[error("edge {0} is closed (its consumer stopped)")]
 pub struct EdgeClosed(pub String);
 
+/// Under `block`: a message's slot, and its bytes of room when the edge is bounded in bytes.
+type Permits = (OwnedSemaphorePermit, Option<OwnedSemaphorePermit>);
+
 struct Queued {
     msg: AnyMessage,
-    permit: Option<OwnedSemaphorePermit>,
+    permit: Option<Permits>,
+    bytes: usize,
     enqueued: Instant,
 }
 
@@ -117,6 +125,15 @@ pub struct Edge {
     release: OnceLock<ReleaseHook>,
     control: Arc<RunControl>,
     counters: EdgeCounters,
+    /// The byte bound: its size and, under `block`, a semaphore of that many permits.
+    bytes: Option<ByteBound>,
+}
+
+struct ByteBound {
+    max: u32,
+    space: Arc<Semaphore>,
+    /// Bytes queued now (for `latest`; changed only under the queue's lock).
+    queued: AtomicU64,
 }
 
 impl fmt::Debug for Edge {
@@ -132,7 +149,26 @@ impl fmt::Debug for Edge {
 impl Edge {
     /// A new, empty edge. `name` is used in logs and metrics.
     pub fn new(name: String, settings: EdgeSettings, control: Arc<RunControl>) -> Arc<Self> {
+        Edge::bounded(name, settings, None, control)
+    }
+
+    /// A new, empty edge that also holds at most `max_bytes` of encoded messages (queued
+    /// plus, under `block`, being handled); at most `u32::MAX`.
+    pub fn bounded(
+        name: String,
+        settings: EdgeSettings,
+        max_bytes: Option<u64>,
+        control: Arc<RunControl>,
+    ) -> Arc<Self> {
         assert!(settings.capacity > 0, "validation rejects zero capacity");
+        let bytes = max_bytes.map(|m| {
+            let max = m.clamp(1, u64::from(u32::MAX)) as u32;
+            ByteBound {
+                max,
+                space: Arc::new(Semaphore::new(max as usize)),
+                queued: AtomicU64::new(0),
+            }
+        });
         Arc::new(Edge {
             name,
             settings,
@@ -144,7 +180,19 @@ impl Edge {
             release: OnceLock::new(),
             control,
             counters: EdgeCounters::default(),
+            bytes,
         })
+    }
+
+    /// The byte bound, if any.
+    pub fn max_bytes(&self) -> Option<u64> {
+        self.bytes.as_ref().map(|b| u64::from(b.max))
+    }
+
+    /// Byte permits a message of `bytes` takes: all of the bound at most.
+    fn byte_permits(&self, bytes: usize) -> Option<(Arc<Semaphore>, u32)> {
+        let b = self.bytes.as_ref()?;
+        Some((b.space.clone(), (bytes.min(b.max as usize) as u32).max(1)))
     }
 
     /// Edge name, `producer.port -> consumer.port`.
@@ -208,13 +256,21 @@ impl Edge {
             return Err(closed());
         }
         let permit = match self.settings.policy {
-            Policy::Block => Some(
-                self.space
+            Policy::Block => {
+                let slot = self
+                    .space
                     .clone()
                     .acquire_owned()
                     .await
-                    .map_err(|_| closed())?,
-            ),
+                    .map_err(|_| closed())?;
+                let room = match self.byte_permits(bytes) {
+                    Some((space, n)) => {
+                        Some(space.acquire_many_owned(n).await.map_err(|_| closed())?)
+                    }
+                    None => None,
+                };
+                Some((slot, room))
+            }
             Policy::Latest => None,
         };
         if self.is_closed() {
@@ -229,41 +285,59 @@ impl Edge {
         if self.is_closed() {
             return Err(TryPushError::Closed);
         }
-        let permit =
-            match self.settings.policy {
-                Policy::Block => Some(self.space.clone().try_acquire_owned().map_err(
-                    |e| match e {
-                        tokio::sync::TryAcquireError::Closed => TryPushError::Closed,
-                        tokio::sync::TryAcquireError::NoPermits => TryPushError::Full,
-                    },
-                )?),
-                Policy::Latest => None,
-            };
+        let refused = |e| match e {
+            tokio::sync::TryAcquireError::Closed => TryPushError::Closed,
+            tokio::sync::TryAcquireError::NoPermits => TryPushError::Full,
+        };
+        let permit = match self.settings.policy {
+            Policy::Block => {
+                let slot = self.space.clone().try_acquire_owned().map_err(refused)?;
+                let room = match self.byte_permits(bytes) {
+                    Some((space, n)) => Some(space.try_acquire_many_owned(n).map_err(refused)?),
+                    None => None,
+                };
+                Some((slot, room))
+            }
+            Policy::Latest => None,
+        };
         self.enqueue(msg, bytes, permit);
         Ok(())
     }
 
-    fn enqueue(&self, msg: AnyMessage, bytes: usize, permit: Option<OwnedSemaphorePermit>) {
+    fn enqueue(&self, msg: AnyMessage, bytes: usize, permit: Option<Permits>) {
         self.control.add_pending();
         let dropped = {
             let mut q = self.lock();
-            let dropped =
-                if self.settings.policy == Policy::Latest && q.len() >= self.settings.capacity {
-                    q.pop_front()
-                } else {
-                    None
+            let mut dropped = 0;
+            if self.settings.policy == Policy::Latest {
+                // Room for the new one: by count, then by bytes (never dropping the last).
+                let over_bytes = || {
+                    self.bytes.as_ref().is_some_and(|b| {
+                        b.queued.load(Ordering::Relaxed) + bytes as u64 > u64::from(b.max)
+                    })
                 };
+                while !q.is_empty() && (q.len() >= self.settings.capacity || over_bytes()) {
+                    if let Some(old) = q.pop_front() {
+                        self.unqueue_bytes(old.bytes);
+                    }
+                    dropped += 1;
+                }
+            }
             q.push_back(Queued {
                 msg,
                 permit,
+                bytes,
                 enqueued: Instant::now(),
             });
+            if let Some(b) = &self.bytes {
+                b.queued.fetch_add(bytes as u64, Ordering::Relaxed);
+            }
             self.counters
                 .max_depth
                 .fetch_max(q.len() as u64, Ordering::Relaxed);
             dropped
         };
-        if dropped.is_some() {
+        for _ in 0..dropped {
             self.counters.dropped.fetch_add(1, Ordering::Relaxed);
             self.control.done_pending();
             if let Some(hook) = self.release.get() {
@@ -287,10 +361,22 @@ impl Edge {
         }
     }
 
+    /// A message of `bytes` left the queue (call under the queue's lock).
+    fn unqueue_bytes(&self, bytes: usize) {
+        if let Some(b) = &self.bytes {
+            b.queued.fetch_sub(bytes as u64, Ordering::Relaxed);
+        }
+    }
+
     /// Takes the oldest message. The consumer calls this once per wake-up, handles the
     /// message, drops the [`Delivery`], then calls [`Edge::rearm`].
     pub fn pop(self: &Arc<Self>) -> Option<Delivery> {
-        let q = self.lock().pop_front()?;
+        let q = {
+            let mut queue = self.lock();
+            let q = queue.pop_front()?;
+            self.unqueue_bytes(q.bytes);
+            q
+        };
         Some(Delivery {
             msg: q.msg,
             waited: q.enqueued.elapsed(),
@@ -314,7 +400,7 @@ impl Edge {
 pub struct Delivery {
     msg: AnyMessage,
     waited: Duration,
-    permit: Option<OwnedSemaphorePermit>,
+    permit: Option<Permits>,
     control: Arc<RunControl>,
     release: Option<ReleaseHook>,
 }
@@ -403,6 +489,63 @@ mod tests {
         drop(d);
         e.push(msg(4), 4).await.unwrap();
         assert_eq!(e.depth(), 2);
+    }
+
+    fn bounded(capacity: usize, policy: Policy, max_bytes: u64) -> Arc<Edge> {
+        let e = Edge::bounded(
+            "a.out -> b.in".into(),
+            EdgeSettings { capacity, policy },
+            Some(max_bytes),
+            Arc::default(),
+        );
+        e.set_waker(|| {});
+        e
+    }
+
+    #[tokio::test]
+    async fn a_block_edge_bounded_in_bytes_waits_for_room_in_bytes() {
+        // Room for a million messages, but only 1,000 bytes.
+        let e = bounded(1_000_000, Policy::Block, 1_000);
+        for i in 0..2 {
+            e.push(msg(i), 400).await.unwrap();
+        }
+        let third = tokio::time::timeout(Duration::from_millis(50), e.push(msg(2), 400)).await;
+        assert!(third.is_err(), "1,200 bytes on a 1,000-byte edge");
+        assert_eq!(e.try_push(msg(3), 400), Err(TryPushError::Full));
+        assert!(e.try_push(msg(3), 200).is_ok(), "200 more bytes fit");
+        drop(e.pop().unwrap());
+        e.push(msg(4), 400).await.unwrap();
+        assert_eq!(e.depth(), 3);
+        // A message larger than the bound travels alone: it waits for the whole bound.
+        let e = bounded(8, Policy::Block, 1_000);
+        e.push(msg(0), 10).await.unwrap();
+        let e2 = e.clone();
+        let big = tokio::spawn(async move { e2.push(msg(1), 5_000).await });
+        tokio::time::sleep(Duration::from_millis(30)).await;
+        assert!(!big.is_finished());
+        drop(e.pop().unwrap());
+        tokio::time::timeout(Duration::from_secs(5), big)
+            .await
+            .expect("the big one goes once the edge is empty")
+            .unwrap()
+            .unwrap();
+    }
+
+    #[tokio::test]
+    async fn a_latest_edge_bounded_in_bytes_drops_the_oldest_until_the_new_one_fits() {
+        let e = bounded(1_000_000, Policy::Latest, 1_000);
+        for i in 0..10 {
+            e.push(msg(i), 300).await.unwrap();
+        }
+        assert_eq!(e.depth(), 3, "three of 300 bytes fit in 1,000");
+        assert_eq!(e.counters().dropped.load(Ordering::SeqCst), 7);
+        e.push(msg(10), 5_000).await.unwrap();
+        assert_eq!(e.depth(), 1, "a message over the bound replaces everything");
+        let got = *e.pop().unwrap().message().downcast_ref::<u32>().unwrap();
+        assert_eq!(got, 10);
+        e.push(msg(11), 300).await.unwrap();
+        assert_eq!(e.depth(), 1);
+        assert_eq!(e.control.pending(), 1);
     }
 
     #[tokio::test]

@@ -119,7 +119,9 @@ pub struct WireSnapshot {
     pub retransmissions: u64,
     /// Smoothed round-trip time to the peer, milliseconds.
     pub rtt_ms: f64,
-    /// Messages given up (peer restarted or gone while draining).
+    /// Messages given up: the peer restarted, or was gone while draining, before confirming
+    /// it consumed them (most are lost; one it forwarded just before dying is not). What
+    /// arrived end to end is counted where the pipeline ends (e.g. a probe sink's `missing`).
     pub lost: u64,
     /// Incoming messages refused (undecodable, or beyond credit).
     pub refused: u64,
@@ -172,6 +174,12 @@ pub struct PeerLinkSnapshot {
     pub forged: u64,
     /// Address moves after a path challenge.
     pub moves: u64,
+    /// Authentic packets from an address other than the peer's, not obeyed.
+    #[serde(default)]
+    pub misaddressed: u64,
+    /// Nodes of another topology under the peer's name, refused while its session was live.
+    #[serde(default)]
+    pub mismatched: u64,
 }
 
 /// One stage instance at one moment.

@@ -267,6 +267,7 @@ impl NodeNet {
             failures: self.failures.clone(),
             driver_failure: self.driver.failure_slot(),
             rejoin_timeout: self.rejoin_timeout,
+            upstream: self.receivers.values().map(|(p, _)| p.clone()).collect(),
         };
         self.tasks.push(tokio::spawn(dispatch(
             watch,
@@ -367,6 +368,8 @@ impl NodeNet {
                     replayed: p.replayed,
                     forged: p.forged,
                     moves: p.moves,
+                    misaddressed: p.misaddressed,
+                    mismatched: p.mismatched,
                 }
             })
             .collect();
@@ -420,12 +423,13 @@ impl NodeNet {
         }
     }
 
-    /// Stops the proxies and the driver (saying goodbye to peers).
-    pub(crate) fn shutdown(&mut self) {
+    /// Stops the proxies and the driver (saying goodbye to peers, and whether this node's
+    /// run `failed`).
+    pub(crate) fn shutdown(&mut self, failed: bool) {
         for t in self.tasks.drain(..) {
             t.abort();
         }
-        self.driver.close();
+        self.driver.close_with(failed);
     }
 }
 
@@ -531,6 +535,8 @@ struct Watch {
     failures: UnboundedSender<String>,
     driver_failure: Arc<Mutex<Option<String>>>,
     rejoin_timeout: Duration,
+    /// Peers that send to this node.
+    upstream: Vec<String>,
 }
 
 impl Watch {
@@ -640,8 +646,16 @@ fn on_peer_event(watch: &Watch, senders: &HashMap<u32, (String, Arc<SenderShared
                 s.epoch = epoch;
             });
         }
-        Event::PeerLeft { peer } => {
-            tracing::info!(%node, %peer, "peer left");
+        Event::PeerLeft { peer, failed } => {
+            tracing::info!(%node, %peer, failed, "peer left");
+            if failed && watch.upstream.contains(&peer) {
+                // Its part of the pipeline stopped early: what this node got is not the run's
+                // output, whatever the way its upstream died (a crash is `lost`, see above).
+                watch.fail(format!(
+                    "upstream peer `{peer}` stopped because its run failed (see its log and \
+                     metrics.json): this node's input ended early"
+                ));
+            }
             mark_senders(senders, &peer, true);
             board.update(&peer, |s| {
                 s.up = false;

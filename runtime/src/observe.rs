@@ -452,6 +452,16 @@ pub fn prometheus_text(snapshot: &MetricsSnapshot) -> String {
                     "Packets claiming a peer's session that failed their tag",
                     p.forged,
                 ),
+                (
+                    "cloudlight_peer_misaddressed",
+                    "Authentic packets of a peer's session from another address, not obeyed",
+                    p.misaddressed,
+                ),
+                (
+                    "cloudlight_peer_mismatched",
+                    "Nodes of another topology under a live peer's name, refused",
+                    p.mismatched,
+                ),
             ] {
                 f.counter(name, help, &l, v as f64);
             }

@@ -347,6 +347,8 @@ type SceneCheck = Arc<dyn Fn(&toml::Table, &AnyScene) -> Result<(), String> + Se
 type Builder = Arc<dyn Fn(&StageSetup) -> anyhow::Result<Box<dyn Stage>> + Send + Sync>;
 type ParamCheck = Arc<dyn Fn(&toml::Table) -> Result<(), String> + Send + Sync>;
 
+type SizeEstimate = Arc<dyn Fn(&toml::Table) -> Option<u64> + Send + Sync>;
+
 /// A kind of stage: its name, the technique it belongs to, its typed ports, how its
 /// parameters are checked and how an instance is built.
 #[derive(Clone)]
@@ -363,6 +365,7 @@ pub struct StageKind {
     pub outputs: Vec<PortSpec>,
     check: ParamCheck,
     scene_check: Option<SceneCheck>,
+    message_bytes: Option<SizeEstimate>,
     build: Builder,
 }
 
@@ -395,8 +398,25 @@ impl StageKind {
                 Some(k) => Err(format!("unknown parameter `{k}` (this kind takes none)")),
             }),
             scene_check: None,
+            message_bytes: None,
             build: Arc::new(build),
         }
+    }
+
+    /// Declares how large (encoded) the messages this kind sends are, from its parameters,
+    /// when that is known before it runs: validation then checks capacity × size against each
+    /// output edge's byte bound and reports what a node's queues may hold.
+    pub fn message_bytes(
+        mut self,
+        estimate: impl Fn(&toml::Table) -> Option<u64> + Send + Sync + 'static,
+    ) -> Self {
+        self.message_bytes = Some(Arc::new(estimate));
+        self
+    }
+
+    /// The size of the messages it sends with `params`, if declared and known.
+    pub fn estimated_message_bytes(&self, params: &toml::Table) -> Option<u64> {
+        self.message_bytes.as_ref().and_then(|f| f(params))
     }
 
     /// Declares an input port carrying `T`, with the default settings of edges into it.

@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use cloudlight::runtime::topology::SecretSource;
 use cloudlight::runtime::{Plan, RunError, RunOptions, RunReport, TopologyErrors};
 use cloudlight::{DEFAULT_TOPOLOGY, DEFAULT_TOPOLOGY_NAME};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -60,6 +61,10 @@ pub struct NodeCommand {
     /// node's `address`.
     #[arg(long, value_name = "IP:PORT")]
     bind: Option<std::net::SocketAddr>,
+    /// Read the cluster's secret from this environment variable, over the file's `secret`,
+    /// `secret_env` or `secret_file` (e.g. for the examples, which carry none).
+    #[arg(long, value_name = "NAME")]
+    secret_env: Option<String>,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -87,7 +92,23 @@ pub fn run(c: RunCommand) -> ExitCode {
 
 pub fn node(c: NodeCommand) -> ExitCode {
     let registry = cloudlight::actors::registry();
-    let plan = Plan::load(&c.topology, &registry);
+    let mut plan = Plan::load(&c.topology, &registry);
+    if let (Ok(plan), Some(name)) = (&mut plan, &c.secret_env) {
+        match std::env::var(name) {
+            Ok(secret) if !secret.is_empty() => {
+                plan.topology.secret = secret;
+                plan.topology.secret_source = SecretSource::Env(name.clone());
+                plan.warnings
+                    .retain(|w| !w.message.starts_with("no secret"));
+            }
+            _ => {
+                eprintln!(
+                    "error: --secret-env: environment variable `{name}` is not set or empty (it holds the cluster's secret)"
+                );
+                return ExitCode::from(2);
+            }
+        }
+    }
     let stem = c
         .topology
         .file_stem()
@@ -234,6 +255,11 @@ fn print_result(result: Result<RunReport, RunError>, out: &Path) -> ExitCode {
         Err(e @ (RunError::Link(_) | RunError::PeersUnreachable { .. })) => {
             eprintln!("error: {e}");
             ExitCode::from(5)
+        }
+        // Bad input, found before anything started: exit 2, as `validate` would.
+        Err(e @ RunError::NoSecret(_)) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
         }
         Err(e) => {
             eprintln!("error: {e}");

@@ -105,8 +105,11 @@ pub enum Command {
         /// Count.
         n: u64,
     },
-    /// Say goodbye and stop the thread.
-    Close,
+    /// Say goodbye (saying whether this node's run failed) and stop the thread.
+    Close {
+        /// The run failed: peers downstream learn that their input ended early.
+        failed: bool,
+    },
     /// Stop the thread at once, without goodbyes: peers see a crash (fault injection).
     Abort,
     /// Panic in the I/O thread (fault injection: how a node handles losing its network).
@@ -395,7 +398,13 @@ impl DriverHandle {
 
     /// Says goodbye to peers, stops the thread and waits for it.
     pub fn close(&mut self) {
-        let _ = self.try_command(Command::Close);
+        self.close_with(false);
+    }
+
+    /// Says goodbye to peers, telling them whether this node's run `failed`, stops the
+    /// thread and waits for it.
+    pub fn close_with(&mut self, failed: bool) {
+        let _ = self.try_command(Command::Close { failed });
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }
@@ -511,8 +520,8 @@ impl Io {
             }
             Command::Send { edge, bytes } => self.backlog.entry(edge).or_default().push_back(bytes),
             Command::Release { edge, n } => self.endpoint.release(edge, n),
-            Command::Close => {
-                self.endpoint.close();
+            Command::Close { failed } => {
+                self.endpoint.close(failed);
                 self.closing = Some(now);
             }
             Command::Abort => self.aborted = true,
@@ -580,7 +589,7 @@ impl Io {
                     Err(TryRecvError::Empty) => break,
                     Err(TryRecvError::Disconnected) => {
                         if self.closing.is_none() {
-                            self.apply(Command::Close, now);
+                            self.apply(Command::Close { failed: false }, now);
                         }
                         break;
                     }

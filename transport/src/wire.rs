@@ -171,8 +171,12 @@ pub enum Body<'a> {
         /// The ping's `t_us`.
         t_us: u64,
     },
-    /// The sender is shutting down.
-    Bye,
+    /// The sender is shutting down; `failed` when its run failed (its downstream peers
+    /// then know their input ended early, not at the end of the run).
+    Bye {
+        /// Whether the sender's run failed.
+        failed: bool,
+    },
     /// Sent to a new address an authenticated packet came from: answer to move the link.
     PathChallenge {
         /// Random token to echo.
@@ -231,7 +235,7 @@ impl Body<'_> {
             Body::Credit { .. } => K_CREDIT,
             Body::Ping { .. } => K_PING,
             Body::Pong { .. } => K_PONG,
-            Body::Bye => K_BYE,
+            Body::Bye { .. } => K_BYE,
             Body::PathChallenge { .. } => K_PATH_CHALLENGE,
             Body::PathResponse { .. } => K_PATH_RESPONSE,
         }
@@ -291,7 +295,7 @@ impl Body<'_> {
             Body::PathChallenge { token } | Body::PathResponse { token } => {
                 out.extend_from_slice(&token.to_le_bytes())
             }
-            Body::Bye => {}
+            Body::Bye { failed } => out.push(u8::from(*failed)),
         }
     }
 
@@ -340,7 +344,9 @@ impl Body<'_> {
             }
             K_PING => Body::Ping { t_us: r.u64()? },
             K_PONG => Body::Pong { t_us: r.u64()? },
-            K_BYE => Body::Bye,
+            K_BYE => Body::Bye {
+                failed: r.u8()? != 0,
+            },
             K_PATH_CHALLENGE => Body::PathChallenge { token: r.u64()? },
             K_PATH_RESPONSE => Body::PathResponse { token: r.u64()? },
             k => return Err(WireError::Kind(k)),
@@ -571,7 +577,8 @@ mod tests {
         });
         body_round_trip(Body::Ping { t_us: 5 });
         body_round_trip(Body::Pong { t_us: 5 });
-        body_round_trip(Body::Bye);
+        body_round_trip(Body::Bye { failed: false });
+        body_round_trip(Body::Bye { failed: true });
         body_round_trip(Body::PathChallenge { token: 77 });
         body_round_trip(Body::PathResponse { token: 77 });
         let data = Body::Data {

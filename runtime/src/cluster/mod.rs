@@ -111,6 +111,11 @@ pub enum RunError {
     /// `only_node` names no node of the topology.
     #[error("node `{0}` is not in the topology")]
     UnknownNode(String),
+    /// A node started on its own has cut edges and no secret to share with its peers.
+    #[error(
+        "node `{0}` is started on its own and its cut edges need the secret every node of the cluster shares: set `secret_env = \"NAME\"` (or `secret_file`, or `secret`) in the topology (`cloudlight run` of the whole topology draws one per run)"
+    )]
+    NoSecret(String),
     /// The metrics endpoint could not listen (e.g. its address is taken).
     #[error("cannot serve /metrics and /healthz on {addr}: {error}")]
     Metrics {
@@ -248,11 +253,21 @@ impl Cluster {
         registry: &StageRegistry,
         options: RunOptions,
     ) -> Result<Cluster, RunError> {
-        let plan = plan.clone();
+        let mut plan = plan.clone();
         if let Some(n) = &options.only_node
             && plan.topology.node(n).is_none()
         {
             return Err(RunError::UnknownNode(n.clone()));
+        }
+        let t = &mut plan.topology;
+        if t.secret.is_empty() && !t.insecure && plan.edges.iter().any(|e| e.cut) {
+            // Every node in this process: a secret nobody else knows serves them all. A node
+            // on its own cannot agree on one with its peers.
+            if let Some(n) = &options.only_node {
+                return Err(RunError::NoSecret(n.clone()));
+            }
+            t.secret = cloudlight_transport::crypto::random_secret();
+            t.secret_source = crate::topology::SecretSource::Drawn;
         }
         // The endpoint first: an address in use fails the run before anything starts, and
         // the orchestrator hears "starting" while the peers are awaited.
@@ -596,11 +611,15 @@ impl Cluster {
         if failure.is_none() {
             failure = self.lost_upstream().map(Failure::Network);
         }
+        if failure.is_none() {
+            let snap = self.snapshot(RunStatus::Running, None);
+            failure = undelivered_cut_edges(&snap).map(Failure::Network);
+        }
         let undrained = self.control.pending();
         if let Some(f) = &failure {
             tracing::error!("{}; stopping the run", f.text());
         }
-        let stopped = self.stop_all().await;
+        let stopped = self.stop_all(failure.is_some()).await;
         let (status, fail_text) = match &failure {
             Some(f) => (RunStatus::Failed, Some(f.text())),
             None => (RunStatus::Finished, None),
@@ -670,8 +689,9 @@ impl Cluster {
             .then(|| format!("{} (the run ended without it coming back)", lost.join("; ")))
     }
 
-    /// Closes every edge and stops every actor; returns the instances that terminated.
-    async fn stop_all(&mut self) -> Vec<String> {
+    /// Closes every edge and stops every actor, then the transports (telling peers whether
+    /// the run `failed`); returns the instances that terminated.
+    async fn stop_all(&mut self, failed: bool) -> Vec<String> {
         if self.control.pending() != 0 {
             // Producers may be blocked on consumers that will never run again.
             for e in &self.edges {
@@ -701,16 +721,38 @@ impl Cluster {
             e.edge.close();
         }
         for n in &mut self.nets {
-            n.shutdown();
+            n.shutdown(failed);
         }
         stopped
     }
 
     async fn abort(&mut self) {
         self.control.begin_stopping();
-        self.stop_all().await;
+        self.stop_all(true).await;
         self.supervisor.0.stop(None);
     }
+}
+
+/// Cut edges whose sending half got messages and delivered none of them (each too large for
+/// the transport, or lost with its peer): a run that carried nothing across a cut has not
+/// succeeded.
+fn undelivered_cut_edges(snap: &MetricsSnapshot) -> Option<String> {
+    let bad: Vec<String> = snap
+        .edges
+        .iter()
+        .filter(|e| e.cut && !e.name.ends_with(" (rx)"))
+        .filter_map(|e| {
+            let w = e.wire.as_ref()?;
+            (e.messages > 0 && w.oversize + w.lost >= e.messages).then(|| {
+                format!(
+                    "cut edge `{}` delivered none of its {} messages ({} over the transport's \
+                     message limit, {} lost with peer `{}`)",
+                    e.name, e.messages, w.oversize, w.lost, w.peer
+                )
+            })
+        })
+        .collect();
+    (!bad.is_empty()).then(|| bad.join("; "))
 }
 
 /// Starts `plan` and runs it to the end (see [`Cluster::run`]).

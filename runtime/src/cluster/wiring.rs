@@ -41,7 +41,12 @@ pub(super) async fn wire_edges(
         };
         if !e.cut {
             if local(e.from) {
-                let edge = Edge::new(e.name.clone(), e.settings, control.clone());
+                let edge = Edge::bounded(
+                    e.name.clone(),
+                    e.settings,
+                    Some(e.max_bytes),
+                    control.clone(),
+                );
                 w.producer = Some(edge.clone());
                 w.consumer = Some(edge.clone());
                 w.runs.push(EdgeRun {
@@ -52,7 +57,15 @@ pub(super) async fn wire_edges(
             }
         } else {
             if local(e.from) {
-                let edge = Edge::new(e.name.clone(), e.settings, control.clone());
+                // The sending half holds each message until its consumer finished it (credit
+                // came back), so its byte bound covers the whole edge; the receiving half is
+                // bounded by the credit it grants.
+                let edge = Edge::bounded(
+                    e.name.clone(),
+                    e.settings,
+                    Some(e.max_bytes),
+                    control.clone(),
+                );
                 w.producer = Some(edge.clone());
                 w.runs.push(EdgeRun {
                     edge,
@@ -199,13 +212,13 @@ pub(super) async fn wire_edges(
         }
         if let Ok(why) = failed.try_recv() {
             for n in &mut nets {
-                n.shutdown();
+                n.shutdown(true);
             }
             return Err(RunError::Link(why));
         }
         if waited.elapsed() >= limit {
             for n in &mut nets {
-                n.shutdown();
+                n.shutdown(true);
             }
             return Err(RunError::PeersUnreachable {
                 peers: missing.join(", "),

@@ -17,7 +17,9 @@ use std::net::SocketAddr;
 use std::ops::Range;
 use std::path::Path;
 
-pub use parse::{MAX_CAPACITY, MAX_REPLICAS, MAX_SECONDS};
+pub use parse::{
+    DEFAULT_EDGE_BYTES, MAX_CAPACITY, MAX_EDGE_BYTES, MAX_REPLICAS, MAX_SECONDS, MIN_EDGE_BYTES,
+};
 pub use plan::{EdgePlan, InstancePlan, Plan};
 pub use spec::{EdgeSpec, LinkSpec, NodeSpec, StageSpec, TopologySpec};
 
@@ -155,6 +157,8 @@ pub enum SecretSource {
     Env(String),
     /// `secret_file = "PATH"` (as resolved: relative to the topology file's folder).
     File(std::path::PathBuf),
+    /// None given: drawn at random for one run of every node in one process.
+    Drawn,
 }
 
 impl SecretSource {
@@ -165,8 +169,32 @@ impl SecretSource {
             SecretSource::Inline => "written in the file (`secret`)".into(),
             SecretSource::Env(name) => format!("environment variable `{name}` (`secret_env`)"),
             SecretSource::File(path) => format!("file `{}` (`secret_file`)", path.display()),
+            SecretSource::Drawn => "drawn at random for this run".into(),
         }
     }
+}
+
+/// Secrets that appear in documentation and examples: a cluster using one is open to anyone
+/// who read them (compared ignoring case, spaces, `-` and `_`).
+pub const EXAMPLE_SECRETS: [&str; 8] = [
+    "changeme",
+    "secret",
+    "password",
+    "cloudlight",
+    "shared",
+    "shared secret",
+    "test",
+    "example",
+];
+
+/// Whether `secret` is one of [`EXAMPLE_SECRETS`].
+pub fn is_example_secret(secret: &str) -> bool {
+    let folded: String = secret
+        .chars()
+        .filter(|c| !c.is_whitespace() && *c != '-' && *c != '_')
+        .flat_map(char::to_lowercase)
+        .collect();
+    EXAMPLE_SECRETS.iter().any(|e| e.replace(' ', "") == folded)
 }
 
 /// A node: one process of the cluster with one UDP address.
@@ -269,6 +297,8 @@ pub struct EdgeDecl {
     pub capacity: Option<usize>,
     /// Policy, if set here.
     pub policy: Option<Policy>,
+    /// Most bytes it may hold, if set here.
+    pub max_bytes: Option<u64>,
     /// Where it is declared.
     pub span: Range<usize>,
     /// Path in the file, e.g. `edge[0]`.
@@ -337,6 +367,8 @@ pub struct EdgeDefaults {
     pub capacity: Option<usize>,
     /// Default policy.
     pub policy: Option<Policy>,
+    /// Default byte bound.
+    pub max_bytes: Option<u64>,
 }
 
 /// A parsed topology file.

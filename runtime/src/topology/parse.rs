@@ -173,8 +173,9 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
         topo.defaults = EdgeDefaults {
             capacity: capacity(&mut w, &mut d),
             policy: policy(&mut w, &mut d),
+            max_bytes: max_bytes(&mut w, &mut d),
         };
-        d.finish(&mut w, &["capacity", "policy"]);
+        d.finish(&mut w, &["capacity", "policy", "max_bytes"]);
     }
 
     parse_nodes(&mut w, &mut top, &mut topo);
@@ -261,6 +262,14 @@ pub const MAX_SECONDS: f64 = 365.0 * 86_400.0;
 /// Largest edge capacity: each slot may hold a message, and a `block` edge's permits are
 /// counted in memory.
 pub const MAX_CAPACITY: u64 = 1_000_000;
+/// Most bytes an edge holds unless it says otherwise (`max_bytes`): messages queued plus,
+/// under `block`, being handled (and, for a cut edge, in flight). With capacity alone, a
+/// million slots of 64 MiB messages would be allowed.
+pub const DEFAULT_EDGE_BYTES: u64 = 256 << 20;
+/// Smallest `max_bytes`.
+pub const MIN_EDGE_BYTES: u64 = 1024;
+/// Largest `max_bytes` (4 GiB − 1).
+pub const MAX_EDGE_BYTES: u64 = u32::MAX as u64;
 /// Longest one-way delay or jitter a link may emulate (a minute): any more is an outage,
 /// which the emulator models by loss.
 const MAX_LINK_DELAY_MS: f64 = 60_000.0;
@@ -330,6 +339,22 @@ fn bounded(
         return None;
     }
     Some(v.into_inner())
+}
+
+fn max_bytes(w: &mut Walker, t: &mut Tbl<'_, '_>) -> Option<u64> {
+    let c = t.uint(w, "max_bytes")?;
+    if !(MIN_EDGE_BYTES..=MAX_EDGE_BYTES).contains(c.get_ref()) {
+        w.err(
+            &c.span(),
+            &t.key("max_bytes"),
+            format!(
+                "{} is out of range: must be in [{MIN_EDGE_BYTES}, {MAX_EDGE_BYTES}] bytes",
+                c.get_ref()
+            ),
+        );
+        return None;
+    }
+    Some(*c.get_ref())
 }
 
 fn capacity(w: &mut Walker, t: &mut Tbl<'_, '_>) -> Option<usize> {
@@ -709,13 +734,15 @@ fn parse_edges(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
         let to = port_ref(w, &mut t, "to", topo);
         let capacity = capacity(w, &mut t);
         let policy = policy(w, &mut t);
-        t.finish(w, &["from", "to", "capacity", "policy"]);
+        let max_bytes = max_bytes(w, &mut t);
+        t.finish(w, &["from", "to", "capacity", "policy", "max_bytes"]);
         if let (Some(from), Some(to)) = (from, to) {
             topo.edges.push(EdgeDecl {
                 from,
                 to,
                 capacity,
                 policy,
+                max_bytes,
                 span,
                 key: t.path.clone(),
             });

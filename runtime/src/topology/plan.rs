@@ -43,6 +43,11 @@ pub struct EdgePlan {
     pub to_port: &'static str,
     /// Capacity and policy.
     pub settings: EdgeSettings,
+    /// Most bytes of encoded messages it holds (queued, being handled, in flight).
+    pub max_bytes: u64,
+    /// What it may hold at most: `max_bytes`, or less when the producer's message size is
+    /// known (capacity × size).
+    pub bytes_bound: u64,
     /// Payload type.
     pub ty: MessageType,
     /// Whether producer and consumer are on different nodes.
@@ -320,6 +325,41 @@ impl Plan {
                     .or(topology.defaults.policy)
                     .unwrap_or(default.policy),
             };
+            let max_bytes = e
+                .max_bytes
+                .or(topology.defaults.max_bytes)
+                .unwrap_or(crate::topology::DEFAULT_EDGE_BYTES);
+            // Capacity × message size, where the producer knows its size, against the bound.
+            let message = from_kind.estimated_message_bytes(&from_stage.params);
+            let bytes_bound = match message {
+                Some(m) => (settings.capacity as u64).saturating_mul(m).min(max_bytes),
+                None => max_bytes,
+            };
+            if let Some(m) = message {
+                let want = (settings.capacity as u64).saturating_mul(m);
+                if want > max_bytes {
+                    warnings.push(map.diag(
+                        &e.span,
+                        &e.key,
+                        format!(
+                            "{} -> {}: capacity {} × {} messages would be {}, over the edge's \
+                             `max_bytes` of {}: it holds {} at a time ({})",
+                            e.from,
+                            e.to,
+                            settings.capacity,
+                            human_bytes(m),
+                            human_bytes(want),
+                            human_bytes(max_bytes),
+                            (max_bytes / m).max(1),
+                            if m > max_bytes {
+                                "each travels alone"
+                            } else {
+                                "set `max_bytes` to hold more"
+                            }
+                        ),
+                    ));
+                }
+            }
             for (i, j) in pairs {
                 let from = first_instance[&from_stage.name] + i;
                 let to = first_instance[&to_stage.name] + j;
@@ -343,6 +383,8 @@ impl Plan {
                     to,
                     to_port: inp.name,
                     settings,
+                    max_bytes,
+                    bytes_bound,
                     ty: out.ty,
                     cut: instances[from].node != instances[to].node,
                 });
@@ -383,17 +425,25 @@ impl Plan {
             }
         }
         if edges.iter().any(|e| e.cut) && topology.secret.is_empty() && !topology.insecure {
-            let span = if topology.secret_span.is_empty() {
-                0..0
-            } else {
-                topology.secret_span.clone()
-            };
-            errors.push(map.diag(
-                &span,
+            // `run` draws one per run; `node` refuses to start without one (RunError::NoSecret).
+            warnings.push(map.diag(
+                &(0..0),
                 "secret",
-                "cut edges need a shared secret, or anyone who can reach a node's port can join \
-                 the cluster: set `secret` (e.g. the output of `openssl rand -hex 16`), or \
-                 `insecure = true` for a loopback demo",
+                "no secret: `cloudlight run` draws a random one for each run of the whole \
+                 topology, but nodes started one by one (`cloudlight node`) need a shared one: \
+                 set `secret_env = \"NAME\"` (or `secret_file`, or `secret`, e.g. the output \
+                 of `openssl rand -hex 16`)",
+            ));
+        }
+        if crate::topology::is_example_secret(&topology.secret) {
+            warnings.push(map.diag(
+                &topology.secret_span,
+                "secret",
+                format!(
+                    "the secret, {}, is a well-known example: anyone who read it can join \
+                     the cluster; use a random one (e.g. `openssl rand -hex 16`)",
+                    topology.secret_source.describe()
+                ),
             ));
         }
         if errors.is_empty() {
@@ -442,11 +492,12 @@ impl Plan {
         for (k, e) in self.edges.iter().enumerate() {
             let _ = writeln!(
                 s,
-                "edge {k} {:?} {} {} {} {}",
+                "edge {k} {:?} {} {} {} {} {}",
                 e.name,
                 e.ty.name(),
                 e.settings.capacity,
                 e.settings.policy,
+                e.max_bytes,
                 e.cut
             );
         }
@@ -492,15 +543,28 @@ impl Plan {
                 .filter(|i| i.node == node.name)
                 .map(|i| format!("{} ({})", i.name, i.kind))
                 .collect();
+            // Local edges and sending halves live with their producer (a sending half holds
+            // each message until its consumer finished it).
+            let queued: u64 = self
+                .edges
+                .iter()
+                .filter(|e| self.instances[e.from].node == node.name)
+                .map(|e| e.bytes_bound)
+                .sum();
             let _ = writeln!(
                 s,
-                "node {} @ {}: {}",
+                "node {} @ {}: {}{}",
                 node.name,
                 node.declared(),
                 if here.is_empty() {
                     "no stages".to_string()
                 } else {
                     here.join(", ")
+                },
+                if queued > 0 {
+                    format!("; its queues hold at most {}", human_bytes(queued))
+                } else {
+                    String::new()
                 }
             );
         }
@@ -524,8 +588,12 @@ impl Plan {
             };
             let _ = writeln!(
                 s,
-                "  {} [{} {}]{}",
-                e.name, e.settings.policy, e.settings.capacity, cut
+                "  {} [{} {}, ≤ {}]{}",
+                e.name,
+                e.settings.policy,
+                e.settings.capacity,
+                human_bytes(e.bytes_bound),
+                cut
             );
         }
         let cut = self.edges.iter().filter(|e| e.cut).count();
@@ -538,5 +606,21 @@ impl Plan {
             cut
         );
         s
+    }
+}
+
+/// Bytes in binary units: `812 B`, `64.0 KiB`, `256 MiB`, `1.5 GiB`, `64 TiB`.
+pub fn human_bytes(b: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut v = b as f64;
+    let mut u = 0;
+    while v >= 1024.0 && u + 1 < UNITS.len() {
+        v /= 1024.0;
+        u += 1;
+    }
+    if u == 0 || v.fract() == 0.0 {
+        format!("{v:.0} {}", UNITS[u])
+    } else {
+        format!("{v:.1} {}", UNITS[u])
     }
 }

@@ -251,7 +251,7 @@ impl Endpoint {
         };
         let bytes = self.tagged(&confirm);
         self.control.push_back(Control::Raw(from, bytes));
-        if self.refuse_mismatch(p, ids) {
+        if self.refuse_mismatch(now, p, from, ids) {
             return;
         }
         self.peers[p].initiation = None;
@@ -293,7 +293,7 @@ impl Endpoint {
             return;
         };
         peer.pending.remove(i);
-        if self.refuse_mismatch(p, ids) {
+        if self.refuse_mismatch(now, p, from, ids) {
             return;
         }
         let secrets = self.derive(p, Role::Responder, &nonce_i, &nonce_r);
@@ -308,12 +308,24 @@ impl Endpoint {
         );
     }
 
-    /// Reports (once) and refuses a proven peer whose topology differs.
-    fn refuse_mismatch(&mut self, p: usize, ids: &Ids<'_>) -> bool {
+    /// Reports (once) and refuses a proven peer whose topology differs. While the peer has a
+    /// live session, the newcomer (another deployment using the same secret and name) is
+    /// refused and counted, and the live session stays: it does not fail this node.
+    fn refuse_mismatch(&mut self, now: Instant, p: usize, from: SocketAddr, ids: &Ids<'_>) -> bool {
         if ids.digest == self.config.topology_digest {
             return false;
         }
         let peer = &mut self.peers[p];
+        if peer.up && !peer.gone && peer.session.is_some() {
+            peer.stats.mismatched += 1;
+            let (name, live) = (peer.name.clone(), peer.addr);
+            self.noise.note(
+                now,
+                "refused a node of another topology under a live peer's name",
+                || format!("`{name}` from {from}; its live session (at {live}) stays"),
+            );
+            return true;
+        }
         if !peer.mismatch {
             peer.mismatch = true;
             tracing::error!(peer = %peer.name, "peer runs a different topology; refusing it");

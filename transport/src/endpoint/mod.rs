@@ -167,6 +167,8 @@ pub enum Event {
     PeerLeft {
         /// Peer name.
         peer: String,
+        /// Its run failed (it said so in its goodbye).
+        failed: bool,
     },
     /// A peer proved a new session (it restarted): edge streams were reset on both sides.
     PeerRestarted {
@@ -260,6 +262,12 @@ pub struct PeerStats {
     pub lost_messages: u64,
     /// Times its address moved after answering a path challenge.
     pub moves: u64,
+    /// Authentic packets of its session from an address other than its own, not obeyed
+    /// (the address is sent a path challenge; a NAT rebinding shows here before a move).
+    pub misaddressed: u64,
+    /// Handshakes under its name that proved the secret but ran another topology, refused
+    /// while its live session stayed (a second deployment sharing the secret).
+    pub mismatched: u64,
 }
 
 /// Counters of packets that belong to no peer.
@@ -543,12 +551,14 @@ impl Endpoint {
         }
     }
 
-    /// Says goodbye to every peer with a session (sent at the next polls).
-    pub fn close(&mut self) {
+    /// Says goodbye to every peer with a session (sent at the next polls), telling them
+    /// whether this node's run `failed`.
+    pub fn close(&mut self, failed: bool) {
         self.closing = true;
         for i in 0..self.peers.len() {
             if self.peers[i].session.is_some() {
-                self.control.push_back(Control::Body(i, None, Body::Bye));
+                self.control
+                    .push_back(Control::Body(i, None, Body::Bye { failed }));
             }
         }
     }

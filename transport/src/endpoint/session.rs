@@ -29,11 +29,9 @@ impl Endpoint {
         let mut scratch = std::mem::take(&mut self.scratch);
         let peer = &mut self.peers[p];
         let session = peer.session.as_mut().expect("indexed sessions exist");
-        if !session.replay.is_new(packet.pn) {
-            peer.stats.replayed += 1;
-            self.scratch = scratch;
-            return;
-        }
+        // A seen number is still authenticated: a bit flipped in a copy of a seen packet is
+        // a forgery, not a replay, and counts as one.
+        let seen = !session.replay.is_new(packet.pn);
         let body = session
             .secrets
             .recv
@@ -52,6 +50,11 @@ impl Endpoint {
                 self.noise.note(now, "packet failed authentication", || {
                     format!("claiming peer {name}'s session, from {from}")
                 });
+                self.scratch = scratch;
+                return;
+            }
+            Some(_) if seen => {
+                peer.stats.replayed += 1;
                 self.scratch = scratch;
                 return;
             }
@@ -100,6 +103,7 @@ impl Endpoint {
                 false
             }
             _ => {
+                peer.stats.misaddressed += 1;
                 let due = peer.path.as_ref().is_none_or(|probe| {
                     probe.addr != from || now >= probe.sent + self.config.hello_interval
                 });
@@ -133,7 +137,7 @@ impl Endpoint {
         }
         peer.stats.packets_received += 1;
         peer.stats.wire_bytes_received += size as u64;
-        if !peer.up && !matches!(body, Body::Bye) {
+        if !peer.up && !matches!(body, Body::Bye { .. }) {
             peer.up = true;
             peer.ever_up = true;
             peer.recv.credit_dirty = true;
@@ -182,12 +186,13 @@ impl Endpoint {
                 peer.send.rtt_sample(rtt, &self.config);
                 peer.stats.srtt_s = peer.send.srtt().as_secs_f64();
             }
-            Body::Bye => {
+            Body::Bye { failed } => {
                 let peer = &mut self.peers[p];
                 peer.gone = true;
                 peer.up = false;
                 self.events.push_back(Event::PeerLeft {
                     peer: peer.name.clone(),
+                    failed,
                 });
             }
             Body::PathChallenge { token } => {

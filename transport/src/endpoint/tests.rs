@@ -383,10 +383,15 @@ fn forged_replayed_and_misdirected_packets_are_counted_and_never_obeyed() {
     );
     let challenge = s.b.poll_transmit(now).expect("a path challenge");
     assert_eq!(challenge.0, addr(9));
+    assert_eq!(s.b.peer_stats("a").unwrap().misaddressed, 1);
     // Replayed from the right address, it is refused: its number was seen.
     s.b.handle_datagram(now, addr(A), &genuine);
     assert_eq!(s.b.peer_stats("a").unwrap().replayed, 1);
     assert!(s.delivered().is_empty());
+    // A bit flipped in a copy of that seen packet is a forgery, not a replay.
+    s.b.handle_datagram(now, addr(A), &forged);
+    let stats = s.b.peer_stats("a").unwrap();
+    assert_eq!((stats.forged, stats.replayed), (2, 1));
     // Huge forged packet numbers without the key fill no ack state.
     for pn in 0..100u64 {
         let body = Body::Data {
@@ -403,7 +408,7 @@ fn forged_replayed_and_misdirected_packets_are_counted_and_never_obeyed() {
         d.extend_from_slice(&[0; crate::wire::TAG_BYTES]);
         s.b.handle_datagram(now, addr(A), &d);
     }
-    assert_eq!(s.b.peer_stats("a").unwrap().forged, 101);
+    assert_eq!(s.b.peer_stats("a").unwrap().forged, 102);
     assert!(
         s.transfer(&[vec![1], vec![2]], Duration::from_secs(2)),
         "the link still works"
@@ -427,6 +432,31 @@ fn pacing_holds_the_sending_rate() {
     assert!(
         took > 0.17 && took < 0.3,
         "200 kB paced at 1 MB/s took {took} s"
+    );
+}
+
+#[test]
+fn a_link_paced_too_slowly_to_move_its_data_is_reported_stalled() {
+    let mut s = Sim::new(LinkProfile::default(), 1);
+    let now = s.now;
+    let mut c = s.a.config().clone();
+    c.pacing_bytes_per_s = Some(0.125); // 1e-6 Mbit/s
+    c.stall_timeout = Duration::from_millis(500);
+    s.a = Endpoint::new(c, now);
+    s.a.add_peer("b", addr(B), now);
+    s.a.open_edge(7, "b", EdgeDirection::Send, 4).unwrap();
+    assert!(s.run_until(Duration::from_secs(1), |s| s.a.is_up("b")));
+    for salt in 0..3 {
+        s.a.send(7, pattern(50_000, salt)).unwrap();
+    }
+    assert!(
+        s.run_until(Duration::from_secs(3), |s| {
+            s.a_events
+                .iter()
+                .any(|e| matches!(e, Event::Stalled { .. }))
+        }),
+        "{:?}",
+        s.a_events
     );
 }
 
@@ -596,6 +626,52 @@ fn peers_with_different_topologies_refuse_each_other_and_say_why() {
             .count();
         assert_eq!(n, 1, "reported once: {events:?}");
     }
+}
+
+#[test]
+fn a_newcomer_of_another_topology_under_a_live_peers_name_is_refused_and_the_session_stays() {
+    // A second deployment sharing the secret: its node `a` (another topology, port 3) dials
+    // b while the real a holds a live session.
+    let mut s = Sim::new(LinkProfile::default(), 1);
+    assert!(s.run_until(Duration::from_secs(1), |s| s.b.is_up("a") && s.a.is_up("b")));
+    let mut c = s.a.config().clone();
+    c.topology_digest = [9; DIGEST_BYTES];
+    c.nonce_seed = [77; 32];
+    let mut newcomer = Endpoint::new(c, s.now);
+    newcomer.add_peer("b", addr(B), s.now);
+    let mut newcomer_events = Vec::new();
+    let end = s.now + Duration::from_secs(2);
+    while s.now < end {
+        let now = s.now;
+        newcomer.handle_timeout(now);
+        while let Some((_, d)) = newcomer.poll_transmit(now) {
+            s.b.handle_datagram(now, addr(3), &d);
+        }
+        while let Some((to, d)) = s.b.poll_transmit(now) {
+            if to == addr(3) {
+                newcomer.handle_datagram(now, addr(B), &d);
+            } else {
+                s.ba.send(now, d);
+            }
+        }
+        while let Some(e) = newcomer.poll_event() {
+            newcomer_events.push(e);
+        }
+        s.step();
+    }
+    let mismatch = |events: &[Event]| {
+        events
+            .iter()
+            .any(|e| matches!(e, Event::TopologyMismatch { .. }))
+    };
+    assert!(mismatch(&newcomer_events), "the newcomer learns why");
+    assert!(!mismatch(&s.b_events), "b keeps its run: {:?}", s.b_events);
+    assert!(s.b.is_up("a") && s.a.is_up("b"));
+    assert!(s.b.peer_stats("a").unwrap().mismatched >= 1);
+    assert!(
+        s.transfer(&[vec![1], vec![2; 5000]], Duration::from_secs(2)),
+        "the live session still delivers"
+    );
 }
 
 #[test]
