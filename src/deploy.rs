@@ -66,12 +66,143 @@ pub fn dns_label(name: &str) -> String {
     if s.is_empty() { "node".into() } else { s }
 }
 
-/// Memory a node's pod requests, MiB: a base for the process, and per stage instance on the
-/// node a share that grows with the scene it loads (every stage holds the scene; 512 bytes
-/// per triangle covers the mesh, its BVH and a technique's per-triangle data).
-fn memory_mib(instances: usize, triangles: usize) -> u64 {
-    let per_stage = (triangles as u64 * 512) >> 20;
-    128 + instances as u64 * (32 + per_stage)
+/// What a node's pod requests: CPU in millicores and memory in bytes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Footprint {
+    /// CPU, millicores.
+    pub cpu_m: u64,
+    /// Memory, bytes.
+    pub bytes: u64,
+}
+
+// Calibrated on the example topologies, each node run alone (`cloudlight node`, release
+// build, 8-10 s, maximum resident set): photons-cloud's cloud 22 MiB and clients 152 MiB;
+// irradiance-cloud's cloud 25 MiB and clients 149 MiB; voxels-split's gi node (three voxel
+// stages, depth 6) 78 MiB and clients 219 MiB.
+
+/// The process itself (runtime, transport, tokio, allocator slack).
+const PROCESS_BYTES: u64 = 24 << 20;
+/// A stage that computes lighting or encodes: its threads' buffers and scratch.
+const COMPUTE_BYTES: u64 = 16 << 20;
+/// Every stage instance loads the scene: mesh, BVH and per-triangle data.
+const BYTES_PER_TRIANGLE: u64 = 512;
+/// A stage that renders holds a software GPU device (lavapipe) and its frame buffers.
+const RENDER_DEVICE_BYTES: u64 = 128 << 20;
+/// A photon as the batcher holds it (record, packed copy, the previous generation).
+const BYTES_PER_TRACED_PHOTON: u64 = 96;
+/// A photon as a client holds it (packed, plus its splat instance).
+const BYTES_PER_HELD_PHOTON: u64 = 32;
+/// A light-map texel (irradiance RGB in f32, the blend's history, the f16 or H.264 copy).
+const BYTES_PER_TEXEL: u64 = 64;
+
+/// What one stage instance of `kind` with `params` needs on `scene`, from `plan`'s estimates
+/// for that scene (photons per iteration, occupied voxels at the stage's depth — its own
+/// `max_depth`, else `voxel_depth`, the light injector's — light-map texels), with the
+/// per-item sizes above; CPU is a whole core for a stage that computes lighting, encodes or
+/// renders, a tenth of one for the rest.
+pub fn footprint(
+    kind: &str,
+    params: &toml::Table,
+    voxel_depth: Option<u64>,
+    scene: &cloudlight_scenes::Scene,
+) -> Footprint {
+    use cloudlight_render::plan::{PlanSettings, plan};
+    let int = |key: &str| {
+        params
+            .get(key)
+            .and_then(|v| v.as_integer())
+            .map(|v| v.max(0) as u64)
+    };
+    let float = |key: &str| params.get(key).and_then(|v| v.as_float());
+    let scene_bytes = scene.triangle_count() as u64 * BYTES_PER_TRIANGLE;
+    let photons = || match (float("photons_per_watt"), int("photons")) {
+        (Some(per_watt), _) => {
+            let settings = PlanSettings {
+                photons_per_watt: per_watt,
+                ..PlanSettings::default()
+            };
+            plan(scene, &settings)
+                .lights
+                .iter()
+                .map(|l| l.photons)
+                .sum()
+        }
+        (None, Some(n)) => n,
+        (None, None) => 10_000,
+    };
+    let voxels = || {
+        let settings = PlanSettings {
+            octree_levels: int("max_depth").or(voxel_depth).unwrap_or(9) as u32,
+            ..PlanSettings::default()
+        };
+        let all: u64 = plan(scene, &settings).voxels_per_level.iter().sum();
+        let bytes = all * cloudlight_render::voxel::BYTES_PER_VOXEL;
+        float("budget_mb").map_or(bytes, |mb| bytes.min((mb * 1048576.0) as u64))
+    };
+    let texels = || plan(scene, &PlanSettings::default()).lightmap_texels * BYTES_PER_TEXEL;
+    let (cpu_m, own) = match kind {
+        "photon_batcher" => (1000, COMPUTE_BYTES + photons() * BYTES_PER_TRACED_PHOTON),
+        "photon_reconstructor" => (
+            1000,
+            RENDER_DEVICE_BYTES + photons() * BYTES_PER_HELD_PHOTON,
+        ),
+        "light_injector" | "octree_filter" | "cone_tracer" => (1000, COMPUTE_BYTES + voxels()),
+        // Cone tracing per pixel over its own octree: the device and twice the compute.
+        "frame_renderer" => (1000, RENDER_DEVICE_BYTES + 4 * COMPUTE_BYTES + voxels()),
+        "basis_gatherer" => (1000, COMPUTE_BYTES + texels()),
+        "irradiance_reconstructor" | "irradiance_raw_reconstructor" => {
+            (1000, RENDER_DEVICE_BYTES + texels())
+        }
+        "video_encoder" => (1000, COMPUTE_BYTES),
+        "video_client" => (500, RENDER_DEVICE_BYTES),
+        _ => (100, 8 << 20),
+    };
+    Footprint {
+        cpu_m,
+        bytes: scene_bytes + own,
+    }
+}
+
+/// What node `node` requests: the process, each stage instance's [`footprint`], and the bytes
+/// its queues may hold where the messages' size is known ([`cloudlight_runtime::topology`]'s
+/// per-edge bound; edges of unknown size are bounded by `max_bytes` but reserve nothing).
+pub fn node_footprint(
+    plan: &Plan,
+    node: &str,
+    scene: Option<&cloudlight_scenes::Scene>,
+) -> Footprint {
+    let mut total = Footprint {
+        cpu_m: 0,
+        bytes: PROCESS_BYTES,
+    };
+    // The octree's depth, where stages downstream of the injector do not say it.
+    let voxel_depth = plan
+        .topology
+        .stages
+        .iter()
+        .filter(|s| s.kind == "light_injector")
+        .find_map(|s| s.params.get("max_depth").and_then(|v| v.as_integer()))
+        .map(|d| d.max(0) as u64);
+    for i in plan.instances.iter().filter(|i| i.node == node) {
+        let stage = plan.topology.stage(&i.stage).expect("planned stages exist");
+        let f = match scene {
+            Some(s) => footprint(&i.kind, &stage.params, voxel_depth, s),
+            None => Footprint {
+                cpu_m: 250,
+                bytes: 32 << 20,
+            },
+        };
+        total.cpu_m += f.cpu_m;
+        total.bytes += f.bytes;
+    }
+    total.bytes += plan
+        .edges
+        .iter()
+        .filter(|e| plan.instances[e.from].node == node && e.bytes_bound < e.max_bytes)
+        .map(|e| e.bytes_bound)
+        .sum::<u64>();
+    total.cpu_m = total.cpu_m.max(100);
+    total
 }
 
 /// Writes the manifests of the topology in `plan` (read from `file`) into `out`.
@@ -170,9 +301,10 @@ pub fn kubernetes(
             "stringData": { "secret": secret },
         }),
     )?;
-    let triangles = cloudlight_scenes::load(&t.scene).map_or(0, |s| s.triangle_count());
+    let scene = cloudlight_scenes::load(&t.scene).ok();
+    let triangles = scene.as_ref().map_or(0, |s| s.triangle_count());
     for d in &nodes {
-        let instances = plan.instances.iter().filter(|i| i.node == d.node).count();
+        let need = node_footprint(plan, &d.node, scene.as_ref());
         let args = [
             "node".to_string(),
             format!("{TOPOLOGY_DIR}/topology.toml"),
@@ -239,8 +371,8 @@ pub fn kubernetes(
                                 },
                                 "resources": {
                                     "requests": {
-                                        "cpu": format!("{}m", 250 * instances.max(1)),
-                                        "memory": format!("{}Mi", memory_mib(instances, triangles)),
+                                        "cpu": format!("{}m", need.cpu_m),
+                                        "memory": format!("{}Mi", need.bytes.div_ceil(1 << 20)),
                                     },
                                 },
                                 "volumeMounts": [{ "name": "topology", "mountPath": TOPOLOGY_DIR, "readOnly": true }],
@@ -275,8 +407,12 @@ pub fn kubernetes(
          Each StatefulSet runs one pod, `cloudlight node ... --node NAME --bind 0.0.0.0:PORT --metrics-listen \
          0.0.0.0:{METRICS_PORT}`; its headless Service gives the pod the DNS name its peers dial. Readiness is \
          `/healthz` (ready while the run is running and every peer is up); Prometheus scrapes `/metrics` (annotations \
-         `prometheus.io/*`). Requests: 250m CPU per stage instance on the node; memory 128 MiB plus, per stage \
-         instance, 32 MiB and 512 bytes per triangle of the scene ({triangles} triangles).\n",
+         `prometheus.io/*`). Requests come from what `cloudlight plan` estimates for the scene ({triangles} \
+         triangles) and each stage's parameters: per stage instance the scene (512 bytes a triangle: mesh, BVH, \
+         per-triangle data) and its own working set (photons per iteration, occupied voxels at its depth within its \
+         `budget_mb`, light-map texels, a software GPU device of 128 MiB for stages that render; calibrated on the examples' measured memory), plus 24 MiB for \
+         the process and what its queues may hold where message sizes are known; a whole core for a stage that \
+         computes lighting, encodes or renders, a tenth of one for the rest.\n",
         t.cluster,
         file.display(),
         listing.join("\n")

@@ -166,3 +166,31 @@ fn manifests_of_every_example_topology_are_valid_and_wired_together() {
         assert!(dir.path().join("README.md").is_file());
     }
 }
+
+#[test]
+fn requests_follow_what_the_stages_hold() {
+    let scene = cloudlight::scenes::load("cornell").unwrap();
+    let city = cloudlight::scenes::load("city:20000").unwrap();
+    let table = |text: &str| -> toml::Table { toml::from_str(text).unwrap() };
+    let f = |kind: &str, params: &str, scene: &cloudlight::scenes::Scene| {
+        deploy::footprint(kind, &table(params), None, scene)
+    };
+    // More photons per iteration, more memory; a bigger scene, more memory for every stage.
+    let few = f("photon_batcher", "photons = 10000", &scene);
+    let many = f("photon_batcher", "photons = 1000000", &scene);
+    assert!(many.bytes > few.bytes + 50_000_000, "{few:?} {many:?}");
+    assert!(f("probe_relay", "", &city).bytes > f("probe_relay", "", &scene).bytes);
+    // A deeper octree holds more voxels, within the stage's budget.
+    let shallow = f("light_injector", "max_depth = 5", &scene);
+    let deep = f("light_injector", "max_depth = 9", &scene);
+    let capped = f("light_injector", "max_depth = 9\nbudget_mb = 1.0", &scene);
+    assert!(
+        deep.bytes > shallow.bytes + 50_000_000,
+        "{shallow:?} {deep:?}"
+    );
+    assert!(capped.bytes < shallow.bytes + (2 << 20), "{capped:?}");
+    // Rendering stages hold a device; the probe takes a tenth of a core.
+    assert!(f("photon_reconstructor", "", &scene).bytes > 100 << 20);
+    assert_eq!(f("probe_sink", "", &scene).cpu_m, 100);
+    assert_eq!(f("cone_tracer", "", &scene).cpu_m, 1000);
+}

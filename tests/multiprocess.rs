@@ -455,136 +455,108 @@ to = "client"
     assert!(batcher["resends"].as_u64().unwrap() >= 4, "{batcher}");
 }
 
-/// Creates two network namespaces joined by a veth pair, and removes them on drop.
+/// Network namespaces, one per node, joined by a bridge in a namespace of their own (a hub),
+/// node `i` at `10.213.7.(i+1)/24`; removed on drop, with any `/etc/netns/NAME/` files
+/// (which `ip netns exec` mounts over `/etc`: a node's own `/etc/hosts`).
 struct Namespaces {
-    names: [String; 2],
+    hub: String,
+    names: Vec<String>,
+}
+
+fn ip(args: &[&str]) -> bool {
+    let ok = Command::new("ip")
+        .args(args)
+        .status()
+        .map(|st| st.success())
+        .unwrap_or(false);
+    if !ok {
+        eprintln!("`ip {}` failed", args.join(" "));
+    }
+    ok
+}
+
+fn is_root() -> bool {
+    Command::new("id")
+        .arg("-u")
+        .output()
+        .map(|o| o.stdout == b"0\n")
+        .unwrap_or(false)
 }
 
 impl Namespaces {
-    fn create() -> Option<Namespaces> {
-        let id = std::process::id();
-        let names = [format!("cl-a-{id}"), format!("cl-b-{id}")];
+    fn create(n: usize) -> Option<Namespaces> {
+        // Unique per process and per set (tests run in parallel threads of one process).
+        static SETS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let k = SETS.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        let id = std::process::id() % 100_000;
         let ns = Namespaces {
-            names: names.clone(),
+            hub: format!("cl-hub-{id}-{k}"),
+            names: (0..n).map(|i| format!("cl-{id}-{k}-{i}")).collect(),
         };
-        let (a, b) = (&names[0], &names[1]);
-        let (va, vb) = (
-            format!("cla{}", id % 100_000),
-            format!("clb{}", id % 100_000),
-        );
-        let steps: Vec<Vec<String>> = vec![
-            vec!["netns".into(), "add".into(), a.clone()],
-            vec!["netns".into(), "add".into(), b.clone()],
-            vec![
-                "link".into(),
-                "add".into(),
-                va.clone(),
-                "type".into(),
-                "veth".into(),
-                "peer".into(),
-                "name".into(),
-                vb.clone(),
-            ],
-            vec![
-                "link".into(),
-                "set".into(),
-                va.clone(),
-                "netns".into(),
-                a.clone(),
-            ],
-            vec![
-                "link".into(),
-                "set".into(),
-                vb.clone(),
-                "netns".into(),
-                b.clone(),
-            ],
-            vec![
-                "-n".into(),
-                a.clone(),
-                "addr".into(),
-                "add".into(),
-                "10.213.7.1/24".into(),
-                "dev".into(),
-                va.clone(),
-            ],
-            vec![
-                "-n".into(),
-                b.clone(),
-                "addr".into(),
-                "add".into(),
-                "10.213.7.2/24".into(),
-                "dev".into(),
-                vb.clone(),
-            ],
-            vec![
-                "-n".into(),
-                a.clone(),
-                "link".into(),
-                "set".into(),
-                va,
-                "up".into(),
-            ],
-            vec![
-                "-n".into(),
-                b.clone(),
-                "link".into(),
-                "set".into(),
-                vb,
-                "up".into(),
-            ],
-            vec![
-                "-n".into(),
-                a.clone(),
-                "link".into(),
-                "set".into(),
-                "lo".into(),
-                "up".into(),
-            ],
-            vec![
-                "-n".into(),
-                b.clone(),
-                "link".into(),
-                "set".into(),
-                "lo".into(),
-                "up".into(),
-            ],
-        ];
-        for s in steps {
-            let ok = Command::new("ip")
-                .args(&s)
-                .status()
-                .map(|st| st.success())
-                .unwrap_or(false);
+        let hub = ns.hub.as_str();
+        // Drop removes whatever was made if a step fails.
+        if !(ip(&["netns", "add", hub])
+            && ip(&["-n", hub, "link", "add", "br0", "type", "bridge"])
+            && ip(&["-n", hub, "link", "set", "br0", "up"]))
+        {
+            return None;
+        }
+        for (i, name) in ns.names.iter().enumerate() {
+            let (inner, outer) = (format!("cl{id}x{k}n{i}"), format!("ch{id}x{k}n{i}"));
+            let addr = format!("10.213.7.{}/24", i + 1);
+            let ok = ip(&["netns", "add", name])
+                && ip(&[
+                    "link", "add", &inner, "type", "veth", "peer", "name", &outer,
+                ])
+                && ip(&["link", "set", &inner, "netns", name])
+                && ip(&["link", "set", &outer, "netns", hub])
+                && ip(&["-n", hub, "link", "set", &outer, "master", "br0"])
+                && ip(&["-n", hub, "link", "set", &outer, "up"])
+                && ip(&["-n", name, "addr", "add", &addr, "dev", &inner])
+                && ip(&["-n", name, "link", "set", &inner, "up"])
+                && ip(&["-n", name, "link", "set", "lo", "up"]);
             if !ok {
-                eprintln!("`ip {}` failed", s.join(" "));
-                return None; // Drop removes what was made.
+                return None;
             }
         }
         Some(ns)
+    }
+
+    /// Node `i`'s address.
+    fn ip(i: usize) -> String {
+        format!("10.213.7.{}", i + 1)
+    }
+
+    /// Gives every namespace an `/etc/hosts` naming these hosts.
+    fn hosts(&self, entries: &[(String, String)]) {
+        let mut text = String::from("127.0.0.1 localhost\n");
+        for (host, ip) in entries {
+            text.push_str(&format!("{ip} {host}\n"));
+        }
+        for n in &self.names {
+            let dir = Path::new("/etc/netns").join(n);
+            std::fs::create_dir_all(&dir).unwrap();
+            std::fs::write(dir.join("hosts"), &text).unwrap();
+        }
     }
 }
 
 impl Drop for Namespaces {
     fn drop(&mut self) {
-        for n in &self.names {
+        for n in self.names.iter().chain([&self.hub]) {
             let _ = Command::new("ip").args(["netns", "del", n]).status();
+            let _ = std::fs::remove_dir_all(Path::new("/etc/netns").join(n));
         }
     }
 }
 
 #[test]
-fn two_nodes_in_network_namespaces_joined_by_veth() {
-    let root = Command::new("id")
-        .arg("-u")
-        .output()
-        .map(|o| o.stdout == b"0\n")
-        .unwrap_or(false);
-    if !root {
+fn two_nodes_in_network_namespaces_joined_by_a_bridge() {
+    if !is_root() {
         eprintln!("skipped: creating network namespaces needs root (CI runs as root)");
         return;
     }
-    let ns = Namespaces::create().expect("root can create network namespaces and a veth pair");
+    let ns = Namespaces::create(2).expect("root can create network namespaces and a bridge");
     let dir = tempfile::tempdir().unwrap();
     let topo = dir.path().join("netns.toml");
     std::fs::write(
@@ -897,4 +869,178 @@ fn nodes_of_different_topologies_refuse_each_other_and_exit_5() {
         assert_eq!(out.status.code(), Some(5), "node {name}:\n{err}");
         assert!(err.contains("different topology"), "node {name}:\n{err}");
     }
+}
+
+/// A three-node chain with a fixed number of messages on `block` edges: every run of it, in
+/// one process or many, delivers all of them to both clients.
+const DEPLOYED: &str = r#"techniques = ["probe"]
+cluster = "manifest-test"
+[[node]]
+name = "cloud"
+address = "127.0.0.1:0"
+[[node]]
+name = "edge"
+address = "127.0.0.1:0"
+[[node]]
+name = "home"
+address = "127.0.0.1:0"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "cloud"
+params = { rate_hz = 400.0, payload_bytes = 3000, count = 400 }
+[[stage]]
+name = "relay"
+kind = "probe_relay"
+node = "edge"
+[[stage]]
+name = "client"
+kind = "probe_sink"
+node = "home"
+replicas = 2
+[[edge]]
+from = "source"
+to = "relay"
+[[edge]]
+from = "relay"
+to = "client"
+[[link]]
+between = ["cloud", "edge"]
+latency_ms = 2.0
+loss = 0.02
+"#;
+
+#[test]
+fn the_commands_of_the_kubernetes_manifests_run_a_cluster_in_network_namespaces() {
+    // Each node runs the command and environment its StatefulSet gives its pod, in its own
+    // network namespace, with the peers at their pods' DNS names (an /etc/hosts per
+    // namespace stands in for the cluster's DNS), binding 0.0.0.0 while advertised by name,
+    // and the secret only in the environment. It delivers what one process delivers.
+    if !is_root() {
+        eprintln!("skipped: creating network namespaces needs root (CI runs as root)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("deployed.toml");
+    std::fs::write(&file, DEPLOYED).unwrap();
+    let registry = cloudlight::actors::registry();
+    let plan = cloudlight::runtime::Plan::load(&file, &registry).unwrap();
+
+    // In one process.
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let options = cloudlight::runtime::RunOptions {
+        out_dir: Some(dir.path().join("one-process")),
+        ..Default::default()
+    };
+    let report = rt
+        .block_on(cloudlight::runtime::run(
+            &plan,
+            &registry,
+            options,
+            std::future::pending(),
+        ))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let in_process: Vec<serde_json::Value> = ["client[0]", "client[1]"]
+        .iter()
+        .map(|c| {
+            report
+                .metrics
+                .stages
+                .iter()
+                .find(|s| s.name == *c)
+                .unwrap()
+                .report
+                .clone()
+                .unwrap()
+        })
+        .collect();
+    for r in &in_process {
+        assert_eq!(r["received"], 400, "{r}");
+    }
+
+    // From the manifests.
+    let manifests = dir.path().join("manifests");
+    let options = cloudlight::deploy::Options {
+        image: "cloudlight:test".into(),
+        namespace: "lights".into(),
+    };
+    let d = cloudlight::deploy::kubernetes(&plan, &file, &options, &manifests).unwrap();
+    let objects: Vec<serde_json::Value> = d
+        .files
+        .iter()
+        .map(|f| serde_json::from_slice(&std::fs::read(f).unwrap()).unwrap())
+        .collect();
+    let kind = |k: &'static str| objects.iter().filter(move |o| o["kind"] == k);
+    let config = kind("ConfigMap").next().unwrap();
+    let secret = kind("Secret").next().unwrap()["stringData"]["secret"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let etc = dir.path().join("etc-cloudlight");
+    std::fs::create_dir_all(&etc).unwrap();
+    std::fs::write(
+        etc.join("topology.toml"),
+        config["data"]["topology.toml"].as_str().unwrap(),
+    )
+    .unwrap();
+    let ns = Namespaces::create(d.nodes.len()).expect("root can create network namespaces");
+    let hosts: Vec<(String, String)> = d
+        .nodes
+        .iter()
+        .enumerate()
+        .map(|(i, n)| {
+            let host = n.address.rsplit_once(':').unwrap().0.to_string();
+            (host, Namespaces::ip(i))
+        })
+        .collect();
+    ns.hosts(&hosts);
+    // Started downstream first, as a StatefulSet might; each waits for its peers.
+    let mut children = Vec::new();
+    for (i, n) in d.nodes.iter().enumerate().rev() {
+        let set = kind("StatefulSet")
+            .find(|s| s["spec"]["serviceName"] == n.name)
+            .unwrap();
+        let c = &set["spec"]["template"]["spec"]["containers"][0];
+        let mount = c["volumeMounts"][0]["mountPath"].as_str().unwrap();
+        let mut args: Vec<String> = c["args"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|a| a.as_str().unwrap().replace(mount, etc.to_str().unwrap()))
+            .collect();
+        let out = args.iter().position(|a| a == "--out").unwrap() + 1;
+        args[out] = dir.path().join(&n.node).display().to_string();
+        let env = &c["env"][0];
+        assert_eq!(
+            env["valueFrom"]["secretKeyRef"]["name"],
+            kind("Secret").next().unwrap()["metadata"]["name"]
+        );
+        let child = Command::new("ip")
+            .args(["netns", "exec", &ns.names[i]])
+            .arg(bin())
+            .args(&args)
+            .env(env["name"].as_str().unwrap(), &secret)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        children.push((n.node.clone(), child));
+    }
+    for (name, child) in children {
+        let out = finish(child, Duration::from_secs(90));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "node {name}:\n{err}");
+        assert!(!err.contains(&secret), "node {name} printed the secret");
+        if name == "home" {
+            assert!(err.contains("0.0.0.0:"), "binds every interface:\n{err}");
+        }
+    }
+    for (i, expected) in in_process.iter().enumerate() {
+        let got = sink_report(dir.path(), "home", &format!("client[{i}]"));
+        for key in ["received", "bytes", "missing", "out_of_order", "corrupt"] {
+            assert_eq!(got[key], expected[key], "client[{i}] {key}: {got}");
+        }
+    }
+    drop(ns);
 }

@@ -141,6 +141,29 @@ fn duplicate_address() {
         "techniques = [\"probe\"]\n[[node]]\nname = \"a\"\naddress = \"127.0.0.1:9\"\n[[node]]\nname = \"b\"\naddress = \"127.0.0.1:9\"\n",
     );
     expect(&d, 7, "node[1].address", "already used by node `a`");
+    // Two nodes of one host listening on one port: `b` binds every interface on a's port.
+    let d = diagnostics(
+        "techniques = [\"probe\"]\n[[node]]\nname = \"a\"\naddress = \"127.0.0.1:7400\"\n[[node]]\nname = \"b\"\naddress = \"127.0.0.1:7401\"\nbind = \"0.0.0.0:7400\"\n",
+    );
+    expect(
+        &d,
+        8,
+        "node[1].bind",
+        "port 7400 of host 127.0.0.1, as node `a` does",
+    );
+    // On two hosts, or on two ports, both may bind every interface.
+    let r = registry();
+    for (a, b) in [
+        ("10.0.0.1:7400", "10.0.0.2:7400"),
+        ("127.0.0.1:7400", "127.0.0.1:7401"),
+    ] {
+        let text = format!(
+            "techniques = [\"probe\"]\n[[node]]\nname = \"a\"\naddress = \"{a}\"\nbind = \"0.0.0.0:{}\"\n[[node]]\nname = \"b\"\naddress = \"{b}\"\nbind = \"0.0.0.0:{}\"\n",
+            &a[a.len() - 4..],
+            &b[b.len() - 4..]
+        );
+        Plan::from_str("ok.toml", &text, &r).unwrap_or_else(|e| panic!("{e}"));
+    }
 }
 
 #[test]

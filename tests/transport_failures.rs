@@ -280,3 +280,71 @@ to = "sink"
         "the source ran {sent} messages ahead of a relay that handled {relayed}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_link_paced_too_slowly_stalls_the_run_and_every_message_is_counted() {
+    // 1 bit/s: after the first burst, nothing moves; the stall fails the run, and what the
+    // source sent is received, given up (`lost`) or still queued, never nowhere.
+    let p = plan(
+        &two_nodes(
+            r#"
+[[stage]]
+name = "source"
+kind = "probe_source"
+node = "a"
+params = { rate_hz = 100.0, payload_bytes = 20000 }
+[[stage]]
+name = "sink"
+kind = "probe_sink"
+node = "b"
+[[edge]]
+from = "source"
+to = "sink"
+"#,
+        )
+        .replace(
+            "peer_timeout_ms = 500",
+            "peer_timeout_ms = 500\npacing_mbps = 1e-6\nstall_timeout_s = 1.0",
+        ),
+    );
+    let registry = cloudlight::actors::registry();
+    let options = RunOptions {
+        duration: Some(Duration::from_secs(20)),
+        ..RunOptions::default()
+    };
+    let started = Instant::now();
+    let result = tokio::time::timeout(
+        Duration::from_secs(60),
+        cloudlight::runtime::run(&p, &registry, options, std::future::pending()),
+    )
+    .await
+    .expect("the run ends");
+    let Err(RunError::NetworkFailed { error, report }) = result else {
+        panic!("a link that carries nothing did not fail the run: {result:?}");
+    };
+    assert!(error.contains("stalled"), "{error}");
+    assert!(
+        started.elapsed() < Duration::from_secs(15),
+        "the stall fired late"
+    );
+    let edge = |name: &str| {
+        report
+            .metrics
+            .edges
+            .iter()
+            .find(|e| e.name == name)
+            .unwrap()
+            .clone()
+    };
+    let (tx, rx) = (
+        edge("source.out -> sink.in"),
+        edge("source.out -> sink.in (rx)"),
+    );
+    let lost = tx.wire.as_ref().unwrap().lost;
+    assert!(lost > 0, "{tx:?}");
+    assert_eq!(
+        tx.messages,
+        rx.messages + lost + tx.depth as u64,
+        "sent {tx:?}\nreceived {rx:?}"
+    );
+}

@@ -82,6 +82,8 @@ struct SenderShared {
     lost: AtomicU64,
     /// Messages over the transport's size limit, dropped (and counted on the edge).
     oversize: AtomicU64,
+    /// Messages sent and not yet confirmed consumed (the proxy's `held`).
+    held: AtomicU64,
 }
 
 struct Receiving {
@@ -209,6 +211,7 @@ impl NodeNet {
             notify: Notify::new(),
             lost: AtomicU64::new(0),
             oversize: AtomicU64::new(0),
+            held: AtomicU64::new(0),
         });
         let waker = shared.clone();
         edge.set_waker(move || waker.notify.notify_one());
@@ -424,10 +427,18 @@ impl NodeNet {
     }
 
     /// Stops the proxies and the driver (saying goodbye to peers, and whether this node's
-    /// run `failed`).
+    /// run `failed`). Messages still unconfirmed (a failed run, a drain that timed out) are
+    /// given up and counted as `lost`.
     pub(crate) fn shutdown(&mut self, failed: bool) {
         for t in self.tasks.drain(..) {
             t.abort();
+        }
+        for (peer, s) in self.senders.values() {
+            let held = s.held.swap(0, Ordering::SeqCst);
+            if held > 0 {
+                s.lost.fetch_add(held, Ordering::SeqCst);
+                tracing::warn!(node = %self.node, %peer, held, "run ended with messages unconfirmed; given up");
+            }
         }
         self.driver.close_with(failed);
     }
@@ -524,6 +535,7 @@ async fn sender_proxy(proxy: SenderProxy, commander: Commander, control: Arc<Run
         if emptied {
             edge.rearm();
         }
+        shared.held.store(held.len() as u64, Ordering::SeqCst);
         shared.notify.notified().await;
     }
 }

@@ -463,13 +463,38 @@ fn secret(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology, file: &str
     topo.secret_source = source;
 }
 
+/// Where a node listens, for finding two nodes of one host on one port: the host it is
+/// dialled at (an IP or a name), the IP it binds (`None`: a host name's, unknown) and port.
+struct Listener {
+    host: String,
+    ip: Option<std::net::IpAddr>,
+    port: u16,
+    node: String,
+}
+
+impl Listener {
+    /// Whether `self` and `other` would bind the same port on the same machine.
+    fn clashes(&self, other: &Listener) -> bool {
+        let overlap = match (self.ip, other.ip) {
+            (Some(a), Some(b)) => a == b || a.is_unspecified() || b.is_unspecified(),
+            _ => true,
+        };
+        self.port != 0 && self.port == other.port && self.host == other.host && overlap
+    }
+}
+
 fn parse_nodes(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
     let mut addresses: Vec<(String, String)> = Vec::new();
+    let mut listeners: Vec<Listener> = Vec::new();
     for (mut t, span) in top.tables(w, "node") {
         let name = t.req_string(w, "name");
         let address = t.req_string(w, "address");
+        let mut bind_span = None;
         let bind = t.string(w, "bind").and_then(|b| match b.get_ref().parse::<SocketAddr>() {
-            Ok(a) => Some(a),
+            Ok(a) => {
+                bind_span = Some(b.span());
+                Some(a)
+            }
             Err(_) => {
                 w.err(
                     &b.span(),
@@ -513,14 +538,43 @@ fn parse_nodes(w: &mut Walker, top: &mut Tbl<'_, '_>, topo: &mut Topology) {
                 Some(h) => format!("{h}:{}", addr.port()),
                 None => addr.to_string(),
             };
+            let mut clashed = false;
             if let Some((_, other)) = addresses.iter().find(|(a, _)| *a == key) {
                 w.err(
                     &address.span(),
                     &t.key("address"),
                     format!("address {key} is already used by node `{other}`"),
                 );
+                clashed = true;
             }
             addresses.push((key, name.get_ref().clone()));
+            // Two nodes dialled at one host must not listen on one port there.
+            let me = Listener {
+                host: host.clone().unwrap_or_else(|| addr.ip().to_string()),
+                ip: match (bind, &host) {
+                    (Some(b), _) => Some(b.ip()),
+                    (None, None) => Some(addr.ip()),
+                    (None, Some(_)) => None,
+                },
+                port: bind.map_or(addr.port(), |b| b.port()),
+                node: name.get_ref().clone(),
+            };
+            if !clashed && let Some(other) = listeners.iter().find(|l| l.clashes(&me)) {
+                let (key, span) = match &bind_span {
+                    Some(s) => (t.key("bind"), s.clone()),
+                    None => (t.key("address"), address.span()),
+                };
+                w.err(
+                    &span,
+                    &key,
+                    format!(
+                        "node `{}` would listen on port {} of host {}, as node `{}` does: two \
+                         nodes of one host need two ports",
+                        me.node, me.port, me.host, other.node
+                    ),
+                );
+            }
+            listeners.push(me);
         }
         topo.nodes.push(NodeDecl {
             name: name.into_inner(),
