@@ -156,40 +156,30 @@ to = "sink"
 
 #[test]
 fn node_runs_only_its_stages_and_names_the_peers_it_waits_for() {
-    let out = cloudlight()
-        .args(["node"])
-        .arg(example("probe-cluster.toml"))
-        .args([
-            "--node",
-            "home",
-            "--duration",
-            "1",
-            "--connect-timeout",
-            "0.5",
-        ])
-        .output()
-        .unwrap();
+    let home = |extra: &[&str]| {
+        cloudlight()
+            .args(["node"])
+            .arg(example("probe-cluster.toml"))
+            .args([
+                "--node",
+                "home",
+                "--duration",
+                "1",
+                "--connect-timeout",
+                "0.5",
+            ])
+            .args(extra)
+            .env("CLOUDLIGHT_TEST_SECRET", "a1b2c3d4e5f60718")
+            .output()
+            .unwrap()
+    };
     // The example carries no secret: a node on its own refuses to start without one.
+    let out = home(&[]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(err.contains("node `home` is started on its own"), "{err}");
     assert!(err.contains("secret_env"), "{err}");
-    let out = cloudlight()
-        .args(["node"])
-        .arg(example("probe-cluster.toml"))
-        .args([
-            "--node",
-            "home",
-            "--duration",
-            "1",
-            "--connect-timeout",
-            "0.5",
-            "--secret-env",
-            "CLOUDLIGHT_TEST_SECRET",
-        ])
-        .env("CLOUDLIGHT_TEST_SECRET", "a1b2c3d4e5f60718")
-        .output()
-        .unwrap();
+    let out = home(&["--secret-env", "CLOUDLIGHT_TEST_SECRET"]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("peers not reachable"), "{err}");

@@ -63,6 +63,19 @@ fn sink_report(out: &Path, node: &str, stage: &str) -> serde_json::Value {
         .clone()
 }
 
+/// Nodes `cloud` and `home` on free loopback ports, with `transport` settings and `body`
+/// (stages and edges).
+fn cloud_home(cluster: &str, transport: &str, body: &str) -> String {
+    let ports = free_ports(2);
+    format!(
+        "techniques = [\"probe\"]\ncluster = \"{cluster}\"\nsecret = \"5d41402abc4b2a76\"\n\
+         [transport]\n{transport}\n\
+         [[node]]\nname = \"cloud\"\naddress = \"127.0.0.1:{}\"\n\
+         [[node]]\nname = \"home\"\naddress = \"127.0.0.1:{}\"\n{body}",
+        ports[0], ports[1]
+    )
+}
+
 fn three_node_topology(ports: &[u16]) -> String {
     format!(
         r#"techniques = ["probe"]
@@ -206,28 +219,16 @@ to = "sink"
 #[test]
 fn a_receiver_whose_upstream_crashes_for_good_fails_and_names_it() {
     let dir = tempfile::tempdir().unwrap();
-    let ports = free_ports(2);
     let topo = dir.path().join("crash.toml");
-    std::fs::write(
-        &topo,
-        format!(
-            r#"techniques = ["probe"]
-cluster = "crash-test"
-secret = "test secret"
-[transport]
-peer_timeout_ms = 500
-rejoin_timeout_s = 1.5
-[[node]]
-name = "cloud"
-address = "127.0.0.1:{}"
-[[node]]
-name = "home"
-address = "127.0.0.1:{}"
+    let text = cloud_home(
+        "crash-test",
+        "peer_timeout_ms = 500\nrejoin_timeout_s = 1.5",
+        r#"
 [[stage]]
 name = "source"
 kind = "probe_source"
 node = "cloud"
-params = {{ rate_hz = 100.0 }}
+params = { rate_hz = 100.0 }
 [[stage]]
 name = "sink"
 kind = "probe_sink"
@@ -236,10 +237,8 @@ node = "home"
 from = "source"
 to = "sink"
 "#,
-            ports[0], ports[1]
-        ),
-    )
-    .unwrap();
+    );
+    std::fs::write(&topo, text).unwrap();
     let mut cloud = node(&topo, "cloud", dir.path(), &["--duration", "60"]);
     let home = node(&topo, "home", dir.path(), &["--duration", "60"]);
     std::thread::sleep(Duration::from_millis(1500));
@@ -319,30 +318,21 @@ fn a_receiver_whose_upstream_fails_with_an_error_fails_too() {
     // The relay on `cloud` fails after 5 messages: cloud exits 3 and says so in its goodbye;
     // `home`, whose input ended early, must not report success (as it does for a crash).
     let dir = tempfile::tempdir().unwrap();
-    let ports = free_ports(2);
     let topo = dir.path().join("fail.toml");
-    std::fs::write(
-        &topo,
-        format!(
-            r#"techniques = ["probe"]
-cluster = "upstream-failure-test"
-secret = "5d41402abc4b2a76"
-[[node]]
-name = "cloud"
-address = "127.0.0.1:{}"
-[[node]]
-name = "home"
-address = "127.0.0.1:{}"
+    let text = cloud_home(
+        "upstream-failure-test",
+        "",
+        r#"
 [[stage]]
 name = "source"
 kind = "probe_source"
 node = "cloud"
-params = {{ rate_hz = 50.0 }}
+params = { rate_hz = 50.0 }
 [[stage]]
 name = "relay"
 kind = "probe_relay"
 node = "cloud"
-params = {{ fail_after = 5 }}
+params = { fail_after = 5 }
 [[stage]]
 name = "sink"
 kind = "probe_sink"
@@ -354,10 +344,8 @@ to = "relay"
 from = "relay"
 to = "sink"
 "#,
-            ports[0], ports[1]
-        ),
-    )
-    .unwrap();
+    );
+    std::fs::write(&topo, text).unwrap();
     let home = node(&topo, "home", dir.path(), &["--duration", "60"]);
     let cloud = node(&topo, "cloud", dir.path(), &["--duration", "60"]);
     let out = finish(cloud, Duration::from_secs(60));

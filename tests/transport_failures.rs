@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use cloudlight::runtime::{Cluster, EndReason, Plan, RunError, RunOptions};
+use cloudlight::runtime::{Cluster, EndReason, Plan, RunError, RunOptions, RunReport};
 
 fn free_ports(n: usize) -> Vec<u16> {
     let sockets: Vec<_> = (0..n)
@@ -13,6 +13,21 @@ fn free_ports(n: usize) -> Vec<u16> {
         .iter()
         .map(|s| s.local_addr().unwrap().port())
         .collect()
+}
+
+/// Runs `plan` for `duration` (or until it ends by itself), within a minute.
+async fn run(plan: &Plan, duration: Option<Duration>) -> Result<RunReport, RunError> {
+    let registry = cloudlight::actors::registry();
+    let options = RunOptions {
+        duration,
+        ..RunOptions::default()
+    };
+    tokio::time::timeout(
+        Duration::from_secs(60),
+        cloudlight::runtime::run(plan, &registry, options, std::future::pending()),
+    )
+    .await
+    .expect("the run ends within a minute")
 }
 
 fn plan(text: &str) -> Plan {
@@ -145,13 +160,8 @@ policy = "block"
     source
         .params
         .insert("payload_bytes".into(), toml::Value::Integer(64 << 20));
-    let registry = cloudlight::actors::registry();
-    let report = tokio::time::timeout(
-        Duration::from_secs(60),
-        cloudlight::runtime::run(&p, &registry, RunOptions::default(), std::future::pending()),
-    )
-    .await
-    .expect("the run ends by itself (no credit was kept)");
+    // It ends by itself: no credit was kept.
+    let report = run(&p, None).await;
     // Every message was dropped: a run that carried nothing across its cut has failed.
     let Err(RunError::NetworkFailed { error, report }) = report else {
         panic!("a run that delivered nothing succeeded: {report:?}");
@@ -251,18 +261,9 @@ to = "sink"
         "{:?}",
         p.warnings
     );
-    let registry = cloudlight::actors::registry();
-    let options = RunOptions {
-        duration: Some(Duration::from_secs(2)),
-        ..RunOptions::default()
-    };
-    let report = tokio::time::timeout(
-        Duration::from_secs(60),
-        cloudlight::runtime::run(&p, &registry, options, std::future::pending()),
-    )
-    .await
-    .expect("the run ends")
-    .unwrap_or_else(|e| panic!("{e}"));
+    let report = run(&p, Some(Duration::from_secs(2)))
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
     let stage = |name: &str| {
         report
             .metrics
@@ -307,18 +308,8 @@ to = "sink"
             "peer_timeout_ms = 500\npacing_mbps = 1e-6\nstall_timeout_s = 1.0",
         ),
     );
-    let registry = cloudlight::actors::registry();
-    let options = RunOptions {
-        duration: Some(Duration::from_secs(20)),
-        ..RunOptions::default()
-    };
     let started = Instant::now();
-    let result = tokio::time::timeout(
-        Duration::from_secs(60),
-        cloudlight::runtime::run(&p, &registry, options, std::future::pending()),
-    )
-    .await
-    .expect("the run ends");
+    let result = run(&p, Some(Duration::from_secs(20))).await;
     let Err(RunError::NetworkFailed { error, report }) = result else {
         panic!("a link that carries nothing did not fail the run: {result:?}");
     };
