@@ -292,7 +292,19 @@ impl Endpoint {
             }
             return;
         };
-        peer.pending.remove(i);
+        let challenge = peer.pending.remove(i);
+        // A challenge issued before the session this node holds now belongs to a handshake
+        // that session superseded (both sides initiated; a CONFIRM resent before the other
+        // side switched sessions): installing it would leave each side up in a session the
+        // other no longer has. A restarted peer's new HELLO earns a newer challenge.
+        if peer
+            .session
+            .as_ref()
+            .is_some_and(|s| challenge.at < s.established)
+        {
+            self.stats.stale_handshakes += 1;
+            return;
+        }
         if self.refuse_mismatch(now, p, from, ids) {
             return;
         }

@@ -35,6 +35,7 @@
 //!   `released + capacity` (cumulative, so duplicates and loss are harmless, and re-sent with
 //!   every heartbeat), and the sending side may only have sent that many messages.
 
+pub mod cc;
 mod handshake;
 mod noise;
 mod recv;

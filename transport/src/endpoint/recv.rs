@@ -63,8 +63,8 @@ pub(crate) struct Received {
     ranges: RangeInclusiveSet<u64>,
 }
 
-/// Most ranges kept: four ACKs' worth.
-pub(crate) const MAX_TRACKED_RANGES: usize = 4 * MAX_ACK_RANGES;
+/// Most ranges kept: twice what one ACK may carry.
+pub(crate) const MAX_TRACKED_RANGES: usize = 2 * MAX_ACK_RANGES;
 
 impl Received {
     /// Records that packet `pn` arrived.
@@ -221,7 +221,12 @@ pub(crate) fn poll_ack(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Body
     }
     s.unacked = 0;
     s.ack_due = None;
-    let ranges = s.received.ack_ranges();
+    // As many of the newest ranges as one packet holds.
+    let mut ranges = s.received.ack_ranges();
+    let budget = config
+        .max_packet_bytes
+        .saturating_sub(crate::wire::SESSION_HEADER_BYTES + crate::wire::TAG_BYTES);
+    ranges.truncate(crate::wire::ack_ranges_fitting(&ranges, budget).max(1));
     Some(Body::Ack { ranges })
 }
 

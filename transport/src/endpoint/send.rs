@@ -4,8 +4,11 @@
 //! Loss detection follows QUIC (RFC 9002): a packet is lost when a packet sent three
 //! numbers later was acknowledged, or when a later packet was acknowledged and it has been
 //! outstanding for 9/8 of the round trip. When nothing is acknowledged for a probe timeout
-//! (`srtt + 4·rttvar + ack delay`, doubling each time it fires), only the oldest packet is
-//! sent again as a probe; declaring the whole window lost on a timer would resend it all.
+//! after the newest packet left (`srtt + 4·rttvar + ack delay`, at most two round trips the
+//! first time as RACK-TLP's tail loss probe, doubling each time it fires), the two oldest
+//! packets are sent again as probes; declaring the whole window lost on a timer would resend
+//! it all. ACKs report every gap of the window (see [`crate::wire::MAX_ACK_RANGES`]), so a
+//! packet is sent again only when it was lost.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -71,9 +74,10 @@ pub(crate) struct SendState {
     latest_rtt: Duration,
     rttvar: Duration,
     backoff: u32,
-    /// Last time an acknowledgement made progress (or sending started from idle); the
-    /// probe timeout counts from here.
-    last_progress: Instant,
+    /// When the newest DATA packet was sent (or a probe timeout last fired): the probe
+    /// timeout counts from here (RFC 9002 §6.2.1), so a lost tail is probed one timeout after
+    /// it left, not after the last acknowledgement.
+    last_sent: Instant,
     /// Last time new data was acknowledged (or data was queued while none was outstanding);
     /// the stall timeout counts from here.
     data_progress: Instant,
@@ -97,7 +101,7 @@ impl SendState {
             latest_rtt: Duration::ZERO,
             rttvar: Duration::ZERO,
             backoff: 0,
-            last_progress: now,
+            last_sent: now,
             data_progress: now,
             data_idle: true,
             tokens: burst(config),
@@ -180,12 +184,20 @@ impl SendState {
         self.backoff = 0;
     }
 
-    /// Probe timeout, with backoff.
+    /// Probe timeout, with backoff. The first probe after progress is a tail loss probe
+    /// (RFC 8985 §7.2): at most two round trips, so that a young RTT variance (half the
+    /// first sample) does not hold a lost tail for three.
     fn pto(&self, config: &EndpointConfig) -> Duration {
         let base = match self.srtt {
             None => INITIAL_RTO,
             Some(s) => {
-                (s + self.rttvar * 4 + config.ack_delay).clamp(config.min_rto, config.max_rto)
+                let pto = s + self.rttvar * 4 + config.ack_delay;
+                let pto = if self.backoff == 0 {
+                    pto.min(s * 2 + config.ack_delay)
+                } else {
+                    pto
+                };
+                pto.clamp(config.min_rto, config.max_rto)
             }
         };
         (base * 2u32.saturating_pow(self.backoff.min(16))).min(config.max_rto)
@@ -212,7 +224,7 @@ impl SendState {
             .range(..self.largest_acked)
             .next()
             .map(|(_, sent)| sent.at + self.time_threshold());
-        let probe = (!self.in_flight.is_empty()).then(|| self.last_progress + self.pto(config));
+        let probe = (!self.in_flight.is_empty()).then(|| self.last_sent + self.pto(config));
         let rto = match (loss, probe) {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
@@ -279,9 +291,7 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
             return None;
         }
         s.tokens -= size;
-        if s.in_flight.is_empty() {
-            s.last_progress = now;
-        }
+        s.last_sent = now;
         if s.data_idle {
             s.data_idle = false;
             s.data_progress = now;
@@ -370,7 +380,6 @@ pub(crate) fn on_ack(ep: &mut Endpoint, p: usize, now: Instant, ranges: &[(u64, 
             peer.stats.srtt_s = s.srtt().as_secs_f64();
         }
         s.backoff = 0;
-        s.last_progress = now;
     }
     detect_losses(ep, p, now);
 }
@@ -388,13 +397,12 @@ pub(crate) fn detect_losses(ep: &mut Endpoint, p: usize, now: Instant) {
         .filter(|(pn, sent)| **pn + 3 <= s.largest_acked || sent.at + threshold <= now)
         .map(|(pn, _)| *pn)
         .collect();
-    if lost.is_empty()
-        && let Some((&oldest, _)) = s.in_flight.iter().next()
-        && now >= s.last_progress + s.pto(config)
-    {
-        lost.push(oldest);
+    if lost.is_empty() && !s.in_flight.is_empty() && now >= s.last_sent + s.pto(config) {
+        // Probe with the two oldest packets (RFC 9002 §6.2.4 allows two): at 20-30% loss a
+        // single probe or its ACK is lost often enough for the doubling timeout to dominate.
+        lost.extend(s.in_flight.keys().take(2).copied());
         s.backoff += 1;
-        s.last_progress = now;
+        s.last_sent = now;
     }
     for pn in lost.into_iter().rev() {
         let sent = s.in_flight.remove(&pn).expect("listed above");

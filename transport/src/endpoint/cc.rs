@@ -1,0 +1,338 @@
+//! Congestion control of one peer link: a BBR-style model (Cardwell et al., "BBR:
+//! Congestion-Based Congestion Control", ACM Queue 2016; the delivery-rate estimator of
+//! draft-cheng-iccrg-delivery-rate-estimation).
+//!
+//! The sender measures the rate at which the path delivers (bytes acknowledged over the time
+//! they took, per acknowledgement) and the path's shortest round trip, and paces at a gain
+//! over the largest recent delivery rate, with at most twice the bandwidth-delay product in
+//! flight. Why a model and not a loss-based window (NewReno, CUBIC): the links this runtime
+//! is run over are emulated with random loss, and so are the wireless links of its clients;
+//! a loss-based controller halves its window at every loss, so at 10-30% random loss it
+//! collapses to a few packets a round trip, where a rate model keeps the link full and lets
+//! loss recovery resend what was lost. Queue-building is bounded by the in-flight cap.
+//!
+//! States as in BBR v1: Startup (gain 2/ln 2 until the delivery rate stops growing by 25% for
+//! three rounds), Drain (the inverse gain until in flight falls to one bandwidth-delay
+//! product), ProbeBW (gains 5/4, 3/4, then six rounds of 1, each for one minimum round trip).
+//! Departures: no ProbeRTT (the minimum round trip is kept for 10 s, and a link's edges are
+//! idle often enough to refresh it); losses do not change the model.
+
+use std::time::{Duration, Instant};
+
+/// Startup's gain: 2/ln 2, the smallest that doubles the delivery rate each round.
+const HIGH_GAIN: f64 = 2.885;
+/// ProbeBW's pacing gains, one per minimum round trip.
+const CYCLE: [f64; 8] = [1.25, 0.75, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0];
+/// Rounds the largest delivery rate is remembered for.
+const BW_ROUNDS: u64 = 10;
+/// How long the smallest round trip is remembered.
+const RTPROP_FOR: Duration = Duration::from_secs(10);
+/// Packets in flight allowed before the path is measured, and at the least.
+const INITIAL_PACKETS: u64 = 32;
+const MIN_PACKETS: u64 = 4;
+
+/// The controller's phase.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    /// Doubling the rate each round until it stops growing.
+    Startup,
+    /// Emptying the queue Startup built.
+    Drain,
+    /// Cruising at the measured rate, probing for more every eighth round trip.
+    ProbeBw,
+}
+
+/// What a packet carried when it was sent, for its delivery-rate sample.
+#[derive(Clone, Copy, Debug)]
+pub struct SendMark {
+    /// Bytes delivered when it was sent.
+    pub delivered: u64,
+    /// When `delivered` was last advanced, at its send.
+    pub delivered_at: Instant,
+    /// When the first packet of the flight it belongs to was sent.
+    pub first_sent_at: Instant,
+    /// Sent while the sender had less to send than it was allowed.
+    pub app_limited: bool,
+}
+
+/// One peer link's congestion state.
+#[derive(Debug)]
+pub struct Bbr {
+    datagram: u64,
+    /// Bytes acknowledged in total, and when they last grew.
+    delivered: u64,
+    delivered_at: Instant,
+    first_sent_at: Instant,
+    /// Until this many bytes are delivered, samples may come from app-limited sending.
+    app_limited_until: u64,
+    /// Largest delivery rate (bytes/s) per round, for the last [`BW_ROUNDS`] rounds.
+    bw_samples: Vec<(u64, f64)>,
+    rtprop: Option<(Duration, Instant)>,
+    round: u64,
+    next_round_delivered: u64,
+    phase: Phase,
+    full_bw: f64,
+    full_bw_rounds: u32,
+    cycle: usize,
+    cycle_start: Instant,
+}
+
+impl Bbr {
+    /// A controller for packets of at most `datagram` bytes.
+    pub fn new(datagram: usize, now: Instant) -> Self {
+        Bbr {
+            datagram: datagram as u64,
+            delivered: 0,
+            delivered_at: now,
+            first_sent_at: now,
+            app_limited_until: 0,
+            bw_samples: Vec::new(),
+            rtprop: None,
+            round: 0,
+            next_round_delivered: 0,
+            phase: Phase::Startup,
+            full_bw: 0.0,
+            full_bw_rounds: 0,
+            cycle: 0,
+            cycle_start: now,
+        }
+    }
+
+    /// The phase it is in.
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// The largest recent delivery rate, bytes per second (`None` before a sample).
+    pub fn bandwidth(&self) -> Option<f64> {
+        self.bw_samples
+            .iter()
+            .map(|&(_, bw)| bw)
+            .fold(None, |m, bw| Some(m.map_or(bw, |m: f64| m.max(bw))))
+    }
+
+    /// The smallest recent round trip.
+    pub fn min_rtt(&self) -> Option<Duration> {
+        self.rtprop.map(|(rtt, _)| rtt)
+    }
+
+    fn bdp(&self) -> Option<f64> {
+        Some(self.bandwidth()? * self.min_rtt()?.as_secs_f64())
+    }
+
+    fn pacing_gain(&self) -> f64 {
+        match self.phase {
+            Phase::Startup => HIGH_GAIN,
+            Phase::Drain => 1.0 / HIGH_GAIN,
+            Phase::ProbeBw => CYCLE[self.cycle],
+        }
+    }
+
+    /// Bytes it lets be in flight.
+    pub fn window(&self) -> u64 {
+        let floor = MIN_PACKETS * self.datagram;
+        match self.bdp() {
+            None => INITIAL_PACKETS * self.datagram,
+            Some(bdp) => {
+                let gain = if self.phase == Phase::ProbeBw {
+                    2.0
+                } else {
+                    HIGH_GAIN
+                };
+                // A few packets more, so that acknowledgement aggregation does not starve it.
+                ((gain * bdp) as u64 + 4 * self.datagram).max(floor)
+            }
+        }
+    }
+
+    /// The rate it paces at, bytes per second: the gain over the measured rate, or before a
+    /// measurement the initial window over `srtt` (1 ms before any round trip).
+    pub fn pacing_rate(&self, srtt: Option<Duration>) -> f64 {
+        match self.bandwidth() {
+            Some(bw) if bw > 0.0 => self.pacing_gain() * bw,
+            _ => {
+                let rtt = srtt
+                    .unwrap_or(Duration::from_millis(1))
+                    .as_secs_f64()
+                    .max(1e-4);
+                HIGH_GAIN * (INITIAL_PACKETS * self.datagram) as f64 / rtt
+            }
+        }
+    }
+
+    /// A packet is sent with `in_flight` bytes already out; `app_limited` when the sender
+    /// has nothing more to send after it. Returns what the packet carries for its sample.
+    pub fn on_send(&mut self, now: Instant, in_flight: u64, app_limited: bool) -> SendMark {
+        if in_flight == 0 {
+            // A new flight: the rate is measured from here, not over the idle time.
+            self.first_sent_at = now;
+            self.delivered_at = now;
+        }
+        if app_limited {
+            self.app_limited_until = self.delivered + in_flight + self.datagram;
+        }
+        SendMark {
+            delivered: self.delivered,
+            delivered_at: self.delivered_at,
+            first_sent_at: self.first_sent_at,
+            app_limited: self.app_limited_until > self.delivered,
+        }
+    }
+
+    /// Packets of `bytes` in total were newly acknowledged; `newest` is the mark and send time
+    /// of the most recently sent of them, `rtt` a round-trip sample if one was taken, and
+    /// `in_flight` what is still out.
+    pub fn on_ack(
+        &mut self,
+        now: Instant,
+        bytes: u64,
+        newest: (SendMark, Instant),
+        rtt: Option<Duration>,
+        in_flight: u64,
+    ) {
+        let (mark, sent_at) = newest;
+        self.delivered += bytes;
+        self.delivered_at = now;
+        self.first_sent_at = sent_at;
+        if let Some(rtt) = rtt {
+            let expired = self
+                .rtprop
+                .is_none_or(|(min, at)| rtt <= min || now.duration_since(at) > RTPROP_FOR);
+            if expired {
+                self.rtprop = Some((rtt, now));
+            }
+        }
+        // Rounds: one ends when a packet sent after the previous end is acknowledged.
+        let round_ended = mark.delivered >= self.next_round_delivered;
+        if round_ended {
+            self.next_round_delivered = self.delivered;
+            self.round += 1;
+        }
+        // The delivery rate over the packet's flight, slower of its sending and its acking.
+        let interval = sent_at
+            .saturating_duration_since(mark.first_sent_at)
+            .max(now.saturating_duration_since(mark.delivered_at));
+        if interval > Duration::ZERO {
+            let rate = (self.delivered - mark.delivered) as f64 / interval.as_secs_f64();
+            let max = self.bandwidth().unwrap_or(0.0);
+            // An app-limited sample says only that the path does at least this much.
+            if !mark.app_limited || rate > max {
+                let round = self.round;
+                match self.bw_samples.iter_mut().find(|(r, _)| *r == round) {
+                    Some((_, bw)) => *bw = bw.max(rate),
+                    None => self.bw_samples.push((round, rate)),
+                }
+                self.bw_samples.retain(|&(r, _)| r + BW_ROUNDS > round);
+            }
+        }
+        self.advance(now, round_ended, mark.app_limited, in_flight);
+    }
+
+    fn advance(&mut self, now: Instant, round_ended: bool, app_limited: bool, in_flight: u64) {
+        let bdp = self.bdp().unwrap_or(f64::MAX);
+        match self.phase {
+            Phase::Startup => {
+                if round_ended && !app_limited {
+                    let bw = self.bandwidth().unwrap_or(0.0);
+                    if bw >= self.full_bw * 1.25 {
+                        self.full_bw = bw;
+                        self.full_bw_rounds = 0;
+                    } else {
+                        self.full_bw_rounds += 1;
+                    }
+                    if self.full_bw_rounds >= 3 {
+                        self.phase = Phase::Drain;
+                    }
+                }
+                if self.phase == Phase::Drain && (in_flight as f64) <= bdp {
+                    self.enter_probe_bw(now);
+                }
+            }
+            Phase::Drain => {
+                if (in_flight as f64) <= bdp {
+                    self.enter_probe_bw(now);
+                }
+            }
+            Phase::ProbeBw => {
+                let rtprop = self.min_rtt().unwrap_or(Duration::from_millis(1));
+                let elapsed = now.saturating_duration_since(self.cycle_start) > rtprop;
+                let gain = CYCLE[self.cycle];
+                let next = if gain > 1.0 {
+                    elapsed && (in_flight as f64) >= gain * bdp
+                } else if gain < 1.0 {
+                    elapsed || (in_flight as f64) <= bdp
+                } else {
+                    elapsed
+                };
+                if next {
+                    self.cycle = (self.cycle + 1) % CYCLE.len();
+                    self.cycle_start = now;
+                }
+            }
+        }
+    }
+
+    fn enter_probe_bw(&mut self, now: Instant) {
+        self.phase = Phase::ProbeBw;
+        // Start in a cruising phase, as BBR picks one at random but the probing ones.
+        self.cycle = 2;
+        self.cycle_start = now;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fluid model of one sender on a path of `rate` bytes/s and `rtt`: every `step` it
+    /// sends what its pacing and window allow, and packets are acknowledged one round trip
+    /// (plus queueing) later.
+    fn converge(rate: f64, rtt: Duration, rounds: u32) -> Bbr {
+        let start = Instant::now();
+        let mut bbr = Bbr::new(1200, start);
+        let mut now = start;
+        let mut queue_free_at = start;
+        let mut flight: std::collections::VecDeque<(Instant, SendMark, Instant, u64)> =
+            Default::default();
+        let mut in_flight = 0u64;
+        let mut next_send = start;
+        let end = start + rtt * rounds;
+        while now < end {
+            while let Some(&(due, mark, sent, size)) = flight.front() {
+                if due > now {
+                    break;
+                }
+                flight.pop_front();
+                in_flight -= size;
+                bbr.on_ack(now, size, (mark, sent), Some(now - sent), in_flight);
+            }
+            if now >= next_send && in_flight + 1200 <= bbr.window() {
+                let mark = bbr.on_send(now, in_flight, false);
+                in_flight += 1200;
+                let serialized = queue_free_at.max(now) + Duration::from_secs_f64(1200.0 / rate);
+                queue_free_at = serialized;
+                flight.push_back((serialized + rtt, mark, now, 1200));
+                next_send = now + Duration::from_secs_f64(1200.0 / bbr.pacing_rate(Some(rtt)));
+            }
+            now += Duration::from_micros(50);
+        }
+        bbr
+    }
+
+    #[test]
+    fn it_finds_the_bottleneck_rate_and_round_trip_and_leaves_startup() {
+        // 50 Mbit/s, 80 ms.
+        let bbr = converge(50e6 / 8.0, Duration::from_millis(80), 60);
+        let bw = bbr.bandwidth().unwrap() * 8.0 / 1e6;
+        assert!((45.0..=55.0).contains(&bw), "{bw} Mbit/s");
+        let rtt = bbr.min_rtt().unwrap();
+        assert!(
+            rtt >= Duration::from_millis(80) && rtt < Duration::from_millis(82),
+            "{rtt:?}"
+        );
+        assert_eq!(bbr.phase(), Phase::ProbeBw);
+        // Twice the bandwidth-delay product (500 kB) and a few packets.
+        let w = bbr.window();
+        assert!((900_000..1_100_000).contains(&w), "{w}");
+    }
+}
