@@ -139,6 +139,7 @@ impl NodeNet {
         c.epoch = args.epoch_unix_ns;
         c.topology_digest = args.digest;
         c.confidential = settings.encrypt;
+        c.congestion_control = settings.congestion_control;
         c.max_packet_bytes = settings.max_packet_bytes;
         c.window_packets = settings.window_packets;
         c.pacing_bytes_per_s = settings.pacing_mbps.map(|m| m * 1e6 / 8.0);

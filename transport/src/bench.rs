@@ -38,6 +38,8 @@ pub struct BenchOptions {
     pub udp_baseline: bool,
     /// Encrypt packets (they are authenticated either way).
     pub encrypt: bool,
+    /// Congestion control on the link.
+    pub congestion_control: bool,
 }
 
 impl Default for BenchOptions {
@@ -54,6 +56,7 @@ impl Default for BenchOptions {
             time_limit: Duration::from_secs(120),
             udp_baseline: true,
             encrypt: true,
+            congestion_control: true,
         }
     }
 }
@@ -117,6 +120,7 @@ fn start(name: &str, incarnation: u64, opts: &BenchOptions) -> std::io::Result<D
     c.max_packet_bytes = opts.packet_bytes;
     c.window_packets = opts.window_packets;
     c.confidential = opts.encrypt;
+    c.congestion_control = opts.congestion_control;
     c.max_message_bytes = c.max_message_bytes.max(opts.size);
     let mut d = DriverConfig::new(c, SocketAddr::from(([127, 0, 0, 1], 0)));
     d.seed = opts.seed ^ incarnation;

@@ -342,6 +342,9 @@ pub struct TransportSettings {
     pub rejoin_timeout_s: f64,
     /// Whether cut edges' packets are encrypted (they are always authenticated).
     pub encrypt: bool,
+    /// Whether each peer link runs congestion control (pacing at the measured delivery rate;
+    /// `pacing_mbps` caps it).
+    pub congestion_control: bool,
 }
 
 impl Default for TransportSettings {
@@ -356,6 +359,7 @@ impl Default for TransportSettings {
             stall_timeout_s: 15.0,
             rejoin_timeout_s: 10.0,
             encrypt: true,
+            congestion_control: true,
         }
     }
 }

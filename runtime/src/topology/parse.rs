@@ -136,6 +136,7 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
                 "stall_timeout_s",
                 "rejoin_timeout_s",
                 "encrypt",
+                "congestion_control",
             ],
         );
     }
@@ -243,6 +244,9 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
     }
     if let Some(v) = t.boolean(w, "encrypt") {
         s.encrypt = v.into_inner();
+    }
+    if let Some(v) = t.boolean(w, "congestion_control") {
+        s.congestion_control = v.into_inner();
     }
     if let Some(v) = bounded(
         w,

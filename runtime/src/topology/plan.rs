@@ -473,8 +473,8 @@ impl Plan {
         );
         let _ = writeln!(
             s,
-            "packets {} encrypt {}",
-            t.transport.max_packet_bytes, t.transport.encrypt
+            "packets {} encrypt {} congestion control {}",
+            t.transport.max_packet_bytes, t.transport.encrypt, t.transport.congestion_control
         );
         for n in &t.nodes {
             let _ = writeln!(s, "node {:?} {}", n.name, n.declared());

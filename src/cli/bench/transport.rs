@@ -49,6 +49,10 @@ pub struct Args {
     /// Authenticate packets without encrypting them (what `encrypt = false` does).
     #[arg(long)]
     no_encrypt: bool,
+    /// Turn congestion control off (a fixed window, unpaced): what `congestion_control =
+    /// false` does.
+    #[arg(long)]
+    no_congestion_control: bool,
     /// Skip the plain UDP blast baseline.
     #[arg(long)]
     no_baseline: bool,
@@ -88,6 +92,7 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
         seed: args.seed,
         udp_baseline: !args.no_baseline,
         encrypt: !args.no_encrypt,
+        congestion_control: !args.no_congestion_control,
         time_limit: std::time::Duration::from_secs_f64(args.time_limit_s),
     })
 }

@@ -21,11 +21,12 @@
 //!   reported lost, and reported up again when heard.
 //! - **Messages** of an edge are split into chunks that fit one datagram (laminar never
 //!   fragments), each DATA packet gets a packet number, and the receiver acknowledges packet
-//!   numbers with up to 64 ranges, never a number it did not receive. Packets are declared
-//!   lost three packet numbers behind the largest acknowledged one, or after the
-//!   retransmission timeout (`srtt + 4·rttvar`, doubling on expiry); their chunks are sent
-//!   again in new packets. At most `window_packets` are unacknowledged per peer, and sending
-//!   is paced to `pacing_bytes_per_s` when set. Data that makes no progress for
+//!   numbers with every gap of the window (up to 1,024 ranges, QUIC's ACK frame coding),
+//!   never a number it did not receive. Packets are declared lost as RFC 9002 does (see
+//!   `send.rs`); their chunks are sent again in new packets. At most `window_packets` are
+//!   unacknowledged per peer; with `congestion_control` ([`cc`], a BBR-style model) sending
+//!   is paced at the measured delivery rate with about two bandwidth-delay products in
+//!   flight, and `pacing_bytes_per_s` caps the rate. Data that makes no progress for
 //!   `stall_timeout` while the peer answers heartbeats is reported ([`Event::Stalled`]).
 //! - **Reassembly** is bounded: a message longer than `max_message_bytes` is refused, all
 //!   partial messages of a peer together never hold more than `max_reassembly_bytes`, and a
@@ -83,6 +84,9 @@ pub struct EndpointConfig {
     pub window_packets: usize,
     /// Sending rate cap per peer, bytes per second; `None` is unpaced.
     pub pacing_bytes_per_s: Option<f64>,
+    /// Congestion control on each peer link (see [`cc`]): pace at the measured delivery rate
+    /// and keep about two bandwidth-delay products in flight. `pacing_bytes_per_s` caps it.
+    pub congestion_control: bool,
     /// Longest an acknowledgement waits to be sent.
     pub ack_delay: Duration,
     /// An acknowledgement is sent at once after this many packets.
@@ -120,6 +124,7 @@ impl EndpointConfig {
             max_reassembly_bytes: 256 << 20,
             window_packets: 1024,
             pacing_bytes_per_s: None,
+            congestion_control: true,
             ack_delay: Duration::from_micros(500),
             ack_every: 16,
             heartbeat_interval: Duration::from_millis(100),
@@ -564,6 +569,12 @@ impl Endpoint {
         }
     }
 
+    /// The congestion controller's state of the link to `peer`.
+    pub fn congestion(&self, peer: &str) -> Option<cc::CongestionStats> {
+        let p = self.peer_index(peer)?;
+        Some(self.peers[p].send.congestion().stats())
+    }
+
     /// Next event, if any.
     pub fn poll_event(&mut self) -> Option<Event> {
         self.events.pop_front()
@@ -722,7 +733,7 @@ impl Endpoint {
             if let Some(x) = peer.recv.ack_due {
                 at(x);
             }
-            if let Some(x) = peer.send.next_timer(&self.config) {
+            if let Some(x) = peer.send.next_timer(&self.config, peer.up) {
                 at(x);
             }
             if let Some(x) = peer.send.stall_deadline(&self.config)

@@ -13,6 +13,7 @@
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::time::{Duration, Instant};
 
+use super::cc::{Bbr, SendMark};
 use super::{EdgeWireStats, Endpoint, EndpointConfig, Event, Peer};
 use crate::wire::{Body, DATA_OVERHEAD, SESSION_HEADER_BYTES};
 
@@ -60,6 +61,10 @@ struct Sent {
     chunk: u32,
     at: Instant,
     retransmit: bool,
+    /// Bytes on the wire.
+    size: u64,
+    /// For its delivery-rate sample.
+    mark: SendMark,
 }
 
 /// Per-peer sending state.
@@ -85,6 +90,10 @@ pub(crate) struct SendState {
     data_idle: bool,
     tokens: f64,
     refilled: Instant,
+    /// Bytes of the DATA packets in flight.
+    bytes_in_flight: u64,
+    /// The congestion controller (when `congestion_control` is on).
+    cc: Bbr,
 }
 
 const INITIAL_RTO: Duration = Duration::from_millis(200);
@@ -104,9 +113,36 @@ impl SendState {
             last_sent: now,
             data_progress: now,
             data_idle: true,
-            tokens: burst(config),
+            tokens: 16.0 * config.max_packet_bytes as f64,
             refilled: now,
+            bytes_in_flight: 0,
+            cc: Bbr::new(config.max_packet_bytes, config.ack_delay, now),
         }
+    }
+
+    /// The rate it paces at, bytes per second: the controller's (when on), capped by
+    /// `pacing_bytes_per_s`; `None` when neither paces.
+    fn pacing_rate(&self, config: &EndpointConfig) -> Option<f64> {
+        let cc = config
+            .congestion_control
+            .then(|| self.cc.pacing_rate(self.srtt));
+        match (cc, config.pacing_bytes_per_s) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// Whether the window lets a packet of `size` bytes go.
+    fn window_open(&self, config: &EndpointConfig, size: u64) -> bool {
+        self.in_flight.len() < config.window_packets
+            && (!config.congestion_control
+                || self.bytes_in_flight == 0
+                || self.bytes_in_flight + size <= self.cc.window())
+    }
+
+    /// The congestion controller's state.
+    pub(crate) fn congestion(&self) -> &Bbr {
+        &self.cc
     }
 
     pub(crate) fn queue_message(&mut self, edge: u32, seq: u64, data: Vec<u8>, chunk_bytes: usize) {
@@ -138,6 +174,7 @@ impl SendState {
     pub(crate) fn restart_numbers(&mut self) {
         self.next_pn = 1;
         self.largest_acked = 0;
+        self.bytes_in_flight = 0;
         let in_flight = std::mem::take(&mut self.in_flight);
         for sent in in_flight.into_values().rev() {
             self.pending
@@ -210,15 +247,16 @@ impl SendState {
     }
 
     fn refill(&mut self, config: &EndpointConfig, now: Instant) {
-        if let Some(rate) = config.pacing_bytes_per_s {
+        if let Some(rate) = self.pacing_rate(config) {
             let dt = now.saturating_duration_since(self.refilled).as_secs_f64();
-            self.tokens = (self.tokens + dt * rate).min(burst(config));
+            self.tokens = (self.tokens + dt * rate).min(burst(config, rate));
         }
         self.refilled = now;
     }
 
-    /// The next time this state needs attention (retransmission timeout or pacing).
-    pub(crate) fn next_timer(&self, config: &EndpointConfig) -> Option<Instant> {
+    /// The next time this state needs attention (retransmission timeout, or pacing when
+    /// only pacing holds data back: the peer is `up` and the window open).
+    pub(crate) fn next_timer(&self, config: &EndpointConfig, up: bool) -> Option<Instant> {
         let loss = self
             .in_flight
             .range(..self.largest_acked)
@@ -229,8 +267,11 @@ impl SendState {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
         };
-        let pace = match (config.pacing_bytes_per_s, self.pending.is_empty()) {
-            (Some(rate), false) if self.tokens < config.max_packet_bytes as f64 => {
+        let sendable = up
+            && !self.pending.is_empty()
+            && self.window_open(config, config.max_packet_bytes as u64);
+        let pace = match (self.pacing_rate(config), sendable) {
+            (Some(rate), true) if self.tokens < config.max_packet_bytes as f64 => {
                 let need = config.max_packet_bytes as f64 - self.tokens;
                 // Capped so that no rate, however small, overflows the clock.
                 let wait = Duration::try_from_secs_f64(need / rate)
@@ -247,12 +288,9 @@ impl SendState {
     }
 }
 
-fn burst(config: &EndpointConfig) -> f64 {
-    let p = config.max_packet_bytes as f64;
-    match config.pacing_bytes_per_s {
-        Some(rate) => (16.0 * p).max(rate * 0.002),
-        None => f64::INFINITY,
-    }
+/// Bytes a pacer at `rate` may send at once: 2 ms worth, at least 16 packets.
+fn burst(config: &EndpointConfig, rate: f64) -> f64 {
+    (16.0 * config.max_packet_bytes as f64).max(rate * 0.002)
 }
 
 /// The next DATA packet for peer `p`, sealed, if the window and pacing allow one.
@@ -271,10 +309,11 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
         ..
     } = &mut peers[p];
     let session = session.as_ref()?;
-    if !*up || s.in_flight.len() >= config.window_packets || s.pending.is_empty() {
+    if !*up || s.pending.is_empty() || !s.window_open(config, config.max_packet_bytes as u64) {
         return None;
     }
     s.refill(config, now);
+    let paced = s.pacing_rate(config).is_some();
     let cb = config.chunk_bytes();
     while let Some((edge, seq, chunk, retransmit)) = s.pending.pop_front() {
         let Some(msg) = s.msgs.get(&(edge, seq)) else {
@@ -286,7 +325,7 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
         let start = chunk as usize * cb;
         let payload = &msg.data[start..(start + cb).min(msg.data.len())];
         let size = (DATA_OVERHEAD + payload.len()) as f64;
-        if config.pacing_bytes_per_s.is_some() && s.tokens < size {
+        if paced && s.tokens < size {
             s.pending.push_front((edge, seq, chunk, retransmit));
             return None;
         }
@@ -310,6 +349,10 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
             body.encode(session.secrets.id, pn),
             SESSION_HEADER_BYTES,
         );
+        // App-limited: nothing else waits to go (the window and pacing allow more).
+        let app_limited = s.pending.is_empty();
+        let mark = s.cc.on_send(now, s.bytes_in_flight, app_limited);
+        s.bytes_in_flight += bytes.len() as u64;
         s.in_flight.insert(
             pn,
             Sent {
@@ -318,6 +361,8 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
                 chunk,
                 at: now,
                 retransmit,
+                size: bytes.len() as u64,
+                mark,
             },
         );
         stats.data_packets_sent += 1;
@@ -345,13 +390,16 @@ pub(crate) fn on_ack(ep: &mut Endpoint, p: usize, now: Instant, ranges: &[(u64, 
     } = ep;
     let peer = &mut peers[p];
     let s = &mut peer.send;
-    let mut newest: Option<(u64, Instant, bool)> = None;
+    let mut newest: Option<(u64, Instant, bool, SendMark)> = None;
+    let mut acked_bytes = 0;
     for &(lo, hi) in ranges {
         let pns: Vec<u64> = s.in_flight.range(lo..=hi).map(|(pn, _)| *pn).collect();
         for pn in pns {
             let sent = s.in_flight.remove(&pn).expect("listed above");
-            if newest.is_none_or(|(n, _, _)| pn > n) {
-                newest = Some((pn, sent.at, sent.retransmit));
+            s.bytes_in_flight -= sent.size;
+            acked_bytes += sent.size;
+            if newest.is_none_or(|(n, ..)| pn > n) {
+                newest = Some((pn, sent.at, sent.retransmit, sent.mark));
             }
             if let Some(msg) = s.msgs.get_mut(&(sent.edge, sent.seq))
                 && !msg.acked[sent.chunk as usize]
@@ -368,17 +416,19 @@ pub(crate) fn on_ack(ep: &mut Endpoint, p: usize, now: Instant, ranges: &[(u64, 
             }
         }
     }
-    if let Some((pn, at, retransmit)) = newest {
+    if let Some((pn, at, retransmit, mark)) = newest {
         s.data_progress = now;
         peer.stall_reported = false;
         if s.msgs.is_empty() {
             s.data_idle = true;
         }
         s.largest_acked = s.largest_acked.max(pn);
-        if !retransmit {
-            s.rtt_sample(now.saturating_duration_since(at), config);
+        let rtt = (!retransmit).then(|| now.saturating_duration_since(at));
+        if let Some(rtt) = rtt {
+            s.rtt_sample(rtt, config);
             peer.stats.srtt_s = s.srtt().as_secs_f64();
         }
+        s.cc.on_ack(now, acked_bytes, (mark, at), rtt, s.bytes_in_flight);
         s.backoff = 0;
     }
     detect_losses(ep, p, now);
@@ -406,6 +456,7 @@ pub(crate) fn detect_losses(ep: &mut Endpoint, p: usize, now: Instant) {
     }
     for pn in lost.into_iter().rev() {
         let sent = s.in_flight.remove(&pn).expect("listed above");
+        s.bytes_in_flight -= sent.size;
         if s.msgs
             .get(&(sent.edge, sent.seq))
             .is_some_and(|m| !m.acked[sent.chunk as usize])

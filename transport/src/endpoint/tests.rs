@@ -774,32 +774,31 @@ fn loss_recovery(loss: f64, size: usize, seed: u64) -> (f64, f64) {
 }
 
 /// At 10% and 20% loss each way, 1 MiB and 8 MiB messages complete within a few round trips
-/// of their loss-free time (window-limited: 0.5 and 7.5 round trips), and retransmissions
-/// track the loss (a packet is sent again only when it was lost). Before ACKs carried every
-/// gap of a window, 20% loss cost 0.5-0.67 retransmissions per packet sent.
+/// of their loss-free time, and retransmissions track the loss (a packet is sent again only
+/// when it was lost). Before ACKs carried every gap of a window, 20% loss cost 0.5-0.67
+/// retransmissions per packet sent.
 #[test]
 fn loss_costs_a_few_round_trips_and_retransmissions_track_the_loss() {
-    for (loss, size, mean_rtts, max_rtts) in [
-        (0.1, 1usize << 20, 8.0, 16.0),
-        (0.1, 8 << 20, 18.0, 26.0),
-        (0.2, 1 << 20, 12.0, 22.0),
-        (0.2, 8 << 20, 25.0, 36.0),
-    ] {
-        let runs: Vec<(f64, f64)> = (0..6).map(|seed| loss_recovery(loss, size, seed)).collect();
-        let mean = runs.iter().map(|r| r.0).sum::<f64>() / runs.len() as f64;
-        let max = runs.iter().map(|r| r.0).fold(0.0, f64::max);
-        let retx = runs.iter().map(|r| r.1).sum::<f64>() / runs.len() as f64;
-        eprintln!(
-            "{size} B at {loss}: mean {mean:.1} max {max:.1} round trips, {retx:.3} retransmissions per packet"
-        );
-        assert!(
-            mean <= mean_rtts && max <= max_rtts,
-            "{size} B at {loss}: mean {mean:.1} max {max:.1} round trips"
-        );
-        assert!(
-            retx <= loss * 1.3,
-            "{size} B at {loss}: {retx:.3} retransmissions per packet"
-        );
+    for size in [1usize << 20, 8 << 20] {
+        let (clean, _) = loss_recovery(0.0, size, 0);
+        for (loss, extra_mean, extra_max) in [(0.1, 6.0, 12.0), (0.2, 10.0, 20.0)] {
+            let runs: Vec<(f64, f64)> =
+                (0..6).map(|seed| loss_recovery(loss, size, seed)).collect();
+            let mean = runs.iter().map(|r| r.0).sum::<f64>() / runs.len() as f64;
+            let max = runs.iter().map(|r| r.0).fold(0.0, f64::max);
+            let retx = runs.iter().map(|r| r.1).sum::<f64>() / runs.len() as f64;
+            eprintln!(
+                "{size} B at {loss}: mean {mean:.1} max {max:.1} round trips (loss-free {clean:.1}), {retx:.3} retransmissions per packet"
+            );
+            assert!(
+                mean <= clean + extra_mean && max <= clean + extra_max,
+                "{size} B at {loss}: mean {mean:.1} max {max:.1} round trips, loss-free {clean:.1}"
+            );
+            assert!(
+                retx <= loss * 1.3,
+                "{size} B at {loss}: {retx:.3} retransmissions per packet"
+            );
+        }
     }
 }
 
@@ -885,4 +884,41 @@ fn under_30_percent_loss_nodes_connect_in_bounded_time_and_in_one_session() {
     }
     // HELLOs every 50 ms over a 10 ms round trip: a few attempts at most.
     assert!(slowest < Duration::from_millis(600), "slowest {slowest:?}");
+}
+
+/// The QUIC interop runner's "goodput" case on this project's terms: one bulk sender through
+/// an emulated 50 Mbit/s, 80 ms round-trip bottleneck with a 1 MiB router queue. Congestion
+/// control finds the rate: the link is kept at least 80% busy, the queue does not overflow
+/// (retransmissions under 2%) and stays short (the round trip within 25% of the path's).
+/// Without it, the fixed 1,024-packet window (1.2 MB, over twice the path's 500 kB
+/// bandwidth-delay product) kept the queue full: a 196 ms round trip, 150 drops, 1%
+/// retransmissions.
+#[test]
+fn a_bulk_sender_fills_a_bottleneck_without_overflowing_its_queue() {
+    let profile = LinkProfile {
+        latency_ms: 40.0,
+        bandwidth_mbps: Some(50.0),
+        ..Default::default()
+    };
+    let mut s = Sim::new(profile, 4);
+    assert!(s.run_until(Duration::from_secs(5), |s| s.a.is_up("b") && s.b.is_up("a")));
+    let start = s.now;
+    let messages: Vec<Vec<u8>> = (0..4).map(|i| pattern(4 << 20, i)).collect();
+    assert!(s.transfer(&messages, Duration::from_secs(60)));
+    let took = (s.now - start).as_secs_f64();
+    let mbps = (16 << 20) as f64 * 8.0 / took / 1e6;
+    let st = s.a.peer_stats("b").unwrap();
+    let retx = st.retransmissions as f64 / st.data_packets_sent as f64;
+    let cc = s.a.congestion("b").unwrap();
+    eprintln!(
+        "16 MiB over 50 Mbit/s, 80 ms: {took:.2} s, {mbps:.1} Mbit/s of payload, {retx:.4} retransmissions per packet, queue drops {}, smoothed round trip {:.1} ms, {cc:?}",
+        s.ab.stats().queue_drops,
+        st.srtt_s * 1e3
+    );
+    // Payload over the wire's bytes (headers, ACK-free direction) is about 95%.
+    assert!(mbps >= 0.8 * 50.0 * 0.95 * 0.9, "{mbps:.1} Mbit/s");
+    assert!(retx < 0.02, "{retx:.4} retransmissions per packet");
+    assert!(st.srtt_s < 0.1, "round trip {:.1} ms", st.srtt_s * 1e3);
+    let bw = cc.bandwidth.unwrap() * 8.0 / 1e6;
+    assert!((40.0..=55.0).contains(&bw), "measured {bw:.1} Mbit/s");
 }
