@@ -36,6 +36,9 @@ fn confirm_timeout(peer_timeout: Duration) -> Duration {
 /// A HELLO this node sent and awaits an answer to.
 pub(crate) struct Initiation {
     nonce_i: [u8; NONCE_BYTES],
+    /// When its first HELLO left: the CHALLENGE gives a first round-trip sample (an
+    /// overestimate when HELLOs were lost, which only delays the first loss detection).
+    since: Instant,
 }
 
 /// A CHALLENGE this node issued.
@@ -75,9 +78,9 @@ impl Endpoint {
         let peer = &self.peers[p];
         let bytes = match &peer.session {
             None if now >= peer.hello_due => {
-                let nonce_i = match &peer.initiation {
-                    Some(i) => i.nonce_i,
-                    None => self.rng.random(),
+                let (nonce_i, since) = match &peer.initiation {
+                    Some(i) => (i.nonce_i, i.since),
+                    None => (self.rng.random(), now),
                 };
                 let hello = Handshake::Hello {
                     ids: self.ids(peer),
@@ -85,7 +88,7 @@ impl Endpoint {
                 };
                 let bytes = self.tagged(&hello);
                 let peer = &mut self.peers[p];
-                peer.initiation = Some(Initiation { nonce_i });
+                peer.initiation = Some(Initiation { nonce_i, since });
                 peer.hello_due = now + interval;
                 bytes
             }
@@ -254,7 +257,7 @@ impl Endpoint {
         if self.refuse_mismatch(now, p, from, ids) {
             return;
         }
-        self.peers[p].initiation = None;
+        let since = self.peers[p].initiation.take().map(|i| i.since);
         let secrets = self.derive(p, Role::Initiator, &nonce_i, &nonce_r);
         self.install(
             now,
@@ -265,6 +268,21 @@ impl Endpoint {
             secrets,
             (nonce_i, nonce_r),
         );
+        if let Some(since) = since {
+            self.handshake_rtt(p, now.saturating_duration_since(since));
+        }
+    }
+
+    /// A first round-trip sample from the handshake (HELLO to CHALLENGE, CHALLENGE to
+    /// CONFIRM), as QUIC takes one: without it a path of seconds sends its first data with
+    /// the initial 200 ms timeout and retransmits spuriously.
+    fn handshake_rtt(&mut self, p: usize, rtt: Duration) {
+        let peer = &mut self.peers[p];
+        if peer.send.srtt_known() {
+            return;
+        }
+        peer.send.rtt_sample(rtt, &self.config);
+        peer.stats.srtt_s = peer.send.srtt().as_secs_f64();
     }
 
     fn on_confirm(
@@ -318,6 +336,7 @@ impl Endpoint {
             secrets,
             (nonce_i, nonce_r),
         );
+        self.handshake_rtt(p, now.saturating_duration_since(challenge.at));
     }
 
     /// Reports (once) and refuses a proven peer whose topology differs. While the peer has a

@@ -201,6 +201,11 @@ impl SendState {
             .then(|| self.data_progress + config.stall_timeout + Duration::from_millis(1))
     }
 
+    /// Whether a round trip was measured.
+    pub(crate) fn srtt_known(&self) -> bool {
+        self.srtt.is_some()
+    }
+
     pub(crate) fn srtt(&self) -> Duration {
         self.srtt.unwrap_or(Duration::ZERO)
     }
@@ -225,19 +230,26 @@ impl SendState {
     /// (RFC 8985 §7.2): at most two round trips, so that a young RTT variance (half the
     /// first sample) does not hold a lost tail for three.
     fn pto(&self, config: &EndpointConfig) -> Duration {
+        // `max_rto` bounds the backoff, but never below two round trips: on a path of
+        // seconds a 1 s cap fires before any ACK can come back.
+        let cap = config.max_rto.max(
+            self.srtt
+                .map_or(Duration::ZERO, |s| s * 2 + config.ack_delay),
+        );
         let base = match self.srtt {
             None => INITIAL_RTO,
             Some(s) => {
-                let pto = s + self.rttvar * 4 + config.ack_delay;
+                // RFC 9002 §6.2.1: the variance term is at least the timer granularity.
+                let pto = s + (self.rttvar * 4).max(Duration::from_millis(1)) + config.ack_delay;
                 let pto = if self.backoff == 0 {
                     pto.min(s * 2 + config.ack_delay)
                 } else {
                     pto
                 };
-                pto.clamp(config.min_rto, config.max_rto)
+                pto.clamp(config.min_rto, cap)
             }
         };
-        (base * 2u32.saturating_pow(self.backoff.min(16))).min(config.max_rto)
+        (base * 2u32.saturating_pow(self.backoff.min(16))).min(cap)
     }
 
     /// How long a packet may stay unacknowledged after a later one was acknowledged.

@@ -23,6 +23,14 @@ struct Sim {
     b_events: Vec<Event>,
     /// Drops the datagrams from a to b for which it returns true (targeted loss).
     drop_ab: Option<DropFilter>,
+    /// Drops everything, both ways, from the first instant to the second (a blackhole).
+    blackhole: Option<(Instant, Instant)>,
+    /// Flips one random bit of each datagram, both ways, with this probability.
+    corrupt: f64,
+    rng: rand::rngs::StdRng,
+    /// The port a's packets reach b from (a NAT rebinding moves it); b's packets to any
+    /// other address of a are lost.
+    a_port: u16,
 }
 
 type DropFilter = Box<dyn FnMut(&[u8]) -> bool>;
@@ -74,7 +82,27 @@ impl Sim {
             a_events: Vec::new(),
             b_events: Vec::new(),
             drop_ab: None,
+            blackhole: None,
+            corrupt: 0.0,
+            rng: rand::SeedableRng::seed_from_u64(seed),
+            a_port: A,
         }
+    }
+
+    /// A datagram after the path's impairments: `None` when lost.
+    fn impair(&mut self, now: Instant, mut d: Vec<u8>) -> Option<Vec<u8>> {
+        use rand::RngExt;
+        if self
+            .blackhole
+            .is_some_and(|(from, to)| now >= from && now < to)
+        {
+            return None;
+        }
+        if self.corrupt > 0.0 && !d.is_empty() && self.rng.random_bool(self.corrupt) {
+            let bit = self.rng.random_range(0..d.len() * 8);
+            d[bit / 8] ^= 1 << (bit % 8);
+        }
+        Some(d)
     }
 
     /// Moves every datagram and timer due now, then advances virtual time to the next one.
@@ -86,12 +114,18 @@ impl Sim {
             if self.drop_ab.as_mut().is_some_and(|f| f(&d)) {
                 continue;
             }
+            let Some(d) = self.impair(now, d) else {
+                continue;
+            };
             if self.b_nat.is_none_or(|port| to == addr(port)) {
                 self.ab.send(now, d);
             }
         }
-        while let Some((_, d)) = self.b.poll_transmit(now) {
-            if !self.b_dead {
+        while let Some((to, d)) = self.b.poll_transmit(now) {
+            let Some(d) = self.impair(now, d) else {
+                continue;
+            };
+            if !self.b_dead && to == addr(self.a_port) {
                 self.ba.send(now, d);
             }
         }
@@ -101,7 +135,7 @@ impl Sim {
         while let Some(d) = self.ab.poll(now) {
             arrived = true;
             if !self.b_dead {
-                self.b.handle_datagram(now, addr(A), &d);
+                self.b.handle_datagram(now, addr(self.a_port), &d);
             }
         }
         while let Some(d) = self.ba.poll(now) {
@@ -921,4 +955,201 @@ fn a_bulk_sender_fills_a_bottleneck_without_overflowing_its_queue() {
     assert!(st.srtt_s < 0.1, "round trip {:.1} ms", st.srtt_s * 1e3);
     let bw = cc.bandwidth.unwrap() * 8.0 / 1e6;
     assert!((40.0..=55.0).contains(&bw), "measured {bw:.1} Mbit/s");
+}
+
+/// The interop runner's "blackhole": the path drops everything both ways for 2 s in the
+/// middle of a transfer (under the peer and stall timeouts), then comes back. The transfer
+/// resumes in the same session, within a few probe timeouts of the path's return.
+#[test]
+fn a_two_second_blackhole_mid_transfer_is_ridden_out_in_the_same_session() {
+    let mut s = Sim::new(
+        LinkProfile {
+            latency_ms: 5.0,
+            bandwidth_mbps: Some(100.0),
+            ..Default::default()
+        },
+        2,
+    );
+    let now = s.now;
+    for (side, peer, port, dir) in [
+        ("a", "b", B, EdgeDirection::Send),
+        ("b", "a", A, EdgeDirection::Receive),
+    ] {
+        let mut c = if side == "a" {
+            s.a.config().clone()
+        } else {
+            s.b.config().clone()
+        };
+        c.peer_timeout = Duration::from_secs(5);
+        let mut e = Endpoint::new(c, now);
+        e.add_peer(peer, addr(port), now);
+        e.open_edge(7, peer, dir, 4).unwrap();
+        if side == "a" { s.a = e } else { s.b = e }
+    }
+    assert!(s.run_until(Duration::from_secs(1), |s| s.a.is_up("b") && s.b.is_up("a")));
+    let hole = s.now + Duration::from_millis(300);
+    s.blackhole = Some((hole, hole + Duration::from_secs(2)));
+    let messages: Vec<Vec<u8>> = (0..4).map(|i| pattern(2 << 20, i)).collect();
+    assert!(s.transfer(&messages, Duration::from_secs(30)));
+    let after = s
+        .now
+        .saturating_duration_since(hole + Duration::from_secs(2));
+    eprintln!("blackhole of 2 s: the transfer ended {after:?} after the path came back");
+    let st = s.a.peer_stats("b").unwrap();
+    assert_eq!(st.handshakes, 1, "a new session");
+    assert!(
+        !s.a_events
+            .iter()
+            .chain(&s.b_events)
+            .any(|e| matches!(e, Event::PeerLost { .. } | Event::Stalled { .. })),
+        "{:?}",
+        s.a_events
+    );
+    // 8 MiB at 100 Mbit/s is 0.7 s; the probe timeout, doubled through the hole, is at
+    // most 1 s when the path returns.
+    assert!(
+        after < Duration::from_millis(2_500),
+        "finished {after:?} after the hole"
+    );
+}
+
+/// The interop runner's "transfer corruption": 30% of datagrams have a bit flipped, both
+/// ways. Everything arrives intact and in order; the damaged packets fail their tag and are
+/// counted as forged (never obeyed).
+#[test]
+fn thirty_percent_bit_flips_both_ways_deliver_everything_intact() {
+    let mut s = Sim::new(
+        LinkProfile {
+            latency_ms: 2.0,
+            ..Default::default()
+        },
+        6,
+    );
+    assert!(s.run_until(Duration::from_secs(1), |s| s.a.is_up("b") && s.b.is_up("a")));
+    s.corrupt = 0.3;
+    let messages: Vec<Vec<u8>> = (0..6).map(|i| pattern(300_000, i)).collect();
+    assert!(s.transfer(&messages, Duration::from_secs(60)));
+    for (i, (seq, bytes)) in s.delivered().iter().enumerate() {
+        assert_eq!(*seq, i as u64);
+        assert!(bytes == &messages[i]);
+    }
+    let forged = s.b.peer_stats("a").unwrap().forged + s.a.peer_stats("b").unwrap().forged;
+    let damaged = s.b.malformed() + s.a.malformed() + forged;
+    eprintln!("30% bit flips: {forged} forged packets counted, everything intact");
+    assert!(forged > 200, "forged {forged}");
+    assert!(damaged > 0);
+}
+
+/// The interop runner's "rebinding": a's source port changes mid-transfer (a NAT's new
+/// mapping) and b's packets to the old one are lost. b challenges the new address, moves the
+/// session there when a answers, and nothing is lost or delivered twice.
+#[test]
+fn a_nat_rebinding_mid_transfer_moves_the_session_and_loses_nothing() {
+    let mut s = Sim::new(
+        LinkProfile {
+            latency_ms: 5.0,
+            bandwidth_mbps: Some(200.0),
+            ..Default::default()
+        },
+        3,
+    );
+    assert!(s.run_until(Duration::from_secs(1), |s| s.a.is_up("b") && s.b.is_up("a")));
+    let messages: Vec<Vec<u8>> = (0..6).map(|i| pattern(1 << 20, i)).collect();
+    let mut rebound = false;
+    let mut next = 0;
+    let mut released = 0;
+    let start = s.now;
+    let ok = s.run_until(Duration::from_secs(30), |s| {
+        if !rebound && s.now >= start + Duration::from_millis(100) {
+            s.a_port = 41;
+            rebound = true;
+        }
+        while next < messages.len() && s.a.credit(7) > 0 {
+            s.a.send(7, messages[next].clone()).unwrap();
+            next += 1;
+        }
+        let got = s.delivered_count();
+        if got > released {
+            s.b.release(7, (got - released) as u64);
+            released = got;
+        }
+        got == messages.len()
+    });
+    assert!(ok && rebound);
+    for (i, (seq, bytes)) in s.delivered().iter().enumerate() {
+        assert_eq!(*seq, i as u64);
+        assert!(bytes == &messages[i]);
+    }
+    let st = s.b.peer_stats("a").unwrap();
+    assert_eq!(st.moves, 1, "{st:?}");
+    assert_eq!(st.handshakes, 1);
+}
+
+/// The interop runner's "long RTT": 750 ms each way. The handshake completes and a transfer
+/// is limited by the window (1,024 packets a 1.5 s round trip), not by timers.
+#[test]
+fn a_750_ms_path_connects_and_moves_a_window_per_round_trip() {
+    let mut s = Sim::new(
+        LinkProfile {
+            latency_ms: 750.0,
+            ..Default::default()
+        },
+        8,
+    );
+    let now = s.now;
+    for (side, peer, port, dir) in [
+        ("a", "b", B, EdgeDirection::Send),
+        ("b", "a", A, EdgeDirection::Receive),
+    ] {
+        let mut c = if side == "a" {
+            s.a.config().clone()
+        } else {
+            s.b.config().clone()
+        };
+        c.peer_timeout = Duration::from_secs(10);
+        let mut e = Endpoint::new(c, now);
+        e.add_peer(peer, addr(port), now);
+        e.open_edge(7, peer, dir, 4).unwrap();
+        if side == "a" { s.a = e } else { s.b = e }
+    }
+    assert!(s.run_until(Duration::from_secs(10), |s| s.a.is_up("b")
+        && s.b.is_up("a")));
+    let connected = s.now - now;
+    assert!(
+        connected < Duration::from_secs(5),
+        "connected in {connected:?}"
+    );
+    let start = s.now;
+    // 8 MiB: 7,300 packets, a few round trips of start-up, then about a window per round trip.
+    assert!(s.transfer(&[pattern(8 << 20, 1)], Duration::from_secs(120)));
+    let rtts = (s.now - start).as_secs_f64() / 1.5;
+    let st = s.a.peer_stats("b").unwrap();
+    eprintln!("750 ms each way: connected in {connected:?}, 8 MiB in {rtts:.1} round trips");
+    assert!(rtts < 14.0, "{rtts:.1} round trips");
+    assert_eq!(st.retransmissions, 0, "timers fired on a slow path: {st:?}");
+}
+
+/// A path that loses 30% of packets each way does not collapse the sender: the rate model
+/// does not shrink on loss, so goodput stays within a factor of the loss-free one.
+#[test]
+fn thirty_percent_loss_does_not_collapse_the_rate() {
+    let run = |loss: f64| {
+        let mut s = Sim::new(
+            LinkProfile {
+                latency_ms: 10.0,
+                bandwidth_mbps: Some(100.0),
+                loss,
+                ..Default::default()
+            },
+            9,
+        );
+        assert!(s.run_until(Duration::from_secs(5), |s| s.a.is_up("b") && s.b.is_up("a")));
+        let start = s.now;
+        let messages: Vec<Vec<u8>> = (0..4).map(|i| pattern(2 << 20, i)).collect();
+        assert!(s.transfer(&messages, Duration::from_secs(120)));
+        (8 << 20) as f64 * 8.0 / (s.now - start).as_secs_f64() / 1e6
+    };
+    let (clean, lossy) = (run(0.0), run(0.3));
+    eprintln!("100 Mbit/s, 20 ms: {clean:.1} Mbit/s loss-free, {lossy:.1} at 30% loss");
+    assert!(lossy > 0.4 * clean, "{lossy:.1} of {clean:.1} Mbit/s");
 }
