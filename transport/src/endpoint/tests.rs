@@ -1153,3 +1153,138 @@ fn thirty_percent_loss_does_not_collapse_the_rate() {
     eprintln!("100 Mbit/s, 20 ms: {clean:.1} Mbit/s loss-free, {lossy:.1} at 30% loss");
     assert!(lossy > 0.4 * clean, "{lossy:.1} of {clean:.1} Mbit/s");
 }
+
+/// The interop runner's "cross traffic" case: two senders through one 50 Mbit/s, 80 ms
+/// bottleneck (a 1 MiB router queue) to one receiver, the second starting 2 s after the
+/// first. Over the last 10 s of 20, each gets 40-60% of the link, the link stays busy, and
+/// the queue does not overflow much.
+#[test]
+fn two_senders_share_a_bottleneck_fairly() {
+    let start = Instant::now();
+    let rate = LinkProfile {
+        latency_ms: 40.0,
+        bandwidth_mbps: Some(50.0),
+        ..Default::default()
+    };
+    let plain = LinkProfile {
+        latency_ms: 40.0,
+        ..Default::default()
+    };
+    // Sender i sends on edge 7 + i, which the receiver keeps per peer.
+    let mut senders: Vec<Endpoint> = (0..2u16)
+        .map(|i| {
+            let mut c = EndpointConfig::new(&format!("a{i}"), "test-cluster", b"s3cret");
+            c.nonce_seed = [10 + i as u8; 32];
+            c.peer_timeout = Duration::from_secs(5);
+            let mut e = Endpoint::new(c, start);
+            e.add_peer("b", addr(B), start);
+            e.open_edge(7 + i as u32, "b", EdgeDirection::Send, 8)
+                .unwrap();
+            e
+        })
+        .collect();
+    let mut b = {
+        let mut c = EndpointConfig::new("b", "test-cluster", b"s3cret");
+        c.nonce_seed = [5; 32];
+        c.peer_timeout = Duration::from_secs(5);
+        let mut e = Endpoint::new(c, start);
+        for i in 0..2u16 {
+            e.add_peer(&format!("a{i}"), addr(10 + i), start);
+            e.open_edge(7 + i as u32, &format!("a{i}"), EdgeDirection::Receive, 8)
+                .unwrap();
+        }
+        e
+    };
+    let mut forward = LinkEmulator::new(rate, 1);
+    let mut back: Vec<LinkEmulator> = (0..2).map(|i| LinkEmulator::new(plain, 20 + i)).collect();
+    let mut delivered = [Vec::<(Instant, usize)>::new(), Vec::new()];
+    let mut released = [0u64; 2];
+    let mut now = start;
+    let end = start + Duration::from_secs(20);
+    let chunk = pattern(256 << 10, 1);
+    for _ in 0..5_000_000 {
+        if now >= end {
+            break;
+        }
+        for (i, s) in senders.iter_mut().enumerate() {
+            s.handle_timeout(now);
+            let edge = 7 + i as u32;
+            let started = i == 0 || now >= start + Duration::from_secs(2);
+            while started && s.credit(edge) > 0 {
+                s.send(edge, chunk.clone()).unwrap();
+            }
+            while let Some((_, d)) = s.poll_transmit(now) {
+                let mut tagged = vec![i as u8];
+                tagged.extend_from_slice(&d);
+                forward.send(now, tagged);
+            }
+        }
+        b.handle_timeout(now);
+        while let Some((to, d)) = b.poll_transmit(now) {
+            let i = (to.port() - 10) as usize;
+            back[i].send(now, d);
+        }
+        let mut arrived = false;
+        while let Some(d) = forward.poll(now) {
+            arrived = true;
+            b.handle_datagram(now, addr(10 + d[0] as u16), &d[1..]);
+        }
+        for (i, link) in back.iter_mut().enumerate() {
+            while let Some(d) = link.poll(now) {
+                arrived = true;
+                senders[i].handle_datagram(now, addr(B), &d);
+            }
+        }
+        while let Some(e) = b.poll_event() {
+            if let Event::Message { edge, bytes, .. } = e {
+                let i = (edge - 7) as usize;
+                delivered[i].push((now, bytes.len()));
+                released[i] += 1;
+                b.release(edge, 1);
+            }
+        }
+        for s in senders.iter_mut() {
+            while s.poll_event().is_some() {}
+        }
+        let next = senders
+            .iter()
+            .map(|s| s.poll_timeout())
+            .chain([b.poll_timeout(), forward.next_due()])
+            .chain(back.iter().map(|l| l.next_due()))
+            .flatten()
+            .min()
+            .unwrap_or(now + Duration::from_millis(10));
+        let next = if arrived { now } else { next };
+        now = next.clamp(
+            now + Duration::from_micros(1),
+            now + Duration::from_millis(50),
+        );
+    }
+    let from = end - Duration::from_secs(10);
+    let mbps: Vec<f64> = delivered
+        .iter()
+        .map(|d| {
+            d.iter()
+                .filter(|(t, _)| *t >= from)
+                .map(|(_, n)| *n)
+                .sum::<usize>() as f64
+                * 8.0
+                / 10.0
+                / 1e6
+        })
+        .collect();
+    let total: f64 = mbps.iter().sum();
+    let drops = forward.stats().queue_drops;
+    eprintln!(
+        "two senders through 50 Mbit/s, 80 ms: {:.1} and {:.1} Mbit/s of payload over the last 10 s, {drops} queue drops, {:?} / {:?}",
+        mbps[0],
+        mbps[1],
+        senders[0].congestion("b"),
+        senders[1].congestion("b")
+    );
+    assert!(total >= 0.8 * 50.0 * 0.95 * 0.9, "{total:.1} Mbit/s in all");
+    for m in &mbps {
+        let share = m / total;
+        assert!((0.4..=0.6).contains(&share), "shares {mbps:?}");
+    }
+}
