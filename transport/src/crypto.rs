@@ -1,7 +1,8 @@
 //! The transport's cryptography, from well-kept RustCrypto crates: handshake tags
 //! (HMAC-SHA256 under the cluster's shared secret, truncated to 16 bytes), session keys
 //! (HKDF-SHA256 from the secret and both sides' fresh nonces), packet protection
-//! (AES-256-GCM keyed per direction, nonce = packet number) and the replay window.
+//! (AES-256-GCM keyed per direction, nonce = packet number, a new key every
+//! [`KEY_UPDATE_PACKETS`] packet numbers) and the replay window.
 //!
 //! AES-256-GCM rather than ChaCha20-Poly1305: on this project's machines (x86-64 with AES-NI
 //! and carry-less multiply, which `aes-gcm` detects at run time) it seals a 1,200-byte packet
@@ -19,6 +20,12 @@ use hmac::Mac;
 use crate::wire::{DIGEST_BYTES, NONCE_BYTES, TAG_BYTES};
 
 type HmacSha256 = hmac::Hmac<sha2::Sha256>;
+
+/// Packet numbers one key protects. AES-GCM may protect at most 2^23 packets under one key
+/// (its confidentiality limit, RFC 9001 §6.6); a direction changes keys every 2^22 packet
+/// numbers, half of it. Packet numbers are in clear and never reused in a session, so both
+/// sides know which key a number uses: the stream never pauses for a key update.
+pub const KEY_UPDATE_PACKETS: u64 = 1 << 22;
 
 /// The tag of a handshake packet: HMAC-SHA256 over `bytes` under `secret`, truncated.
 pub fn handshake_tag(secret: &[u8], bytes: &[u8]) -> [u8; TAG_BYTES] {
@@ -89,7 +96,13 @@ pub struct SessionInputs<'a> {
 
 impl SessionSecrets {
     /// HKDF-SHA256: salt = both nonces, input key = the secret, info = names and digest.
-    pub fn derive(inputs: &SessionInputs<'_>, role: Role, confidential: bool) -> SessionSecrets {
+    /// Keys change every `key_span` packet numbers ([`KEY_UPDATE_PACKETS`]; less in tests).
+    pub fn derive(
+        inputs: &SessionInputs<'_>,
+        role: Role,
+        confidential: bool,
+        key_span: u64,
+    ) -> SessionSecrets {
         let mut salt = [0u8; 2 * NONCE_BYTES];
         salt[..NONCE_BYTES].copy_from_slice(inputs.nonce_i);
         salt[NONCE_BYTES..].copy_from_slice(inputs.nonce_r);
@@ -103,7 +116,8 @@ impl SessionSecrets {
         let mut okm = [0u8; 72];
         hk.expand(&info, &mut okm)
             .expect("72 bytes is within HKDF's output limit");
-        let key = |b: &[u8]| PacketKey::new(b.try_into().expect("32 bytes"), confidential);
+        let key =
+            |b: &[u8]| PacketKey::new(b.try_into().expect("32 bytes"), confidential, key_span);
         let (i2r, r2i) = (key(&okm[..32]), key(&okm[32..64]));
         let id = u64::from_le_bytes(okm[64..].try_into().expect("8 bytes"));
         let (send, recv) = match role {
@@ -114,10 +128,16 @@ impl SessionSecrets {
     }
 }
 
-/// One direction's packet protection.
+/// One direction's packet protection: key `k` protects packet numbers from `k · span` on,
+/// key 0 being the session's and key `k` derived from it by HKDF with `k`.
 pub struct PacketKey {
-    cipher: Aes256Gcm,
+    base: [u8; 32],
     confidential: bool,
+    span: u64,
+    /// Ciphers of the newest key epochs used (at most [`PacketKey::KEPT`]).
+    ciphers: std::cell::RefCell<Vec<(u64, Aes256Gcm)>>,
+    /// The newest epoch that sealed or opened a packet.
+    newest: std::cell::Cell<u64>,
 }
 
 fn nonce(pn: u64) -> Nonce<Aes256Gcm> {
@@ -127,25 +147,73 @@ fn nonce(pn: u64) -> Nonce<Aes256Gcm> {
 }
 
 impl PacketKey {
-    fn new(key: [u8; 32], confidential: bool) -> Self {
+    /// Epochs whose keys are kept: the newest and the one before (for packets reordered
+    /// across a key update); packets of older epochs are refused.
+    const KEPT: usize = 2;
+
+    fn new(key: [u8; 32], confidential: bool, span: u64) -> Self {
         PacketKey {
-            cipher: Aes256Gcm::new(&Key::<Aes256Gcm>::from(key)),
+            base: key,
             confidential,
+            span: span.max(1),
+            ciphers: std::cell::RefCell::new(Vec::new()),
+            newest: std::cell::Cell::new(0),
         }
+    }
+
+    /// The key epoch of packet number `pn`.
+    pub fn epoch(&self, pn: u64) -> u64 {
+        pn / self.span
+    }
+
+    /// Runs `f` with the cipher of `epoch`, derived when first needed.
+    fn with_cipher<R>(&self, epoch: u64, f: impl FnOnce(&Aes256Gcm) -> R) -> R {
+        let mut ciphers = self.ciphers.borrow_mut();
+        if let Some((_, c)) = ciphers.iter().find(|(e, _)| *e == epoch) {
+            return f(c);
+        }
+        let key = if epoch == 0 {
+            self.base
+        } else {
+            let hk = hkdf::Hkdf::<sha2::Sha256>::new(None, &self.base);
+            let mut info = b"cloudlight-key-update".to_vec();
+            info.extend_from_slice(&epoch.to_le_bytes());
+            let mut okm = [0u8; 32];
+            hk.expand(&info, &mut okm)
+                .expect("32 bytes is within HKDF's output limit");
+            okm
+        };
+        let cipher = Aes256Gcm::new(&Key::<Aes256Gcm>::from(key));
+        let out = f(&cipher);
+        ciphers.push((epoch, cipher));
+        ciphers.sort_unstable_by_key(|(e, _)| std::cmp::Reverse(*e));
+        ciphers.truncate(Self::KEPT);
+        out
+    }
+
+    /// Whether a packet of `epoch` may be opened: the newest epoch seen, the one before, or
+    /// the next (a key update); anything else is refused without deriving a key, so forged
+    /// far-away numbers cost no key derivation.
+    fn acceptable(&self, epoch: u64) -> bool {
+        let newest = self.newest.get();
+        epoch + 1 >= newest && epoch <= newest + 1
     }
 
     /// Seals a session packet in place: `packet` holds the header (`header_len` bytes) and
     /// the body; the body is encrypted when the link is confidential, and the tag appended.
     pub fn seal(&self, pn: u64, mut packet: Vec<u8>, header_len: usize) -> Vec<u8> {
-        let tag = if self.confidential {
-            let (header, body) = packet.split_at_mut(header_len);
-            self.cipher
-                .encrypt_inout_detached(&nonce(pn), header, body.into())
-        } else {
-            self.cipher
-                .encrypt_inout_detached(&nonce(pn), &packet, (&mut [][..]).into())
-        }
-        .expect("packets are far below AES-GCM's length limit");
+        let epoch = self.epoch(pn);
+        self.newest.set(self.newest.get().max(epoch));
+        let tag = self
+            .with_cipher(epoch, |cipher| {
+                if self.confidential {
+                    let (header, body) = packet.split_at_mut(header_len);
+                    cipher.encrypt_inout_detached(&nonce(pn), header, body.into())
+                } else {
+                    cipher.encrypt_inout_detached(&nonce(pn), &packet, (&mut [][..]).into())
+                }
+            })
+            .expect("packets are far below AES-GCM's length limit");
         packet.extend_from_slice(&tag);
         packet
     }
@@ -162,21 +230,35 @@ impl PacketKey {
         scratch: &'a mut Vec<u8>,
     ) -> Option<&'a [u8]> {
         let tag = Tag::<Aes256Gcm>::from(*tag);
+        let epoch = self.epoch(pn);
+        if !self.acceptable(epoch) {
+            return None;
+        }
         let (header, body) = sealed.split_at(header_len.min(sealed.len()));
-        if self.confidential {
+        let plain = if self.confidential {
             scratch.clear();
             scratch.extend_from_slice(body);
-            self.cipher
-                .decrypt_inout_detached(&nonce(pn), header, scratch.as_mut_slice().into(), &tag)
-                .ok()?;
-            Some(scratch.as_slice())
+            self.with_cipher(epoch, |cipher| {
+                cipher.decrypt_inout_detached(
+                    &nonce(pn),
+                    header,
+                    scratch.as_mut_slice().into(),
+                    &tag,
+                )
+            })
+            .ok()?;
+            &scratch[..]
         } else {
             // Integrity only: header and body together are the associated data.
-            self.cipher
-                .decrypt_inout_detached(&nonce(pn), sealed, (&mut [][..]).into(), &tag)
-                .ok()?;
-            Some(body)
-        }
+            self.with_cipher(epoch, |cipher| {
+                cipher.decrypt_inout_detached(&nonce(pn), sealed, (&mut [][..]).into(), &tag)
+            })
+            .ok()?;
+            body
+        };
+        // Authentic: its epoch is current from now on.
+        self.newest.set(self.newest.get().max(epoch));
+        Some(plain)
     }
 }
 
@@ -263,8 +345,8 @@ mod tests {
     fn both_sides_derive_matching_keys_and_tampering_is_caught() {
         for confidential in [false, true] {
             let d = [0; DIGEST_BYTES];
-            let a = SessionSecrets::derive(&inputs(b"s", &d), Role::Initiator, confidential);
-            let b = SessionSecrets::derive(&inputs(b"s", &d), Role::Responder, confidential);
+            let a = SessionSecrets::derive(&inputs(b"s", &d), Role::Initiator, confidential, 8);
+            let b = SessionSecrets::derive(&inputs(b"s", &d), Role::Responder, confidential, 8);
             assert_eq!(a.id, b.id);
             let packet = a.send.seal(5, b"headerBODY".to_vec(), 6);
             assert_eq!(&packet[..6], b"header");
@@ -295,12 +377,49 @@ mod tests {
                     "byte {i} is bound"
                 );
             }
-            let other = SessionSecrets::derive(&inputs(b"t", &d), Role::Responder, confidential);
+            let other = SessionSecrets::derive(&inputs(b"t", &d), Role::Responder, confidential, 8);
             assert!(
                 open(&other.recv, 5, sealed, &mut scratch).is_none(),
                 "secret is bound"
             );
         }
+    }
+
+    #[test]
+    fn keys_change_every_span_of_packet_numbers_and_stale_or_far_epochs_are_refused() {
+        let d = [0; DIGEST_BYTES];
+        let a = SessionSecrets::derive(&inputs(b"s", &d), Role::Initiator, true, 8);
+        let b = SessionSecrets::derive(&inputs(b"s", &d), Role::Responder, true, 8);
+        let mut scratch = Vec::new();
+        let open = |pn: u64, packet: &[u8], scratch: &mut Vec<u8>| {
+            let (sealed, tag) = packet.split_at(packet.len() - TAG_BYTES);
+            b.recv
+                .open(pn, sealed, 4, tag.try_into().unwrap(), scratch)
+                .map(|x| x.to_vec())
+        };
+        // Each epoch seals under its own key: the same body at pn 3 and pn 11 (epochs 0 and
+        // 1) differ beyond the nonce, and both open across the update.
+        let p3 = a.send.seal(3, b"headBODY".to_vec(), 4);
+        let p11 = a.send.seal(11, b"headBODY".to_vec(), 4);
+        assert_eq!(open(3, &p3, &mut scratch).as_deref(), Some(&b"BODY"[..]));
+        assert_eq!(open(11, &p11, &mut scratch).as_deref(), Some(&b"BODY"[..]));
+        // Packet 11 sealed under the session's first key (no update yet with a span of
+        // 1,000) differs from epoch 1's, and does not open where epoch 1 is expected.
+        let first = SessionSecrets::derive(&inputs(b"s", &d), Role::Initiator, true, 1000);
+        let wrong = first.send.seal(11, b"headBODY".to_vec(), 4);
+        assert_ne!(wrong, p11);
+        assert!(open(11, &wrong, &mut scratch).is_none());
+        // Reordered across the update: epoch 0 still opens while epoch 1 is the newest.
+        let p5 = a.send.seal(5, b"headBODY".to_vec(), 4);
+        assert!(open(5, &p5, &mut scratch).is_some());
+        // Two epochs on, epoch 0's key is gone: an old packet is refused.
+        let p20 = a.send.seal(20, b"headBODY".to_vec(), 4);
+        assert!(open(20, &p20, &mut scratch).is_some());
+        assert!(open(3, &p3, &mut scratch).is_none(), "a stale epoch opens");
+        // Far ahead of the newest epoch: refused without deriving anything.
+        let far = a.send.seal(800, b"headBODY".to_vec(), 4);
+        assert!(open(800, &far, &mut scratch).is_none());
+        assert!(b.recv.ciphers.borrow().len() <= PacketKey::KEPT);
     }
 
     #[test]

@@ -388,7 +388,12 @@ impl Endpoint {
             nonce_i,
             nonce_r,
         };
-        SessionSecrets::derive(&inputs, role, self.config.confidential)
+        SessionSecrets::derive(
+            &inputs,
+            role,
+            self.config.confidential,
+            self.config.key_update_packets,
+        )
     }
 
     /// Installs a new session with peer `p`, bound to `addr`; one that replaces a session

@@ -87,6 +87,10 @@ pub struct EndpointConfig {
     /// Congestion control on each peer link (see [`cc`]): pace at the measured delivery rate
     /// and keep about two bandwidth-delay products in flight. `pacing_bytes_per_s` caps it.
     pub congestion_control: bool,
+    /// Packet numbers each key protects before the next one takes over
+    /// ([`crate::crypto::KEY_UPDATE_PACKETS`]; smaller only in tests). At least twice
+    /// `window_packets`, so a sender is never more than one key update ahead of its peer.
+    pub key_update_packets: u64,
     /// Longest an acknowledgement waits to be sent.
     pub ack_delay: Duration,
     /// An acknowledgement is sent at once after this many packets.
@@ -125,6 +129,7 @@ impl EndpointConfig {
             window_packets: 1024,
             pacing_bytes_per_s: None,
             congestion_control: true,
+            key_update_packets: crate::crypto::KEY_UPDATE_PACKETS,
             ack_delay: Duration::from_micros(500),
             ack_every: 16,
             heartbeat_interval: Duration::from_millis(100),

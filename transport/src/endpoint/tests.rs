@@ -1288,3 +1288,46 @@ fn two_senders_share_a_bottleneck_fairly() {
         assert!((0.4..=0.6).contains(&share), "shares {mbps:?}");
     }
 }
+
+/// The interop runner's "key update": keys change every `key_update_packets` packet
+/// numbers (2^22 in use, under AES-GCM's 2^23-packet limit; 4,096 here), both ways, under
+/// loss and reordering, without a pause or a lost packet, in one session.
+#[test]
+fn keys_change_under_way_without_a_pause_or_a_loss() {
+    let mut s = Sim::new(
+        LinkProfile {
+            latency_ms: 5.0,
+            loss: 0.05,
+            reorder: 0.05,
+            ..Default::default()
+        },
+        12,
+    );
+    let now = s.now;
+    for (side, peer, port, dir) in [
+        ("a", "b", B, EdgeDirection::Send),
+        ("b", "a", A, EdgeDirection::Receive),
+    ] {
+        let mut c = if side == "a" {
+            s.a.config().clone()
+        } else {
+            s.b.config().clone()
+        };
+        c.key_update_packets = 4096;
+        let mut e = Endpoint::new(c, now);
+        e.add_peer(peer, addr(port), now);
+        e.open_edge(7, peer, dir, 4).unwrap();
+        if side == "a" { s.a = e } else { s.b = e }
+    }
+    assert!(s.run_until(Duration::from_secs(2), |s| s.a.is_up("b") && s.b.is_up("a")));
+    let messages: Vec<Vec<u8>> = (0..8).map(|i| pattern(2 << 20, i)).collect();
+    assert!(s.transfer(&messages, Duration::from_secs(60)));
+    for (i, (seq, bytes)) in s.delivered().iter().enumerate() {
+        assert_eq!(*seq, i as u64);
+        assert!(bytes == &messages[i]);
+    }
+    let (a, b) = (s.a.peer_stats("b").unwrap(), s.b.peer_stats("a").unwrap());
+    let epochs = a.packets_sent / 4096;
+    assert!(epochs >= 3, "{a:?}");
+    assert_eq!((a.forged, b.forged, a.handshakes), (0, 0, 1), "{a:?} {b:?}");
+}
