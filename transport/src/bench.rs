@@ -89,6 +89,10 @@ pub struct BenchReport {
     pub retransmission_ratio: f64,
     /// Bytes of all packets the sender sent.
     pub wire_bytes: u64,
+    /// Median time from handing a bulk message to the transport to its delivery, ms.
+    pub completion_ms_p50: f64,
+    /// 99th percentile of the same, ms.
+    pub completion_ms_p99: f64,
     /// Message round trips measured.
     pub rtt_rounds: usize,
     /// Median message round trip, microseconds.
@@ -235,6 +239,9 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
     let mut a_events = a.take_events();
     let start_t = Instant::now();
     let mut last_delivery = start_t;
+    // When each bulk message was handed over, and how long it took to arrive.
+    let mut handed = Vec::with_capacity(opts.count);
+    let mut completions = Vec::with_capacity(opts.count);
     while delivered < opts.count {
         while sent < opts.count && (sent as u64) < granted {
             a.command(Command::Send {
@@ -243,6 +250,7 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
             })
             .await
             .map_err(closed)?;
+            handed.push(Instant::now());
             sent += 1;
         }
         tokio::select! {
@@ -258,6 +266,9 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
                             delivered += 1;
                             released += 1;
                             last_delivery = Instant::now();
+                            if let Some(t) = handed.get(seq as usize) {
+                                completions.push(last_delivery.duration_since(*t));
+                            }
                         }
                         Some(_) => {}
                         None => return Err("receiver stopped".into()),
@@ -328,10 +339,12 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
     a.close();
     b.close();
     rtts.sort();
-    let q = |p: f64| {
-        rtts.get(((rtts.len() as f64 * p) as usize).min(rtts.len().saturating_sub(1)))
-            .map_or(0.0, |d| d.as_secs_f64() * 1e6)
+    completions.sort();
+    let quantile = |v: &[Duration], p: f64| {
+        v.get(((v.len() as f64 * p) as usize).min(v.len().saturating_sub(1)))
+            .map_or(0.0, |d| d.as_secs_f64())
     };
+    let q = |p: f64| quantile(&rtts, p) * 1e6;
     let goodput = (delivered * opts.size) as f64 / elapsed_s / 1e6;
     let blast = if opts.udp_baseline {
         // Datagrams as large as the transport's: a message's chunk plus its header, plus
@@ -359,6 +372,8 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
             0.0
         },
         wire_bytes: peer.wire_bytes_sent,
+        completion_ms_p50: quantile(&completions, 0.5) * 1e3,
+        completion_ms_p99: quantile(&completions, 0.99) * 1e3,
         rtt_rounds: rtts.len(),
         rtt_p50_us: q(0.5),
         rtt_p99_us: q(0.99),

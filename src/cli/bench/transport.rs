@@ -133,6 +133,13 @@ fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Tab
             format!("{:.4}", report.retransmission_ratio),
         ),
         (
+            "bulk message completion p50 / p99 ms",
+            format!(
+                "{:.2} / {:.2}",
+                report.completion_ms_p50, report.completion_ms_p99
+            ),
+        ),
+        (
             "round trip p50 / p99 us",
             format!("{:.0} / {:.0}", report.rtt_p50_us, report.rtt_p99_us),
         ),
