@@ -149,6 +149,7 @@ impl NodeNet {
         let max_message_bytes = c.max_message_bytes;
         let mut dc = DriverConfig::new(c, args.addr);
         dc.seed = args.seed;
+        dc.batched_io = settings.batched_io;
         let driver = Driver::start(dc)?;
         let commander = driver.commander();
         Ok(NodeNet {
@@ -580,7 +581,7 @@ impl Watch {
 
 async fn dispatch(
     watch: Watch,
-    mut events: tokio::sync::mpsc::Receiver<Event>,
+    mut events: cloudlight_transport::driver::EventReceiver,
     senders: HashMap<u32, (String, Arc<SenderShared>)>,
     receivers: HashMap<u32, (Arc<Edge>, MessageType)>,
     returns: HashMap<u32, Arc<AtomicU64>>,

@@ -202,20 +202,28 @@ impl PacketKey {
     /// Seals a session packet in place: `packet` holds the header (`header_len` bytes) and
     /// the body; the body is encrypted when the link is confidential, and the tag appended.
     pub fn seal(&self, pn: u64, mut packet: Vec<u8>, header_len: usize) -> Vec<u8> {
+        self.seal_in(pn, &mut packet, 0, header_len);
+        packet
+    }
+
+    /// Seals the session packet that `out` holds from `start` on (its header is
+    /// `header_len` bytes), in place, and appends the tag: a packet encoded straight into an
+    /// outgoing batch is sealed there, never copied.
+    pub fn seal_in(&self, pn: u64, out: &mut Vec<u8>, start: usize, header_len: usize) {
         let epoch = self.epoch(pn);
         self.newest.set(self.newest.get().max(epoch));
+        let packet = &mut out[start..];
         let tag = self
             .with_cipher(epoch, |cipher| {
                 if self.confidential {
                     let (header, body) = packet.split_at_mut(header_len);
                     cipher.encrypt_inout_detached(&nonce(pn), header, body.into())
                 } else {
-                    cipher.encrypt_inout_detached(&nonce(pn), &packet, (&mut [][..]).into())
+                    cipher.encrypt_inout_detached(&nonce(pn), packet, (&mut [][..]).into())
                 }
             })
             .expect("packets are far below AES-GCM's length limit");
-        packet.extend_from_slice(&tag);
-        packet
+        out.extend_from_slice(&tag);
     }
 
     /// Checks a session packet's tag and returns its plain body (decrypted into `scratch`

@@ -1,12 +1,19 @@
-//! The I/O driver: one thread per node socket runs the [`Endpoint`] over laminar.
+//! The I/O driver: one thread per node socket runs the [`Endpoint`].
 //!
-//! The thread owns a non-blocking UDP socket (4 MiB buffers, registered with mio) wrapped as
-//! laminar's `DatagramSocket`, and a laminar `ConnectionManager` driven by `manual_poll`. It
-//! never sleeps a fixed time: it blocks in `mio::Poll` until the socket is readable, a
-//! command arrives (a `mio::Waker`), or the endpoint's or emulators' next timer. Every
-//! transport packet is handed to laminar as an *unreliable* packet no larger than one
-//! datagram, so laminar never fragments, never holds packets in flight and never drops a
-//! connection for having too many; reliability is the endpoint's.
+//! The thread owns a non-blocking UDP socket (4 MiB buffers, registered with mio). It never
+//! sleeps a fixed time: it blocks in `mio::Poll` until the socket is readable (or, after a
+//! full send buffer, writable), a command arrives (a `mio::Waker`), or the endpoint's or
+//! emulators' next timer. Each wake-up takes every queued command, drains the socket in
+//! batches, and hands the events over in one go.
+//!
+//! Two paths move datagrams. By default ([`DriverConfig::batched_io`]) the driver does its own
+//! batched I/O (see `udp.rs`): packets are sealed in place into one buffer and leave with UDP
+//! GSO, several datagrams per `sendmsg`, and arrive through `recvmmsg` with GRO. With
+//! `batched_io` off, laminar moves every datagram: each transport packet is handed to
+//! laminar's `ConnectionManager` (driven by `manual_poll`) as an *unreliable* packet no larger
+//! than one datagram, so laminar never fragments, never holds packets in flight and never drops
+//! a connection for having too many. Both paths frame datagrams with laminar's header, so
+//! nodes on different paths talk to each other; reliability is always the endpoint's.
 //!
 //! The tokio side talks to the thread through a bounded command channel and receives
 //! events through a bounded tokio channel. `close` says goodbye to peers and joins the thread.
@@ -29,13 +36,70 @@ use crate::emulator::{EmulatorStats, LinkEmulator, LinkProfile};
 use crate::endpoint::{
     EdgeDirection, EdgeWireStats, Endpoint, EndpointConfig, Event, PeerStats, SendError,
 };
+use crate::udp::{Inbox, Outbox, laminar_unreliable_header};
 
 const SOCKET: Token = Token(0);
 const WAKER: Token = Token(1);
 /// Commands waiting for the I/O thread, at most.
 pub const COMMAND_CAPACITY: usize = 4096;
-/// Events waiting for the tokio side, at most.
+/// Events waiting for the tokio side, at most (in batches of at most [`EVENT_BATCH`]).
 pub const EVENT_CAPACITY: usize = 4096;
+/// Most events handed over at once.
+pub const EVENT_BATCH: usize = 256;
+
+/// The tokio side's receiver of a driver's events. The I/O thread hands them over in
+/// batches, one per wake-up (one channel operation and one task wake-up for many events);
+/// this takes them one at a time.
+pub struct EventReceiver {
+    rx: tokio::sync::mpsc::Receiver<Vec<Event>>,
+    batch: VecDeque<Event>,
+}
+
+/// Why [`EventReceiver::try_recv`] returned nothing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TryRecvEventError {
+    /// Nothing waits now.
+    Empty,
+    /// The driver has stopped.
+    Disconnected,
+}
+
+impl EventReceiver {
+    /// The next event; `None` once the driver has stopped. Cancel-safe.
+    pub async fn recv(&mut self) -> Option<Event> {
+        if let Some(e) = self.batch.pop_front() {
+            return Some(e);
+        }
+        let batch = self.rx.recv().await?;
+        self.batch.extend(batch);
+        self.batch.pop_front()
+    }
+
+    /// The next event if one is waiting.
+    pub fn try_recv(&mut self) -> Result<Event, TryRecvEventError> {
+        if let Some(e) = self.batch.pop_front() {
+            return Ok(e);
+        }
+        match self.rx.try_recv() {
+            Ok(batch) => {
+                self.batch.extend(batch);
+                self.batch.pop_front().ok_or(TryRecvEventError::Empty)
+            }
+            Err(tokio::sync::mpsc::error::TryRecvError::Empty) => Err(TryRecvEventError::Empty),
+            Err(tokio::sync::mpsc::error::TryRecvError::Disconnected) => {
+                Err(TryRecvEventError::Disconnected)
+            }
+        }
+    }
+
+    fn closed() -> Self {
+        let (_, rx) = tokio::sync::mpsc::channel(1);
+        EventReceiver {
+            rx,
+            batch: VecDeque::new(),
+        }
+    }
+}
 
 /// What a driver is started with.
 #[derive(Clone, Debug)]
@@ -52,6 +116,9 @@ pub struct DriverConfig {
     pub seed: u64,
     /// Socket receive and send buffer size, bytes.
     pub socket_buffer_bytes: usize,
+    /// Batched I/O (GSO/GRO, packets sealed in place) instead of laminar's one datagram per
+    /// call; see the module documentation.
+    pub batched_io: bool,
 }
 
 impl DriverConfig {
@@ -64,6 +131,7 @@ impl DriverConfig {
             links: HashMap::new(),
             seed: 0,
             socket_buffer_bytes: 4 << 20,
+            batched_io: true,
         }
     }
 }
@@ -133,6 +201,25 @@ pub struct DriverStats {
     pub refused_sends: u64,
     /// Counters of packets that belong to no peer.
     pub endpoint: crate::endpoint::EndpointStats,
+    /// System calls and datagrams of the socket.
+    pub io: IoStats,
+}
+
+/// What the socket did: how many datagrams each system call moved.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct IoStats {
+    /// Send calls (`sendmsg` with GSO, or one per datagram on laminar's path).
+    pub send_calls: u64,
+    /// Datagrams the kernel took.
+    pub datagrams_sent: u64,
+    /// Receive calls that returned data.
+    pub recv_calls: u64,
+    /// Datagrams received.
+    pub datagrams_received: u64,
+    /// Datagrams dropped by a send error other than a full buffer (as a loss on the way).
+    pub send_errors: u64,
+    /// Times the socket's send buffer was full (the driver then waits until it drains).
+    pub send_blocked: u64,
 }
 
 impl DriverStats {
@@ -196,7 +283,7 @@ impl Commander {
 /// The tokio side of a running driver.
 pub struct DriverHandle {
     commander: Commander,
-    events: tokio::sync::mpsc::Receiver<Event>,
+    events: EventReceiver,
     stats: Arc<Mutex<DriverStats>>,
     failure: Arc<Mutex<Option<String>>>,
     local_addr: SocketAddr,
@@ -214,13 +301,6 @@ pub struct Driver;
 struct MioSocket {
     socket: mio::net::UdpSocket,
     filtered: Arc<AtomicU64>,
-}
-
-/// Laminar's header of an unreliable packet: its protocol version's CRC-16 (big-endian), then
-/// packet type `Packet`, delivery `Unreliable`, ordering `None` (all 0).
-fn laminar_unreliable_header() -> [u8; 5] {
-    let v = crc::crc16::checksum_x25(b"laminar-0.1.0").to_be_bytes();
-    [v[0], v[1], 0, 0, 0]
 }
 
 impl DatagramSocket for MioSocket {
@@ -276,26 +356,43 @@ impl Driver {
         let waker = Arc::new(Waker::new(poll.registry(), WAKER)?);
         let sleeping = Arc::new(AtomicBool::new(false));
         let (commands, command_rx) = crossbeam_channel::bounded(COMMAND_CAPACITY);
-        let (event_tx, events) = tokio::sync::mpsc::channel(EVENT_CAPACITY);
-        let stats = Arc::new(Mutex::new(DriverStats::default()));
-        let laminar_config = LaminarConfig {
-            receive_buffer_max_size: config.endpoint.max_packet_bytes + 64,
-            // Laminar keeps a little state per address it hears from or sends to; strangers'
-            // expires quickly (peers are heard every heartbeat; laminar's own reliability,
-            // which this transport never uses, is all it would forget).
-            idle_connection_timeout: (config.endpoint.peer_timeout * 2).max(Duration::from_secs(5)),
-            max_unestablished_connections: 32,
-            heartbeat_interval: None,
-            ..LaminarConfig::default()
+        let (event_tx, events) = tokio::sync::mpsc::channel(EVENT_CAPACITY / EVENT_BATCH);
+        let events = EventReceiver {
+            rx: events,
+            batch: VecDeque::new(),
         };
+        let stats = Arc::new(Mutex::new(DriverStats::default()));
         let filtered = Arc::new(AtomicU64::new(0));
-        let manager = ConnectionManager::<MioSocket, VirtualConnection>::new(
-            MioSocket {
+        let net = if config.batched_io {
+            let state = quinn_udp::UdpSocketState::new((&socket).into())?;
+            Net::Batched(Box::new(Batched {
                 socket,
-                filtered: filtered.clone(),
-            },
-            laminar_config,
-        );
+                state,
+                outbox: Outbox::default(),
+                inbox: Inbox::default(),
+                writable_wanted: false,
+                unread: false,
+            }))
+        } else {
+            let laminar_config = LaminarConfig {
+                receive_buffer_max_size: config.endpoint.max_packet_bytes + 64,
+                // Laminar keeps a little state per address it hears from or sends to;
+                // strangers' expires quickly (peers are heard every heartbeat; laminar's own
+                // reliability, which this transport never uses, is all it would forget).
+                idle_connection_timeout: (config.endpoint.peer_timeout * 2)
+                    .max(Duration::from_secs(5)),
+                max_unestablished_connections: 32,
+                heartbeat_interval: None,
+                ..LaminarConfig::default()
+            };
+            Net::Laminar(Box::new(ConnectionManager::new(
+                MioSocket {
+                    socket,
+                    filtered: filtered.clone(),
+                },
+                laminar_config,
+            )))
+        };
         let thread_stats = stats.clone();
         let thread_sleeping = sleeping.clone();
         let name = format!("transport-{}", config.endpoint.node);
@@ -312,7 +409,7 @@ impl Driver {
                     sleeping: thread_sleeping,
                     filtered,
                 };
-                let mut io = Io::new(config, manager, poll, (command_rx, event_tx), shared);
+                let mut io = Io::new(config, net, poll, (command_rx, event_tx), shared);
                 io.run()
             }));
             let why = match run {
@@ -365,9 +462,8 @@ impl DriverHandle {
     }
 
     /// Splits off the event receiver (for a task that dispatches events).
-    pub fn take_events(&mut self) -> tokio::sync::mpsc::Receiver<Event> {
-        let (_, empty) = tokio::sync::mpsc::channel(1);
-        std::mem::replace(&mut self.events, empty)
+    pub fn take_events(&mut self) -> EventReceiver {
+        std::mem::replace(&mut self.events, EventReceiver::closed())
     }
 
     /// The latest counters (refreshed by the thread every few milliseconds).
@@ -424,14 +520,39 @@ struct IoShared {
     filtered: Arc<AtomicU64>,
 }
 
+/// How datagrams move (see the module documentation).
+enum Net {
+    Laminar(Box<ConnectionManager<MioSocket, VirtualConnection>>),
+    Batched(Box<Batched>),
+}
+
+/// The batched path's socket and buffers.
+struct Batched {
+    socket: mio::net::UdpSocket,
+    state: quinn_udp::UdpSocketState,
+    outbox: Outbox,
+    inbox: Inbox,
+    /// The send buffer was full: registered for writability, nothing new is made until the
+    /// outbox drains.
+    writable_wanted: bool,
+    /// The socket may hold more than one wake-up read (mio is edge-triggered).
+    unread: bool,
+}
+
+/// Receive calls per wake-up at most, so that sending and timers interleave with a flood.
+const RECV_CALLS_PER_WAKE: usize = 16;
+/// Datagrams queued before the outbox is flushed (GSO takes at most 64 per call).
+const OUTBOX_FLUSH_AT: usize = 64;
+
 struct Io {
     seed: u64,
     sleeping: Arc<AtomicBool>,
     endpoint: Endpoint,
-    manager: ConnectionManager<MioSocket, VirtualConnection>,
+    net: Net,
+    io_stats: IoStats,
     poll: Poll,
     commands: Receiver<Command>,
-    events: tokio::sync::mpsc::Sender<Event>,
+    events: tokio::sync::mpsc::Sender<Vec<Event>>,
     stats: Arc<Mutex<DriverStats>>,
     emulators: HashMap<SocketAddr, (String, LinkEmulator)>,
     backlog: HashMap<u32, VecDeque<Vec<u8>>>,
@@ -460,9 +581,9 @@ fn hash_name(name: &str) -> u64 {
 impl Io {
     fn new(
         config: DriverConfig,
-        manager: ConnectionManager<MioSocket, VirtualConnection>,
+        net: Net,
         poll: Poll,
-        (commands, events): (Receiver<Command>, tokio::sync::mpsc::Sender<Event>),
+        (commands, events): (Receiver<Command>, tokio::sync::mpsc::Sender<Vec<Event>>),
         shared: IoShared,
     ) -> Self {
         let IoShared {
@@ -477,7 +598,8 @@ impl Io {
             seed: config.seed,
             sleeping,
             endpoint,
-            manager,
+            net,
+            io_stats: IoStats::default(),
             poll,
             commands,
             events,
@@ -574,11 +696,146 @@ impl Io {
             .map(|(n, e)| (n.clone(), e.stats()))
             .collect();
         s.refused_sends = self.refused_sends;
+        s.io = self.io_stats;
+    }
+
+    /// Feeds what the socket holds to the endpoint.
+    fn receive(&mut self, now: Instant) -> std::io::Result<()> {
+        let Io {
+            net,
+            endpoint,
+            io_stats,
+            filtered,
+            ..
+        } = self;
+        match net {
+            Net::Laminar(manager) => {
+                manager.manual_poll(now);
+                while let Ok(ev) = manager.event_receiver().try_recv() {
+                    if let SocketEvent::Packet(p) = ev {
+                        io_stats.datagrams_received += 1;
+                        endpoint.handle_datagram(now, p.addr(), p.payload());
+                    }
+                }
+            }
+            Net::Batched(b) => {
+                let mut dropped = 0;
+                b.unread = true;
+                for _ in 0..RECV_CALLS_PER_WAKE {
+                    match b.inbox.recv(&b.state, &b.socket, &mut dropped, |from, d| {
+                        endpoint.handle_datagram(now, from, d)
+                    }) {
+                        Ok(n) => {
+                            io_stats.recv_calls += 1;
+                            io_stats.datagrams_received += n as u64;
+                        }
+                        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                            b.unread = false;
+                            break;
+                        }
+                        Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                        // An ICMP error of an earlier send, or a peer gone: nothing to read.
+                        Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => {}
+                        Err(e) => return Err(e),
+                    }
+                }
+                filtered.fetch_add(dropped, Ordering::Relaxed);
+            }
+        }
+        Ok(())
+    }
+
+    /// Sends the outbox; on a full socket buffer, waits for writability.
+    fn flush(&mut self) -> std::io::Result<()> {
+        let Net::Batched(b) = &mut self.net else {
+            return Ok(());
+        };
+        let (done, result) = b.outbox.flush(b.state.max_gso_segments(), |t| {
+            b.state.try_send((&b.socket).into(), t)
+        });
+        self.io_stats.send_calls += done.calls;
+        self.io_stats.datagrams_sent += done.datagrams;
+        self.io_stats.send_errors += done.errors;
+        let blocked = result.is_err();
+        if blocked {
+            self.io_stats.send_blocked += 1;
+        }
+        if blocked != b.writable_wanted {
+            let interest = if blocked {
+                Interest::READABLE | Interest::WRITABLE
+            } else {
+                Interest::READABLE
+            };
+            self.poll
+                .registry()
+                .reregister(&mut b.socket, SOCKET, interest)?;
+            b.writable_wanted = blocked;
+        }
+        Ok(())
+    }
+
+    /// Moves what the endpoint and the emulators have to send towards the socket.
+    fn transmit(&mut self, now: Instant) -> std::io::Result<()> {
+        match &mut self.net {
+            Net::Laminar(manager) => {
+                let sender = manager.event_sender().clone();
+                while let Some((addr, datagram)) = self.endpoint.poll_transmit(now) {
+                    match self.emulators.get_mut(&addr) {
+                        Some((_, em)) => em.send(now, datagram),
+                        None => {
+                            self.io_stats.send_calls += 1;
+                            self.io_stats.datagrams_sent += 1;
+                            let _ = sender.send(Packet::unreliable(addr, datagram));
+                        }
+                    }
+                }
+                for (addr, (_, em)) in self.emulators.iter_mut() {
+                    while let Some(d) = em.poll(now) {
+                        self.io_stats.send_calls += 1;
+                        self.io_stats.datagrams_sent += 1;
+                        let _ = sender.send(Packet::unreliable(*addr, d));
+                    }
+                }
+                manager.manual_poll(now);
+                Ok(())
+            }
+            Net::Batched(_) => {
+                loop {
+                    let Net::Batched(b) = &mut self.net else {
+                        unreachable!()
+                    };
+                    if b.writable_wanted {
+                        // The socket is full: what is not made yet waits in the endpoint.
+                        return Ok(());
+                    }
+                    let (start, buf) = b.outbox.begin();
+                    match self.endpoint.poll_transmit_into(now, buf) {
+                        None => {
+                            b.outbox.abort(start);
+                            break;
+                        }
+                        Some(to) => match self.emulators.get_mut(&to) {
+                            Some((_, em)) => em.send(now, b.outbox.take(start)),
+                            None => b.outbox.commit(to, start),
+                        },
+                    }
+                    if b.outbox.len() >= OUTBOX_FLUSH_AT {
+                        self.flush()?;
+                    }
+                }
+                if let Net::Batched(b) = &mut self.net {
+                    for (addr, (_, em)) in self.emulators.iter_mut() {
+                        while let Some(d) = em.poll(now) {
+                            b.outbox.push(*addr, &d);
+                        }
+                    }
+                }
+                self.flush()
+            }
+        }
     }
 
     fn run(&mut self) -> std::io::Result<()> {
-        let sender = self.manager.event_sender().clone();
-        let receiver = self.manager.event_receiver().clone();
         let mut events = Events::with_capacity(64);
         let mut last_publish = Instant::now();
         loop {
@@ -598,43 +855,22 @@ impl Io {
             if self.aborted {
                 return Ok(());
             }
-            self.manager.manual_poll(now);
-            while let Ok(ev) = receiver.try_recv() {
-                if let SocketEvent::Packet(p) = ev {
-                    self.endpoint.handle_datagram(now, p.addr(), p.payload());
-                }
-            }
+            self.receive(now)?;
             self.endpoint.handle_timeout(now);
             self.flush_backlog();
-            while let Some((addr, datagram)) = self.endpoint.poll_transmit(now) {
-                match self.emulators.get_mut(&addr) {
-                    Some((_, em)) => em.send(now, datagram),
-                    None => {
-                        let _ = sender.send(Packet::unreliable(addr, datagram));
-                    }
-                }
-            }
-            for (addr, (_, em)) in self.emulators.iter_mut() {
-                while let Some(d) = em.poll(now) {
-                    let _ = sender.send(Packet::unreliable(*addr, d));
-                }
-            }
-            self.manager.manual_poll(now);
+            self.transmit(now)?;
             while let Some(e) = self.endpoint.poll_event() {
                 self.pending_events.push_back(e);
             }
-            while let Some(e) = self.pending_events.pop_front() {
-                match self.events.try_send(e) {
-                    Ok(()) => {}
-                    Err(tokio::sync::mpsc::error::TrySendError::Full(e)) => {
-                        self.pending_events.push_front(e);
-                        break;
-                    }
-                    Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
+            while !self.pending_events.is_empty() {
+                let n = self.pending_events.len().min(EVENT_BATCH);
+                let Ok(permit) = self.events.try_reserve() else {
+                    if self.events.is_closed() {
                         self.pending_events.clear();
-                        break;
                     }
-                }
+                    break;
+                };
+                permit.send(self.pending_events.drain(..n).collect());
             }
             if now.duration_since(last_publish) >= Duration::from_millis(20) {
                 self.publish();
@@ -659,6 +895,9 @@ impl Io {
             });
             if !self.pending_events.is_empty() || self.closing.is_some() {
                 timeout = timeout.min(Duration::from_millis(1));
+            }
+            if matches!(&self.net, Net::Batched(b) if b.unread) {
+                timeout = Duration::ZERO;
             }
             timeout = timeout.min(Duration::from_millis(50));
             // Announce the sleep, then look once more: a command queued before the flag was

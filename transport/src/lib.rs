@@ -24,6 +24,7 @@ pub mod crypto;
 pub mod driver;
 pub mod emulator;
 pub mod endpoint;
+mod udp;
 pub mod wire;
 
 pub use driver::{Command, Commander, Driver, DriverConfig, DriverHandle, DriverStats};

@@ -224,10 +224,15 @@ fn short_str(out: &mut Vec<u8>, s: &str) {
 /// body (e.g. with [`Body::encode_into`]) and seals it.
 pub fn session_header(kind: u8, session: u64, pn: u64, body_bytes: usize) -> Vec<u8> {
     let mut out = Vec::with_capacity(SESSION_HEADER_BYTES + body_bytes + TAG_BYTES);
-    header(&mut out, kind);
+    session_header_into(&mut out, kind, session, pn);
+    out
+}
+
+/// Appends a session packet's header to `out`.
+pub fn session_header_into(out: &mut Vec<u8>, kind: u8, session: u64, pn: u64) {
+    header(out, kind);
     out.extend_from_slice(&session.to_le_bytes());
     out.extend_from_slice(&pn.to_le_bytes());
-    out
 }
 
 impl Body<'_> {
@@ -261,6 +266,12 @@ impl Body<'_> {
         let mut out = session_header(self.kind(), session, pn, size);
         self.encode_into(&mut out);
         out
+    }
+
+    /// Appends the whole untagged packet (header, then body) to `out`.
+    pub fn encode_onto(&self, out: &mut Vec<u8>, session: u64, pn: u64) {
+        session_header_into(out, self.kind(), session, pn);
+        self.encode_into(out);
     }
 
     /// Appends the body's bytes.

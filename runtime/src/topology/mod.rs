@@ -345,6 +345,10 @@ pub struct TransportSettings {
     /// Whether each peer link runs congestion control (pacing at the measured delivery rate;
     /// `pacing_mbps` caps it).
     pub congestion_control: bool,
+    /// Whether the socket moves many datagrams per system call (UDP GSO and GRO, packets
+    /// sealed in place) instead of one per call through laminar. Nodes on either path talk
+    /// to each other.
+    pub batched_io: bool,
 }
 
 impl Default for TransportSettings {
@@ -360,6 +364,7 @@ impl Default for TransportSettings {
             rejoin_timeout_s: 10.0,
             encrypt: true,
             congestion_control: true,
+            batched_io: true,
         }
     }
 }

@@ -137,6 +137,7 @@ pub(super) fn parse(file: &str, text: &str) -> (Topology, Vec<Diagnostic>) {
                 "rejoin_timeout_s",
                 "encrypt",
                 "congestion_control",
+                "batched_io",
             ],
         );
     }
@@ -247,6 +248,9 @@ fn transport(w: &mut Walker, t: &mut Tbl<'_, '_>) -> TransportSettings {
     }
     if let Some(v) = t.boolean(w, "congestion_control") {
         s.congestion_control = v.into_inner();
+    }
+    if let Some(v) = t.boolean(w, "batched_io") {
+        s.batched_io = v.into_inner();
     }
     if let Some(v) = bounded(
         w,

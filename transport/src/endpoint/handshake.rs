@@ -107,7 +107,8 @@ impl Endpoint {
             _ => return None,
         };
         let to = self.peers[p].addr;
-        Some(self.account(p, to, bytes))
+        self.account(p, to, bytes.len());
+        Some((to, bytes))
     }
 
     /// Forgets expired challenges and unconfirmed sessions of peer `p`.

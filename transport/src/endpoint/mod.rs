@@ -638,24 +638,44 @@ impl Endpoint {
         self.noise.flush(now);
     }
 
-    /// Seals a session body for peer `p` (`None` without a session).
-    fn seal(&mut self, p: usize, body: &Body<'_>) -> Option<Vec<u8>> {
+    /// Seals a session body for peer `p` onto the end of `out` (`false` without a session).
+    fn seal_onto(&mut self, p: usize, body: &Body<'_>, out: &mut Vec<u8>) -> bool {
         let peer = &mut self.peers[p];
-        let session = peer.session.as_ref()?;
+        let Some(session) = peer.session.as_ref() else {
+            return false;
+        };
         let pn = peer.send.take_pn();
-        let bytes = body.encode(session.secrets.id, pn);
-        Some(session.secrets.send.seal(pn, bytes, SESSION_HEADER_BYTES))
+        let start = out.len();
+        body.encode_onto(out, session.secrets.id, pn);
+        session
+            .secrets
+            .send
+            .seal_in(pn, out, start, SESSION_HEADER_BYTES);
+        true
     }
 
     /// Next datagram to send, if any may be sent at `now`.
     pub fn poll_transmit(&mut self, now: Instant) -> Option<(SocketAddr, Vec<u8>)> {
+        let mut out = Vec::new();
+        let to = self.poll_transmit_into(now, &mut out)?;
+        Some((to, out))
+    }
+
+    /// Appends the next datagram to send at `now` to `out` and returns where it goes; `out`
+    /// is untouched when there is none. Packets are encoded and sealed in place there, so a
+    /// driver that batches datagrams copies each payload once on its way to the socket.
+    pub fn poll_transmit_into(&mut self, now: Instant, out: &mut Vec<u8>) -> Option<SocketAddr> {
+        let start = out.len();
         while let Some(c) = self.control.pop_front() {
             match c {
-                Control::Raw(to, bytes) => return Some((to, bytes)),
+                Control::Raw(to, bytes) => {
+                    out.extend_from_slice(&bytes);
+                    return Some(to);
+                }
                 Control::Body(p, to, body) => {
-                    if let Some(bytes) = self.seal(p, &body) {
+                    if self.seal_onto(p, &body, out) {
                         let to = to.unwrap_or(self.peers[p].addr);
-                        return Some(self.account(p, to, bytes));
+                        return Some(self.account(p, to, out.len() - start));
                     }
                 }
             }
@@ -664,14 +684,15 @@ impl Endpoint {
             return None;
         }
         for p in 0..self.peers.len() {
-            if let Some(out) = self.poll_handshake(p, now) {
-                return Some(out);
+            if let Some((to, bytes)) = self.poll_handshake(p, now) {
+                out.extend_from_slice(&bytes);
+                return Some(to);
             }
             if self.peers[p].session.as_ref().is_none_or(|s| !s.confirmed) {
                 continue;
             }
             if let Some(ack) = recv::poll_ack(self, p, now) {
-                return self.seal_to_peer(p, &ack);
+                return self.seal_to_peer(p, &ack, out);
             }
             let peer = &mut self.peers[p];
             if now >= peer.ping_due {
@@ -680,28 +701,31 @@ impl Endpoint {
                 let ping = Body::Ping {
                     t_us: self.now_us(now),
                 };
-                return self.seal_to_peer(p, &ping);
+                return self.seal_to_peer(p, &ping, out);
             }
             if let Some(credit) = recv::poll_credit(self, p) {
-                return self.seal_to_peer(p, &credit);
+                return self.seal_to_peer(p, &credit, out);
             }
         }
         // Data last, round robin over peers.
         let n = self.peers.len();
         for k in 0..n {
             let p = (self.data_cursor() + k) % n;
-            if let Some(d) = send::poll_data(self, p, now) {
+            if send::poll_data(self, p, now, out) {
                 let to = self.peers[p].addr;
-                return Some(self.account(p, to, d));
+                return Some(self.account(p, to, out.len() - start));
             }
         }
         None
     }
 
-    fn seal_to_peer(&mut self, p: usize, body: &Body<'_>) -> Option<(SocketAddr, Vec<u8>)> {
-        let bytes = self.seal(p, body)?;
+    fn seal_to_peer(&mut self, p: usize, body: &Body<'_>, out: &mut Vec<u8>) -> Option<SocketAddr> {
+        let start = out.len();
+        if !self.seal_onto(p, body, out) {
+            return None;
+        }
         let to = self.peers[p].addr;
-        Some(self.account(p, to, bytes))
+        Some(self.account(p, to, out.len() - start))
     }
 
     fn data_cursor(&self) -> usize {
@@ -712,11 +736,11 @@ impl Endpoint {
             .sum::<usize>()
     }
 
-    fn account(&mut self, p: usize, to: SocketAddr, bytes: Vec<u8>) -> (SocketAddr, Vec<u8>) {
+    fn account(&mut self, p: usize, to: SocketAddr, bytes: usize) -> SocketAddr {
         let peer = &mut self.peers[p];
         peer.stats.packets_sent += 1;
-        peer.stats.wire_bytes_sent += bytes.len() as u64;
-        (to, bytes)
+        peer.stats.wire_bytes_sent += bytes as u64;
+        to
     }
 
     /// When the endpoint next needs [`Endpoint::handle_timeout`] or [`Endpoint::poll_transmit`].

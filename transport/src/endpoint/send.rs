@@ -305,8 +305,9 @@ fn burst(config: &EndpointConfig, rate: f64) -> f64 {
     (16.0 * config.max_packet_bytes as f64).max(rate * 0.002)
 }
 
-/// The next DATA packet for peer `p`, sealed, if the window and pacing allow one.
-pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec<u8>> {
+/// Appends the next DATA packet for peer `p` to `out`, sealed, if the window and pacing
+/// allow one; whether it did.
+pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant, out: &mut Vec<u8>) -> bool {
     let Endpoint {
         peers,
         send_edges,
@@ -320,9 +321,11 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
         up,
         ..
     } = &mut peers[p];
-    let session = session.as_ref()?;
+    let Some(session) = session.as_ref() else {
+        return false;
+    };
     if !*up || s.pending.is_empty() || !s.window_open(config, config.max_packet_bytes as u64) {
-        return None;
+        return false;
     }
     s.refill(config, now);
     let paced = s.pacing_rate(config).is_some();
@@ -339,7 +342,7 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
         let size = (DATA_OVERHEAD + payload.len()) as f64;
         if paced && s.tokens < size {
             s.pending.push_front((edge, seq, chunk, retransmit));
-            return None;
+            return false;
         }
         s.tokens -= size;
         s.last_sent = now;
@@ -356,15 +359,17 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
             chunk,
             payload,
         };
-        let bytes = session.secrets.send.seal(
-            pn,
-            body.encode(session.secrets.id, pn),
-            SESSION_HEADER_BYTES,
-        );
+        let start = out.len();
+        body.encode_onto(out, session.secrets.id, pn);
+        session
+            .secrets
+            .send
+            .seal_in(pn, out, start, SESSION_HEADER_BYTES);
+        let size = (out.len() - start) as u64;
         // App-limited: nothing else waits to go (the window and pacing allow more).
         let app_limited = s.pending.is_empty();
         let mark = s.cc.on_send(now, s.bytes_in_flight, app_limited);
-        s.bytes_in_flight += bytes.len() as u64;
+        s.bytes_in_flight += size;
         s.in_flight.insert(
             pn,
             Sent {
@@ -373,13 +378,13 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
                 chunk,
                 at: now,
                 retransmit,
-                size: bytes.len() as u64,
+                size,
                 mark,
             },
         );
         stats.data_packets_sent += 1;
         if let Some(e) = send_edges.get_mut(&edge) {
-            e.stats.wire_bytes += bytes.len() as u64;
+            e.stats.wire_bytes += size;
             if retransmit {
                 e.stats.retransmissions += 1;
             }
@@ -387,9 +392,9 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Vec
         if retransmit {
             stats.retransmissions += 1;
         }
-        return Some(bytes);
+        return true;
     }
-    None
+    false
 }
 
 /// An acknowledgement of packet-number ranges arrived from peer `p`.
