@@ -13,7 +13,7 @@
 //! endpoint, which holds the keys.
 
 /// Protocol version carried by every packet.
-pub const VERSION: u8 = 3;
+pub const VERSION: u8 = 4;
 const MAGIC: [u8; 2] = *b"CL";
 /// Bytes of the common header (magic, version, kind).
 pub const HEADER_BYTES: usize = 4;
@@ -27,6 +27,9 @@ pub const NONCE_BYTES: usize = 16;
 pub const DIGEST_BYTES: usize = 16;
 /// Bytes a DATA packet spends besides its payload.
 pub const DATA_OVERHEAD: usize = SESSION_HEADER_BYTES + 4 + 8 + 4 + 4 + TAG_BYTES;
+/// Bytes each chunk of a coalesced DATA packet ([`Body::Frames`]) spends besides its
+/// payload: edge, sequence, message length, chunk index and payload length.
+pub const FRAME_HEADER_BYTES: usize = 4 + 8 + 4 + 4 + 2;
 /// Most ranges one ACK carries. An ACK codes its ranges as QUIC's ACK frame does (RFC 9000
 /// §19.3): the largest number, then lengths and gaps as variable-length integers, 2 to 4 bytes
 /// a range at the losses a link sees; how many fit in one packet is [`ack_ranges_fitting`].
@@ -154,6 +157,13 @@ pub enum Body<'a> {
         /// Chunk bytes.
         payload: &'a [u8],
     },
+    /// Several chunks (of one or more messages and edges) in one packet: small messages
+    /// queued for a peer travel together. `raw` holds the frames as [`encode_frame`] writes
+    /// them; [`Body::decode`] has checked their framing, [`frames`] reads them.
+    Frames {
+        /// The encoded frames.
+        raw: &'a [u8],
+    },
     /// Packet numbers received, as inclusive ranges, highest first.
     Ack {
         /// The ranges.
@@ -204,6 +214,8 @@ const K_PONG: u8 = 14;
 const K_BYE: u8 = 15;
 const K_PATH_CHALLENGE: u8 = 16;
 const K_PATH_RESPONSE: u8 = 17;
+/// DATA with several chunks.
+pub const K_FRAMES: u8 = 18;
 
 fn header(out: &mut Vec<u8>, kind: u8) {
     out.extend_from_slice(&MAGIC);
@@ -240,6 +252,7 @@ impl Body<'_> {
     pub fn kind(&self) -> u8 {
         match self {
             Body::Data { .. } => K_DATA,
+            Body::Frames { .. } => K_FRAMES,
             Body::Ack { .. } => K_ACK,
             Body::Credit { .. } => K_CREDIT,
             Body::Ping { .. } => K_PING,
@@ -252,13 +265,14 @@ impl Body<'_> {
 
     /// Whether the receiver acknowledges packets of this kind.
     pub fn ack_eliciting(&self) -> bool {
-        matches!(self, Body::Data { .. })
+        matches!(self, Body::Data { .. } | Body::Frames { .. })
     }
 
     /// An unsealed session packet holding this body.
     pub fn encode(&self, session: u64, pn: u64) -> Vec<u8> {
         let size = match self {
             Body::Data { payload, .. } => 20 + payload.len(),
+            Body::Frames { raw } => raw.len(),
             Body::Ack { ranges } => ack_bytes(ranges),
             Body::Credit { grants } => 2 + 12 * grants.len(),
             _ => 8,
@@ -277,6 +291,7 @@ impl Body<'_> {
     /// Appends the body's bytes.
     pub fn encode_into(&self, out: &mut Vec<u8>) {
         match self {
+            Body::Frames { raw } => out.extend_from_slice(raw),
             Body::Data {
                 edge,
                 seq,
@@ -338,6 +353,17 @@ impl Body<'_> {
                     chunk,
                     payload: r.b,
                 });
+            }
+            K_FRAMES => {
+                let mut n = 0;
+                for f in frames(bytes) {
+                    f?;
+                    n += 1;
+                }
+                if n == 0 {
+                    return Err(WireError::Field("no frames"));
+                }
+                return Ok(Body::Frames { raw: bytes });
             }
             K_ACK => {
                 let n = r.varint()?;
@@ -555,6 +581,66 @@ impl<'a> Reader<'a> {
     }
 }
 
+/// One chunk of a coalesced DATA packet.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Frame<'a> {
+    /// Edge id.
+    pub edge: u32,
+    /// Message sequence on the edge.
+    pub seq: u64,
+    /// Total message length in bytes.
+    pub len: u32,
+    /// Chunk index within the message.
+    pub chunk: u32,
+    /// Chunk bytes.
+    pub payload: &'a [u8],
+}
+
+/// Appends one frame of a [`Body::Frames`] packet; `payload` is at most 65,535 bytes (a
+/// chunk is one packet's worth).
+pub fn encode_frame(out: &mut Vec<u8>, f: &Frame<'_>) {
+    let n = u16::try_from(f.payload.len()).expect("a chunk fits in one packet");
+    out.extend_from_slice(&f.edge.to_le_bytes());
+    out.extend_from_slice(&f.seq.to_le_bytes());
+    out.extend_from_slice(&f.len.to_le_bytes());
+    out.extend_from_slice(&f.chunk.to_le_bytes());
+    out.extend_from_slice(&n.to_le_bytes());
+    out.extend_from_slice(f.payload);
+}
+
+/// The frames of a [`Body::Frames`] packet, in order; a malformed one ends the walk with
+/// an error.
+pub fn frames(raw: &[u8]) -> impl Iterator<Item = Result<Frame<'_>, WireError>> + '_ {
+    let mut r = Reader { b: raw };
+    let mut failed = false;
+    std::iter::from_fn(move || {
+        if failed || r.b.is_empty() {
+            return None;
+        }
+        let frame = (|| {
+            let edge = r.u32()?;
+            let seq = r.u64()?;
+            let len = r.u32()?;
+            let chunk = r.u32()?;
+            let n = r.u16()? as usize;
+            if r.b.len() < n {
+                return Err(WireError::Truncated);
+            }
+            let (payload, rest) = r.b.split_at(n);
+            r.b = rest;
+            Ok(Frame {
+                edge,
+                seq,
+                len,
+                chunk,
+                payload,
+            })
+        })();
+        failed = frame.is_err();
+        Some(frame)
+    })
+}
+
 /// Decodes one datagram's framing (tags are checked by the endpoint).
 pub fn decode(datagram: &[u8]) -> Result<Packet<'_>, WireError> {
     if datagram.len() < HEADER_BYTES + TAG_BYTES {
@@ -587,7 +673,7 @@ pub fn decode(datagram: &[u8]) -> Result<Packet<'_>, WireError> {
             nonce_i: r.array()?,
             nonce_r: r.array()?,
         },
-        K_DATA..=K_PATH_RESPONSE => {
+        K_DATA..=K_FRAMES => {
             if content.len() < SESSION_HEADER_BYTES {
                 return Err(WireError::Truncated);
             }
@@ -637,6 +723,38 @@ mod tests {
             digest: [3; DIGEST_BYTES],
             epoch: 9,
         }
+    }
+
+    #[test]
+    fn coalesced_frames_round_trip_and_garbage_is_refused() {
+        let payloads: [&[u8]; 3] = [b"", b"abc", &[7; 600]];
+        let mut raw = Vec::new();
+        let sent: Vec<Frame<'_>> = payloads
+            .iter()
+            .enumerate()
+            .map(|(i, p)| Frame {
+                edge: i as u32,
+                seq: 10 + i as u64,
+                len: 5000,
+                chunk: i as u32 * 2,
+                payload: p,
+            })
+            .collect();
+        for f in &sent {
+            encode_frame(&mut raw, f);
+        }
+        assert_eq!(raw.len(), 3 * FRAME_HEADER_BYTES + 603);
+        body_round_trip(Body::Frames { raw: &raw });
+        let got: Vec<Frame<'_>> = frames(&raw).map(Result::unwrap).collect();
+        assert_eq!(got, sent);
+        // Truncated anywhere, or empty: refused.
+        for cut in [1, FRAME_HEADER_BYTES, raw.len() - 1] {
+            assert!(
+                Body::decode(K_FRAMES, &raw[..raw.len() - cut]).is_err(),
+                "cut {cut}"
+            );
+        }
+        assert!(Body::decode(K_FRAMES, &[]).is_err());
     }
 
     #[test]

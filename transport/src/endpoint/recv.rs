@@ -7,7 +7,7 @@ use std::time::Instant;
 use rangemap::RangeInclusiveSet;
 
 use super::{EdgeWireStats, Endpoint, Event};
-use crate::wire::{Body, MAX_ACK_RANGES};
+use crate::wire::{Body, Frame, MAX_ACK_RANGES};
 
 /// A receiving edge.
 pub(crate) struct RecvEdge {
@@ -108,108 +108,117 @@ impl RecvState {
     }
 }
 
-/// A DATA packet from peer `p`.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn on_data(
+/// Chunks of an authentic packet `pn` from peer `p` (one, or several coalesced): each is
+/// stored; the packet is acknowledged when every chunk was taken (a refused one is sent
+/// again, and those taken then count as duplicates).
+pub(crate) fn on_data<'a>(
     ep: &mut Endpoint,
     p: usize,
     now: Instant,
     pn: u64,
-    edge: u32,
-    seq: u64,
-    len: u32,
-    chunk: u32,
-    payload: &[u8],
+    frames: impl IntoIterator<Item = Frame<'a>>,
 ) {
+    let mut refused = false;
+    for f in frames {
+        if let Err(why) = take_chunk(ep, p, &f) {
+            refused = true;
+            let peer = &mut ep.peers[p];
+            peer.stats.refused += 1;
+            let name = peer.name.clone();
+            let (edge, seq) = (f.edge, f.seq);
+            ep.noise.note(now, "authentic DATA refused", || {
+                format!("from peer {name}: {why} (edge {edge}, sequence {seq})")
+            });
+        }
+    }
+    if !refused {
+        let state = &mut ep.peers[p].recv;
+        state.received.record(pn);
+        state.unacked += 1;
+        state.ack_due.get_or_insert(now + ep.config.ack_delay);
+    }
+}
+
+/// Stores one chunk; delivers the messages it completes, in order.
+fn take_chunk(ep: &mut Endpoint, p: usize, f: &Frame<'_>) -> Result<(), &'static str> {
     let Endpoint {
         peers,
         recv_edges,
         config,
         events,
-        noise,
         ..
     } = ep;
-    let peer = &mut peers[p];
-    let state = &mut peer.recv;
-    let result = (|| -> Result<(), &'static str> {
-        let e = recv_edges
-            .get_mut(&edge)
-            .filter(|e| e.peer == p)
-            .ok_or("unknown edge")?;
-        let len = len as usize;
-        if len > config.max_message_bytes {
-            return Err("message over the size bound");
-        }
-        let cb = config.chunk_bytes();
-        let chunks = len.div_ceil(cb).max(1);
-        let chunk = chunk as usize;
-        if chunk >= chunks {
-            return Err("chunk index out of range");
-        }
-        let start = chunk * cb;
-        let expect = len.saturating_sub(start).min(cb);
-        if payload.len() != expect {
-            return Err("chunk length mismatch");
-        }
-        if seq < e.next_seq || e.done.contains_key(&seq) {
-            return Ok(()); // a duplicate of something delivered or complete
-        }
-        if seq >= e.grant() {
-            return Err("sequence beyond the granted credit");
-        }
-        let part = match e.partial.entry(seq) {
-            std::collections::hash_map::Entry::Occupied(o) => o.into_mut(),
-            std::collections::hash_map::Entry::Vacant(v) => {
-                if state.reassembly_bytes + len > config.max_reassembly_bytes {
-                    return Err("reassembly bound reached");
-                }
-                state.reassembly_bytes += len;
-                v.insert(Partial {
-                    buf: vec![0; len],
-                    got: vec![false; chunks],
-                    remaining: chunks as u32,
-                })
+    let state = &mut peers[p].recv;
+    let Frame {
+        edge,
+        seq,
+        len,
+        chunk,
+        payload,
+    } = *f;
+    let e = recv_edges
+        .get_mut(&edge)
+        .filter(|e| e.peer == p)
+        .ok_or("unknown edge")?;
+    let len = len as usize;
+    if len > config.max_message_bytes {
+        return Err("message over the size bound");
+    }
+    let cb = config.chunk_bytes();
+    let chunks = len.div_ceil(cb).max(1);
+    let chunk = chunk as usize;
+    if chunk >= chunks {
+        return Err("chunk index out of range");
+    }
+    let start = chunk * cb;
+    let expect = len.saturating_sub(start).min(cb);
+    if payload.len() != expect {
+        return Err("chunk length mismatch");
+    }
+    if seq < e.next_seq || e.done.contains_key(&seq) {
+        return Ok(()); // a duplicate of something delivered or complete
+    }
+    if seq >= e.grant() {
+        return Err("sequence beyond the granted credit");
+    }
+    let part = match e.partial.entry(seq) {
+        std::collections::hash_map::Entry::Occupied(o) => o.into_mut(),
+        std::collections::hash_map::Entry::Vacant(v) => {
+            if state.reassembly_bytes + len > config.max_reassembly_bytes {
+                return Err("reassembly bound reached");
             }
-        };
-        if part.buf.len() != len {
-            return Err("message length changed between chunks");
+            state.reassembly_bytes += len;
+            v.insert(Partial {
+                buf: vec![0; len],
+                got: vec![false; chunks],
+                remaining: chunks as u32,
+            })
         }
-        if !part.got[chunk] {
-            part.got[chunk] = true;
-            part.remaining -= 1;
-            part.buf[start..start + expect].copy_from_slice(payload);
-        }
-        if part.remaining == 0 {
-            let part = e.partial.remove(&seq).expect("present");
-            state.reassembly_bytes -= len;
-            e.done.insert(seq, part.buf);
-            while let Some(bytes) = e.done.remove(&e.next_seq) {
-                events.push_back(Event::Message {
-                    edge,
-                    seq: e.next_seq,
-                    bytes,
-                });
-                e.next_seq += 1;
-                e.stats.messages += 1;
-            }
-        }
-        e.stats.wire_bytes += (payload.len() + crate::wire::DATA_OVERHEAD) as u64;
-        Ok(())
-    })();
-    match result {
-        Ok(()) => {
-            state.received.record(pn);
-            state.unacked += 1;
-            state.ack_due.get_or_insert(now + config.ack_delay);
-        }
-        Err(why) => {
-            peer.stats.refused += 1;
-            let name = peer.name.clone();
-            noise.note(now, "authentic DATA refused", || {
-                format!("from peer {name}: {why} (edge {edge}, sequence {seq})")
+    };
+    if part.buf.len() != len {
+        return Err("message length changed between chunks");
+    }
+    if !part.got[chunk] {
+        part.got[chunk] = true;
+        part.remaining -= 1;
+        part.buf[start..start + expect].copy_from_slice(payload);
+    }
+    if part.remaining == 0 {
+        let part = e.partial.remove(&seq).expect("present");
+        state.reassembly_bytes -= len;
+        e.done.insert(seq, part.buf);
+        while let Some(bytes) = e.done.remove(&e.next_seq) {
+            events.push_back(Event::Message {
+                edge,
+                seq: e.next_seq,
+                bytes,
             });
+            e.next_seq += 1;
+            e.stats.messages += 1;
         }
     }
+    e.stats.wire_bytes += (payload.len() + crate::wire::DATA_OVERHEAD) as u64;
+    Ok(())
 }
 
 /// An ACK for peer `p` when one is due.

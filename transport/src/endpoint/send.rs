@@ -15,7 +15,10 @@ use std::time::{Duration, Instant};
 
 use super::cc::{Bbr, SendMark};
 use super::{EdgeWireStats, Endpoint, EndpointConfig, Event, Peer};
-use crate::wire::{Body, DATA_OVERHEAD, SESSION_HEADER_BYTES};
+use crate::wire::{
+    Body, DATA_OVERHEAD, FRAME_HEADER_BYTES, Frame, K_FRAMES, SESSION_HEADER_BYTES, TAG_BYTES,
+    encode_frame, session_header_into,
+};
 
 /// A sending edge: its credit and counters.
 pub(crate) struct SendEdge {
@@ -55,10 +58,12 @@ struct OutMsg {
     remaining: u32,
 }
 
+/// A chunk: (edge, message sequence, chunk index).
+type ChunkId = (u32, u64, u32);
+
 struct Sent {
-    edge: u32,
-    seq: u64,
-    chunk: u32,
+    /// The chunks it carries, in order (several when small messages were coalesced).
+    chunks: Vec<ChunkId>,
     at: Instant,
     retransmit: bool,
     /// Bytes on the wire.
@@ -177,8 +182,9 @@ impl SendState {
         self.bytes_in_flight = 0;
         let in_flight = std::mem::take(&mut self.in_flight);
         for sent in in_flight.into_values().rev() {
-            self.pending
-                .push_front((sent.edge, sent.seq, sent.chunk, true));
+            for &(edge, seq, chunk) in sent.chunks.iter().rev() {
+                self.pending.push_front((edge, seq, chunk, true));
+            }
         }
     }
 
@@ -305,8 +311,24 @@ fn burst(config: &EndpointConfig, rate: f64) -> f64 {
     (16.0 * config.max_packet_bytes as f64).max(rate * 0.002)
 }
 
+/// The next chunk worth sending: pops entries of chunks already acknowledged or of
+/// messages gone, and returns the first live one without popping it.
+fn next_live(s: &mut SendState) -> Option<(u32, u64, u32, bool)> {
+    while let Some(&(edge, seq, chunk, retransmit)) = s.pending.front() {
+        match s.msgs.get(&(edge, seq)) {
+            Some(m) if !m.acked[chunk as usize] => return Some((edge, seq, chunk, retransmit)),
+            _ => {
+                s.pending.pop_front();
+            }
+        }
+    }
+    None
+}
+
 /// Appends the next DATA packet for peer `p` to `out`, sealed, if the window and pacing
-/// allow one; whether it did.
+/// allow one; whether it did. When the first chunk leaves room, the chunks queued behind it
+/// that fit go in the same packet, in order (a [`Body::Frames`] packet): small messages
+/// travel many to a packet instead of one each.
 pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant, out: &mut Vec<u8>) -> bool {
     let Endpoint {
         peers,
@@ -330,71 +352,117 @@ pub(crate) fn poll_data(ep: &mut Endpoint, p: usize, now: Instant, out: &mut Vec
     s.refill(config, now);
     let paced = s.pacing_rate(config).is_some();
     let cb = config.chunk_bytes();
-    while let Some((edge, seq, chunk, retransmit)) = s.pending.pop_front() {
-        let Some(msg) = s.msgs.get(&(edge, seq)) else {
-            continue;
+    let chunk_len = |s: &SendState, (edge, seq, chunk): ChunkId| {
+        let len = s.msgs[&(edge, seq)].data.len();
+        len.saturating_sub(chunk as usize * cb).min(cb)
+    };
+    let Some((edge, seq, chunk, first_retransmit)) = next_live(s) else {
+        return false;
+    };
+    // Which chunks go: the first, then those behind it that fit in the packet.
+    let budget = config.max_packet_bytes - (SESSION_HEADER_BYTES + TAG_BYTES);
+    let mut chunks = vec![(edge, seq, chunk)];
+    let mut marks = vec![first_retransmit];
+    let mut used = FRAME_HEADER_BYTES + chunk_len(s, (edge, seq, chunk));
+    s.pending.pop_front();
+    while used + FRAME_HEADER_BYTES < budget {
+        let Some((e, q, c, r)) = next_live(s) else {
+            break;
         };
-        if msg.acked[chunk as usize] {
-            continue;
+        let n = FRAME_HEADER_BYTES + chunk_len(s, (e, q, c));
+        if used + n > budget {
+            break;
         }
-        let start = chunk as usize * cb;
-        let payload = &msg.data[start..(start + cb).min(msg.data.len())];
-        let size = (DATA_OVERHEAD + payload.len()) as f64;
-        if paced && s.tokens < size {
-            s.pending.push_front((edge, seq, chunk, retransmit));
-            return false;
+        s.pending.pop_front();
+        chunks.push((e, q, c));
+        marks.push(r);
+        used += n;
+    }
+    let retransmit = marks.iter().any(|&r| r);
+    let size = if chunks.len() == 1 {
+        DATA_OVERHEAD + used - FRAME_HEADER_BYTES
+    } else {
+        SESSION_HEADER_BYTES + TAG_BYTES + used
+    };
+    if paced && s.tokens < size as f64 {
+        for (&(e, q, c), &r) in chunks.iter().zip(&marks).rev() {
+            s.pending.push_front((e, q, c, r));
         }
-        s.tokens -= size;
-        s.last_sent = now;
-        if s.data_idle {
-            s.data_idle = false;
-            s.data_progress = now;
-        }
-        let pn = s.next_pn;
-        s.next_pn += 1;
+        return false;
+    }
+    s.tokens -= size as f64;
+    s.last_sent = now;
+    if s.data_idle {
+        s.data_idle = false;
+        s.data_progress = now;
+    }
+    let pn = s.next_pn;
+    s.next_pn += 1;
+    let start = out.len();
+    let payload_of = |(edge, seq, chunk): ChunkId| {
+        let data = &s.msgs[&(edge, seq)].data;
+        let at = chunk as usize * cb;
+        (data.len() as u32, &data[at..(at + cb).min(data.len())])
+    };
+    if let [(edge, seq, chunk)] = chunks[..] {
+        let (len, payload) = payload_of((edge, seq, chunk));
         let body = Body::Data {
             edge,
             seq,
-            len: msg.data.len() as u32,
+            len,
             chunk,
             payload,
         };
-        let start = out.len();
         body.encode_onto(out, session.secrets.id, pn);
-        session
-            .secrets
-            .send
-            .seal_in(pn, out, start, SESSION_HEADER_BYTES);
-        let size = (out.len() - start) as u64;
-        // App-limited: nothing else waits to go (the window and pacing allow more).
-        let app_limited = s.pending.is_empty();
-        let mark = s.cc.on_send(now, s.bytes_in_flight, app_limited);
-        s.bytes_in_flight += size;
-        s.in_flight.insert(
-            pn,
-            Sent {
+    } else {
+        session_header_into(out, K_FRAMES, session.secrets.id, pn);
+        for &(edge, seq, chunk) in &chunks {
+            let (len, payload) = payload_of((edge, seq, chunk));
+            let frame = Frame {
                 edge,
                 seq,
+                len,
                 chunk,
-                at: now,
-                retransmit,
-                size,
-                mark,
-            },
-        );
-        stats.data_packets_sent += 1;
-        if let Some(e) = send_edges.get_mut(&edge) {
-            e.stats.wire_bytes += size;
+                payload,
+            };
+            encode_frame(out, &frame);
+        }
+    }
+    session
+        .secrets
+        .send
+        .seal_in(pn, out, start, SESSION_HEADER_BYTES);
+    let size = (out.len() - start) as u64;
+    // App-limited: nothing else waits to go (the window and pacing allow more).
+    let app_limited = s.pending.is_empty();
+    let mark = s.cc.on_send(now, s.bytes_in_flight, app_limited);
+    s.bytes_in_flight += size;
+    stats.data_packets_sent += 1;
+    if retransmit {
+        stats.retransmissions += 1;
+    }
+    // Each edge is charged its frames; the packet's own header and tag go to the first.
+    let mut overhead = size.saturating_sub(used as u64);
+    for &id in &chunks {
+        let frame = (FRAME_HEADER_BYTES + payload_of(id).1.len()) as u64;
+        if let Some(e) = send_edges.get_mut(&id.0) {
+            e.stats.wire_bytes += frame + std::mem::take(&mut overhead);
             if retransmit {
                 e.stats.retransmissions += 1;
             }
         }
-        if retransmit {
-            stats.retransmissions += 1;
-        }
-        return true;
     }
-    false
+    s.in_flight.insert(
+        pn,
+        Sent {
+            chunks,
+            at: now,
+            retransmit,
+            size,
+            mark,
+        },
+    );
+    true
 }
 
 /// An acknowledgement of packet-number ranges arrived from peer `p`.
@@ -418,17 +486,16 @@ pub(crate) fn on_ack(ep: &mut Endpoint, p: usize, now: Instant, ranges: &[(u64, 
             if newest.is_none_or(|(n, ..)| pn > n) {
                 newest = Some((pn, sent.at, sent.retransmit, sent.mark));
             }
-            if let Some(msg) = s.msgs.get_mut(&(sent.edge, sent.seq))
-                && !msg.acked[sent.chunk as usize]
-            {
-                msg.acked[sent.chunk as usize] = true;
-                msg.remaining -= 1;
-                if msg.remaining == 0 {
-                    s.msgs.remove(&(sent.edge, sent.seq));
-                    events.push_back(Event::Delivered {
-                        edge: sent.edge,
-                        seq: sent.seq,
-                    });
+            for (edge, seq, chunk) in sent.chunks {
+                if let Some(msg) = s.msgs.get_mut(&(edge, seq))
+                    && !msg.acked[chunk as usize]
+                {
+                    msg.acked[chunk as usize] = true;
+                    msg.remaining -= 1;
+                    if msg.remaining == 0 {
+                        s.msgs.remove(&(edge, seq));
+                        events.push_back(Event::Delivered { edge, seq });
+                    }
                 }
             }
         }
@@ -474,12 +541,13 @@ pub(crate) fn detect_losses(ep: &mut Endpoint, p: usize, now: Instant) {
     for pn in lost.into_iter().rev() {
         let sent = s.in_flight.remove(&pn).expect("listed above");
         s.bytes_in_flight -= sent.size;
-        if s.msgs
-            .get(&(sent.edge, sent.seq))
-            .is_some_and(|m| !m.acked[sent.chunk as usize])
-        {
-            s.pending
-                .push_front((sent.edge, sent.seq, sent.chunk, true));
+        for &(edge, seq, chunk) in sent.chunks.iter().rev() {
+            if s.msgs
+                .get(&(edge, seq))
+                .is_some_and(|m| !m.acked[chunk as usize])
+            {
+                s.pending.push_front((edge, seq, chunk, true));
+            }
         }
     }
 }

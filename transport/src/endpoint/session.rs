@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use rand::RngExt;
 
 use super::{Control, Endpoint, Event, PathProbe, recv, send};
-use crate::wire::{self, Body, SESSION_HEADER_BYTES};
+use crate::wire::{self, Body, Frame, SESSION_HEADER_BYTES, frames};
 
 impl Endpoint {
     /// A session packet: find its session, refuse replays, check its tag, then obey it.
@@ -154,7 +154,18 @@ impl Endpoint {
                 len,
                 chunk,
                 payload,
-            } => recv::on_data(self, p, now, pn, edge, seq, len, chunk, payload),
+            } => {
+                let frame = Frame {
+                    edge,
+                    seq,
+                    len,
+                    chunk,
+                    payload,
+                };
+                recv::on_data(self, p, now, pn, [frame])
+            }
+            // Checked by `Body::decode`: every frame is well formed.
+            Body::Frames { raw } => recv::on_data(self, p, now, pn, frames(raw).flatten()),
             other => {
                 self.peers[p].recv.record(pn);
                 self.obey_control(now, p, other);
@@ -199,7 +210,7 @@ impl Endpoint {
                 let reply = Body::PathResponse { token };
                 self.control.push_back(Control::Body(p, None, reply));
             }
-            Body::PathResponse { .. } | Body::Data { .. } => {}
+            Body::PathResponse { .. } | Body::Data { .. } | Body::Frames { .. } => {}
         }
     }
 }
