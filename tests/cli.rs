@@ -267,6 +267,39 @@ fn bench_transport_judges_nothing_it_did_not_receive() {
 }
 
 #[test]
+fn bench_transport_fans_out_to_clients_and_answers_requests() {
+    let dir = tempfile::tempdir().unwrap();
+    for (pattern, count) in [("bulk", 200), ("request-response", 50)] {
+        let json = dir.path().join(format!("{pattern}.json"));
+        let out = cloudlight()
+            .args(["bench", "transport", "--pattern", pattern, "--clients", "3"])
+            .args([
+                "--size",
+                "700",
+                "--count",
+                &count.to_string(),
+                "--loss",
+                "0.05",
+            ])
+            .args(["--rtt-rounds", "5", "--no-baseline", "--json"])
+            .arg(&json)
+            .output()
+            .unwrap();
+        ok(&out);
+        let r = read_json(&json);
+        assert_eq!(r["delivered"], 3 * count, "{pattern}: {r}");
+        assert_eq!(r["byte_identical"], true, "{pattern}: {r}");
+        assert_eq!(r["in_order"], true, "{pattern}: {r}");
+        let per_client = r["client_goodput_mb_s"].as_array().unwrap();
+        assert_eq!(per_client.len(), 3, "{pattern}: {r}");
+        assert!(per_client.iter().all(|g| g.as_f64().unwrap() > 0.0));
+        assert!(
+            r["completion_ms_p99"].as_f64().unwrap() >= r["completion_ms_p50"].as_f64().unwrap()
+        );
+    }
+}
+
+#[test]
 fn bench_transport_reports_an_intact_transfer_through_a_lossy_link() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("bench.json");

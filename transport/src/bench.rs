@@ -3,12 +3,14 @@
 //! the ceiling. Users run it to qualify a link profile; it reports whether every message
 //! arrived byte-identical and in order, goodput, retransmissions and message round trips.
 
+use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::driver::{Command, Driver, DriverConfig, DriverHandle};
+use crate::driver::{Command, Driver, DriverConfig, DriverHandle, EventReceiver};
 use crate::emulator::LinkProfile;
 use crate::endpoint::{EdgeDirection, EndpointConfig, Event};
 
@@ -40,6 +42,23 @@ pub struct BenchOptions {
     pub encrypt: bool,
     /// Congestion control on the link.
     pub congestion_control: bool,
+    /// What the traffic looks like.
+    pub pattern: Pattern,
+    /// Receivers (each its own node and socket); the sender fans out to all of them.
+    pub clients: usize,
+}
+
+/// The bench's traffic.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Pattern {
+    /// One sender streams `count` messages to every client as fast as credit allows; then
+    /// `rtt_rounds` round trips with the first client.
+    #[default]
+    Bulk,
+    /// Every client sends `count` requests, one at a time, each answered by an echo of the
+    /// same size: a message's completion is its round trip.
+    RequestResponse,
 }
 
 impl Default for BenchOptions {
@@ -57,6 +76,8 @@ impl Default for BenchOptions {
             udp_baseline: true,
             encrypt: true,
             congestion_control: true,
+            pattern: Pattern::Bulk,
+            clients: 1,
         }
     }
 }
@@ -66,11 +87,13 @@ impl Default for BenchOptions {
 pub struct BenchReport {
     /// The options.
     pub options: BenchOptions,
-    /// Messages sent in the bulk phase.
+    /// Messages sent in the bulk phase (all clients; request-response: answers sent).
     pub sent: usize,
-    /// Messages delivered in the bulk phase.
+    /// Messages delivered in the bulk phase (all clients; request-response: answers
+    /// received).
     pub delivered: usize,
-    /// Whether every one of `count` messages was delivered within the time limit.
+    /// Whether every one of `count` messages (per client) was delivered within the time
+    /// limit.
     pub complete: bool,
     /// Whether every delivered message equals what was sent (`None`: none arrived, nothing
     /// to judge).
@@ -99,6 +122,9 @@ pub struct BenchReport {
     pub rtt_p50_us: f64,
     /// 99th percentile message round trip, microseconds.
     pub rtt_p99_us: f64,
+    /// Goodput of each client, MB/s (bulk: what it received; request-response: its
+    /// answers).
+    pub client_goodput_mb_s: Vec<f64>,
     /// Plain UDP blast of the same bytes (at least 32 MiB) in datagrams of the same size, MB/s.
     pub udp_blast_mb_s: Option<f64>,
     /// goodput / UDP blast.
@@ -164,214 +190,407 @@ fn start(name: &str, incarnation: u64, opts: &BenchOptions) -> std::io::Result<D
     Driver::start(d)
 }
 
-/// One end of the round-trip phase: its driver, events and the credit of its sending edge.
-struct Side<'a> {
-    handle: &'a DriverHandle,
-    events: &'a mut crate::driver::EventReceiver,
-    granted: u64,
-    sent: u64,
+/// Edge ids of client `i`: from the sender to it, and back.
+fn edges(i: usize) -> (u32, u32) {
+    (1 + 2 * i as u32, 2 + 2 * i as u32)
 }
 
-impl Side<'_> {
-    fn credit(&mut self, edge: u32, event: &Event) {
-        if let Event::Credit { edge: e, granted } = *event
-            && e == edge
-        {
-            self.granted = self.granted.max(granted);
+/// One end of a link: its driver, events and the credit of its sending edges.
+struct Side {
+    handle: DriverHandle,
+    events: EventReceiver,
+    granted: HashMap<u32, u64>,
+    sent: HashMap<u32, u64>,
+}
+
+impl Side {
+    fn new(mut handle: DriverHandle) -> Self {
+        let events = handle.take_events();
+        Side {
+            handle,
+            events,
+            granted: HashMap::new(),
+            sent: HashMap::new(),
         }
     }
 
+    fn credit(&mut self, event: &Event) {
+        if let Event::Credit { edge, granted } = *event {
+            let g = self.granted.entry(edge).or_default();
+            *g = (*g).max(granted);
+        }
+    }
+
+    fn has_credit(&self, edge: u32) -> bool {
+        self.sent.get(&edge).copied().unwrap_or(0) < self.granted.get(&edge).copied().unwrap_or(0)
+    }
+
     async fn next(&mut self) -> Result<Event, String> {
-        self.events
+        let e = self
+            .events
             .recv()
             .await
-            .ok_or_else(|| "transport driver stopped".to_string())
+            .ok_or_else(|| "transport driver stopped".to_string())?;
+        self.credit(&e);
+        Ok(e)
     }
 
     async fn wait_credit(&mut self, edge: u32) -> Result<(), String> {
-        while self.sent >= self.granted {
-            let e = self.next().await?;
-            self.credit(edge, &e);
+        while !self.has_credit(edge) {
+            self.next().await?;
         }
         Ok(())
     }
 
     async fn send(&mut self, edge: u32, bytes: Vec<u8>) -> Result<(), String> {
-        self.sent += 1;
+        *self.sent.entry(edge).or_default() += 1;
         self.handle
             .command(Command::Send { edge, bytes })
             .await
             .map_err(|e| e.to_string())
     }
 
-    /// Waits for a message on `edge` (keeping track of credit on `sending`) and releases it.
-    async fn receive(&mut self, edge: u32, sending: u32) -> Result<Vec<u8>, String> {
+    /// Waits for a message on `edge` and releases it.
+    async fn receive(&mut self, edge: u32) -> Result<(u64, Vec<u8>), String> {
         loop {
-            match self.next().await? {
-                Event::Message { edge: e, bytes, .. } if e == edge => {
-                    self.handle
-                        .command(Command::Release { edge, n: 1 })
-                        .await
-                        .map_err(|e| e.to_string())?;
-                    return Ok(bytes);
-                }
-                other => self.credit(sending, &other),
+            if let Event::Message {
+                edge: e,
+                seq,
+                bytes,
+            } = self.next().await?
+                && e == edge
+            {
+                self.release(edge, 1).await?;
+                return Ok((seq, bytes));
             }
         }
     }
+
+    async fn release(&self, edge: u32, n: u64) -> Result<(), String> {
+        self.handle
+            .command(Command::Release { edge, n })
+            .await
+            .map_err(|e| e.to_string())
+    }
+}
+
+/// What one client saw.
+#[derive(Default)]
+struct ClientTally {
+    delivered: usize,
+    identical: bool,
+    in_order: bool,
+    /// Completion time of each message (bulk: handed over to delivered; request-response:
+    /// the round trip).
+    completions: Vec<Duration>,
+    last: Option<Instant>,
+}
+
+/// Starts the sender ("a") and the clients ("b0", "b1", ...), declares them to each other
+/// and opens each client's two edges.
+async fn cluster(opts: &BenchOptions) -> Result<(Side, Vec<Side>), String> {
+    let io = |e: std::io::Error| e.to_string();
+    let closed = |_| "transport driver stopped".to_string();
+    let a = start("a", 1, opts).map_err(io)?;
+    let mut clients = Vec::with_capacity(opts.clients);
+    for i in 0..opts.clients {
+        clients.push(start(&format!("b{i}"), 2 + i as u64, opts).map_err(io)?);
+    }
+    for (i, b) in clients.iter().enumerate() {
+        let name = format!("b{i}");
+        let (down, up) = edges(i);
+        // The client first: a starts its handshake as soon as it knows the client.
+        b.command(Command::AddPeer {
+            name: "a".into(),
+            addr: a.local_addr(),
+            link: opts.link,
+        })
+        .await
+        .map_err(closed)?;
+        a.command(Command::AddPeer {
+            name: name.clone(),
+            addr: b.local_addr(),
+            link: opts.link,
+        })
+        .await
+        .map_err(closed)?;
+        for (h, peer, out, inp) in [(&a, name.as_str(), down, up), (b, "a", up, down)] {
+            for (edge, direction) in [(out, EdgeDirection::Send), (inp, EdgeDirection::Receive)] {
+                h.command(Command::OpenEdge {
+                    edge,
+                    peer: peer.into(),
+                    direction,
+                    capacity: opts.capacity,
+                })
+                .await
+                .map_err(closed)?;
+            }
+        }
+    }
+    let mut a = Side::new(a);
+    let clients: Vec<Side> = clients.into_iter().map(Side::new).collect();
+    for i in 0..opts.clients {
+        let (down, _) = edges(i);
+        a.granted.insert(down, opts.capacity);
+    }
+    Ok((a, clients))
+}
+
+/// Bulk: `a` sends `count` messages to every client within each edge's credit; each client
+/// checks, times and releases what arrives. Returns the sender and each client's tally.
+async fn bulk(
+    opts: &BenchOptions,
+    mut a: Side,
+    clients: Vec<Side>,
+    patterns: Arc<Patterns>,
+    deadline: tokio::time::Instant,
+) -> Result<(Side, Vec<(Side, ClientTally)>), String> {
+    let n = clients.len();
+    // When the sender handed message `seq` to client `i`'s edge.
+    let handed: Arc<Vec<Mutex<Vec<Instant>>>> = Arc::new(
+        (0..n)
+            .map(|_| Mutex::new(Vec::with_capacity(opts.count)))
+            .collect(),
+    );
+    let mut tasks = Vec::with_capacity(n);
+    for (i, mut b) in clients.into_iter().enumerate() {
+        let (down, _) = edges(i);
+        let (patterns, handed, count) = (patterns.clone(), handed.clone(), opts.count);
+        tasks.push(tokio::spawn(async move {
+            let mut t = ClientTally {
+                identical: true,
+                in_order: true,
+                ..Default::default()
+            };
+            let run = async {
+                while t.delivered < count {
+                    // Take everything already waiting, then release it with one command.
+                    let mut next = Some(b.next().await?);
+                    let mut released = 0;
+                    while let Some(e) = next {
+                        if let Event::Message { edge, seq, bytes } = e
+                            && edge == down
+                        {
+                            let now = Instant::now();
+                            t.in_order &= seq == t.delivered as u64;
+                            t.identical &= patterns.matches(seq, &bytes);
+                            t.delivered += 1;
+                            t.last = Some(now);
+                            released += 1;
+                            let at = handed[i].lock().unwrap_or_else(|e| e.into_inner());
+                            if let Some(h) = at.get(seq as usize) {
+                                t.completions.push(now.duration_since(*h));
+                            }
+                        }
+                        next = b.events.try_recv().ok();
+                        if let Some(e) = &next {
+                            b.credit(e);
+                        }
+                    }
+                    if released > 0 {
+                        b.release(down, released).await?;
+                    }
+                }
+                Ok::<(), String>(())
+            };
+            let r = tokio::time::timeout_at(deadline, run).await;
+            match r {
+                Ok(Err(e)) => Err(e),
+                _ => Ok((b, t)),
+            }
+        }));
+    }
+    // The sender: round robin over the clients' edges, as far as each one's credit goes.
+    let mut sent = vec![0usize; n];
+    let send_all = async {
+        while sent.iter().any(|&k| k < opts.count) {
+            let mut progressed = false;
+            for (i, k) in sent.iter_mut().enumerate() {
+                let (down, _) = edges(i);
+                while *k < opts.count && a.has_credit(down) {
+                    a.send(down, patterns.make(*k as u64)).await?;
+                    handed[i]
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .push(Instant::now());
+                    *k += 1;
+                    progressed = true;
+                }
+            }
+            if !progressed {
+                a.next().await?;
+            }
+        }
+        Ok::<(), String>(())
+    };
+    if let Ok(r) = tokio::time::timeout_at(deadline, send_all).await {
+        r?;
+    }
+    let mut out = Vec::with_capacity(n);
+    for t in tasks {
+        out.push(t.await.map_err(|e| e.to_string())??);
+    }
+    Ok((a, out))
+}
+
+/// Request-response: every client sends `count` requests, one at a time; `a` echoes each.
+async fn request_response(
+    opts: &BenchOptions,
+    mut a: Side,
+    clients: Vec<Side>,
+    patterns: Arc<Patterns>,
+    deadline: tokio::time::Instant,
+) -> Result<(Side, Vec<(Side, ClientTally)>), String> {
+    let n = clients.len();
+    let mut tasks = Vec::with_capacity(n);
+    for (i, mut b) in clients.into_iter().enumerate() {
+        let (down, up) = edges(i);
+        b.granted.insert(up, opts.capacity);
+        let (patterns, count) = (patterns.clone(), opts.count);
+        tasks.push(tokio::spawn(async move {
+            let mut t = ClientTally {
+                identical: true,
+                in_order: true,
+                ..Default::default()
+            };
+            let run = async {
+                for k in 0..count as u64 {
+                    b.wait_credit(up).await?;
+                    let t0 = Instant::now();
+                    b.send(up, patterns.make(k)).await?;
+                    let (seq, bytes) = b.receive(down).await?;
+                    let now = Instant::now();
+                    t.completions.push(now.duration_since(t0));
+                    t.in_order &= seq == k;
+                    t.identical &= patterns.matches(k, &bytes);
+                    t.delivered += 1;
+                    t.last = Some(now);
+                }
+                Ok::<(), String>(())
+            };
+            match tokio::time::timeout_at(deadline, run).await {
+                Ok(Err(e)) => Err(e),
+                _ => Ok((b, t)),
+            }
+        }));
+    }
+    // The server echoes every request on the same client's other edge.
+    let total = n * opts.count;
+    let mut echoed = 0;
+    let mut waiting: Vec<VecDeque<Vec<u8>>> = vec![VecDeque::new(); n];
+    let serve = async {
+        while echoed < total {
+            let e = a.next().await?;
+            if let Event::Message { edge, bytes, .. } = e
+                && edge % 2 == 0
+            {
+                let i = (edge / 2 - 1) as usize;
+                a.release(edge, 1).await?;
+                waiting[i].push_back(bytes);
+            }
+            for (i, q) in waiting.iter_mut().enumerate() {
+                let (down, _) = edges(i);
+                while !q.is_empty() && a.has_credit(down) {
+                    let bytes = q.pop_front().expect("not empty");
+                    a.send(down, bytes).await?;
+                    echoed += 1;
+                }
+            }
+        }
+        Ok::<(), String>(())
+    };
+    if let Ok(r) = tokio::time::timeout_at(deadline, serve).await {
+        r?;
+    }
+    let mut out = Vec::with_capacity(n);
+    for t in tasks {
+        out.push(t.await.map_err(|e| e.to_string())??);
+    }
+    Ok((a, out))
 }
 
 /// Runs the bench (see the module documentation).
 pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
-    let io = |e: std::io::Error| e.to_string();
-    let mut a = start("a", 1, &opts).map_err(io)?;
-    let mut b = start("b", 2, &opts).map_err(io)?;
-    let closed = |_| "transport driver stopped".to_string();
-    // b first: a starts its handshake as soon as it knows b, and b should know a by then.
-    b.command(Command::AddPeer {
-        name: "a".into(),
-        addr: a.local_addr(),
-        link: opts.link,
-    })
-    .await
-    .map_err(closed)?;
-    a.command(Command::AddPeer {
-        name: "b".into(),
-        addr: b.local_addr(),
-        link: opts.link,
-    })
-    .await
-    .map_err(closed)?;
-    for (h, peer, out, inp) in [(&a, "b", 1, 2), (&b, "a", 2, 1)] {
-        h.command(Command::OpenEdge {
-            edge: out,
-            peer: peer.into(),
-            direction: EdgeDirection::Send,
-            capacity: opts.capacity,
-        })
-        .await
-        .map_err(closed)?;
-        h.command(Command::OpenEdge {
-            edge: inp,
-            peer: peer.into(),
-            direction: EdgeDirection::Receive,
-            capacity: opts.capacity,
-        })
-        .await
-        .map_err(closed)?;
+    if opts.clients == 0 {
+        return Err("the bench needs at least one client".into());
     }
+    let (a, clients) = cluster(&opts).await?;
     let deadline = tokio::time::Instant::now() + opts.time_limit;
-    let patterns = Patterns::new(opts.size);
-
-    // Bulk: a sends `count` messages on edge 1 within the credit; b checks and releases.
-    let mut granted = opts.capacity;
-    let mut sent = 0usize;
-    let mut delivered = 0usize;
-    let mut identical = true;
-    let mut in_order = true;
-    let mut b_events = b.take_events();
-    let mut a_events = a.take_events();
+    let patterns = Arc::new(Patterns::new(opts.size));
     let start_t = Instant::now();
-    let mut last_delivery = start_t;
-    // When each bulk message was handed over, and how long it took to arrive.
-    let mut handed = Vec::with_capacity(opts.count);
-    let mut completions = Vec::with_capacity(opts.count);
-    while delivered < opts.count {
-        while sent < opts.count && (sent as u64) < granted {
-            a.command(Command::Send {
-                edge: 1,
-                bytes: patterns.make(sent as u64),
-            })
-            .await
-            .map_err(closed)?;
-            handed.push(Instant::now());
-            sent += 1;
+    let (mut a, tallies) = match opts.pattern {
+        Pattern::Bulk => bulk(&opts, a, clients, patterns.clone(), deadline).await?,
+        Pattern::RequestResponse => {
+            request_response(&opts, a, clients, patterns.clone(), deadline).await?
         }
-        tokio::select! {
-            ev = b_events.recv() => {
-                // Take everything already waiting, then release it with one command.
-                let mut released = 0;
-                let mut next = ev;
-                loop {
-                    match next {
-                        Some(Event::Message { edge: 1, seq, bytes }) => {
-                            in_order &= seq == delivered as u64;
-                            identical &= patterns.matches(seq, &bytes);
-                            delivered += 1;
-                            released += 1;
-                            last_delivery = Instant::now();
-                            if let Some(t) = handed.get(seq as usize) {
-                                completions.push(last_delivery.duration_since(*t));
-                            }
-                        }
-                        Some(_) => {}
-                        None => return Err("receiver stopped".into()),
-                    }
-                    match b_events.try_recv() {
-                        Ok(e) => next = Some(e),
-                        Err(_) => break,
-                    }
-                }
-                if released > 0 {
-                    b.command(Command::Release { edge: 1, n: released }).await.map_err(closed)?;
-                }
-            }
-            ev = a_events.recv() => match ev {
-                Some(Event::Credit { edge: 1, granted: g }) => granted = granted.max(g),
-                Some(_) => {}
-                None => return Err("sender stopped".into()),
-            },
-            _ = tokio::time::sleep_until(deadline) => break,
-        }
-    }
-    let elapsed_s = last_delivery
-        .duration_since(start_t)
-        .as_secs_f64()
-        .max(1e-9);
+    };
+    let elapsed_of = |t: &ClientTally| {
+        t.last
+            .map_or(1e-9, |l| l.duration_since(start_t).as_secs_f64())
+            .max(1e-9)
+    };
+    let elapsed_s = tallies
+        .iter()
+        .map(|(_, t)| elapsed_of(t))
+        .fold(1e-9, f64::max);
     tokio::time::sleep(Duration::from_millis(20)).await;
-    let stats = a.stats();
-    let peer = stats.peers.first().map(|(_, p)| *p).unwrap_or_default();
+    let stats = a.handle.stats();
+    let (mut data_packets, mut retransmissions, mut wire_bytes) = (0, 0, 0);
+    for (_, p) in &stats.peers {
+        data_packets += p.data_packets_sent;
+        retransmissions += p.retransmissions;
+        wire_bytes += p.wire_bytes_sent;
+    }
+    let delivered: usize = tallies.iter().map(|(_, t)| t.delivered).sum();
+    let complete = tallies.iter().all(|(_, t)| t.delivered == opts.count);
+    let client_goodput_mb_s = tallies
+        .iter()
+        .map(|(_, t)| (t.delivered * opts.size) as f64 / elapsed_of(t) / 1e6)
+        .collect();
+    let mut completions: Vec<Duration> = tallies
+        .iter()
+        .flat_map(|(_, t)| t.completions.iter().copied())
+        .collect();
 
-    // Round trips: a sends one message, b echoes it back on edge 2.
-    let mut a_side = Side {
-        handle: &a,
-        events: &mut a_events,
-        granted,
-        sent: sent as u64,
-    };
-    let mut b_side = Side {
-        handle: &b,
-        events: &mut b_events,
-        granted: opts.capacity,
-        sent: 0,
-    };
+    // Round trips after a complete bulk phase (never past the deadline): a sends one
+    // message to the first client, which echoes it back.
     let mut rtts = Vec::with_capacity(opts.rtt_rounds);
-    // Only after a complete bulk phase, and never past the deadline: a link that lost the
-    // bulk phase would otherwise keep the bench waiting for an echo forever.
-    let rounds = if delivered == opts.count {
+    let sent = a.sent.values().sum::<u64>() as usize;
+    let (mut clients, tallies): (Vec<Side>, Vec<ClientTally>) = tallies.into_iter().unzip();
+    let rounds = if opts.pattern == Pattern::Bulk && complete {
         opts.rtt_rounds
     } else {
         0
     };
-    let round_trips = async {
-        for round in 0..rounds {
-            a_side.wait_credit(1).await?;
-            let t0 = Instant::now();
-            a_side.send(1, patterns.make(round as u64)).await?;
-            let echo = b_side.receive(1, 2).await?;
-            b_side.wait_credit(2).await?;
-            b_side.send(2, echo).await?;
-            a_side.receive(2, 1).await?;
-            rtts.push(t0.elapsed());
+    if let Some(b) = clients.first_mut() {
+        let (down, up) = edges(0);
+        b.granted.entry(up).or_insert(opts.capacity);
+        let round_trips = async {
+            for round in 0..rounds {
+                a.wait_credit(down).await?;
+                let t0 = Instant::now();
+                a.send(down, patterns.make((opts.count + round) as u64))
+                    .await?;
+                let (_, echo) = b.receive(down).await?;
+                b.wait_credit(up).await?;
+                b.send(up, echo).await?;
+                a.receive(up).await?;
+                rtts.push(t0.elapsed());
+            }
+            Ok::<(), String>(())
+        };
+        match tokio::time::timeout_at(deadline, round_trips).await {
+            Ok(r) => r?,
+            Err(_) => tracing::warn!("round-trip phase cut short by the time limit"),
         }
-        Ok::<(), String>(())
-    };
-    match tokio::time::timeout_at(deadline, round_trips).await {
-        Ok(r) => r?,
-        Err(_) => tracing::warn!("round-trip phase cut short by the time limit"),
     }
-    a.close();
-    b.close();
+    if opts.pattern == Pattern::RequestResponse {
+        rtts = completions.clone();
+    }
+    a.handle.close();
+    for b in &mut clients {
+        b.handle.close();
+    }
     rtts.sort();
     completions.sort();
     let quantile = |v: &[Duration], p: f64| {
@@ -386,31 +605,33 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
         let datagram = (opts.size + crate::wire::DATA_OVERHEAD).min(opts.packet_bytes) + 5;
         // At least 32 MiB, so that a small transfer still measures the steady rate rather
         // than a burst into the socket buffer.
-        Some(udp_blast((opts.count * opts.size).max(32 << 20), datagram).map_err(io)?)
+        let total = (opts.count * opts.size * opts.clients).max(32 << 20);
+        Some(udp_blast(total, datagram).map_err(|e| e.to_string())?)
     } else {
         None
     };
     Ok(BenchReport {
-        sent: opts.count.min(sent),
+        sent,
         delivered,
-        complete: delivered == opts.count,
-        byte_identical: (delivered > 0).then_some(identical),
-        in_order: (delivered > 0).then_some(in_order),
+        complete,
+        byte_identical: (delivered > 0).then(|| tallies.iter().all(|t| t.identical)),
+        in_order: (delivered > 0).then(|| tallies.iter().all(|t| t.in_order)),
         elapsed_s,
         goodput_mb_s: goodput,
-        data_packets: peer.data_packets_sent,
-        retransmissions: peer.retransmissions,
-        retransmission_ratio: if peer.data_packets_sent > 0 {
-            peer.retransmissions as f64 / peer.data_packets_sent as f64
+        data_packets,
+        retransmissions,
+        retransmission_ratio: if data_packets > 0 {
+            retransmissions as f64 / data_packets as f64
         } else {
             0.0
         },
-        wire_bytes: peer.wire_bytes_sent,
+        wire_bytes,
         completion_ms_p50: quantile(&completions, 0.5) * 1e3,
         completion_ms_p99: quantile(&completions, 0.99) * 1e3,
         rtt_rounds: rtts.len(),
         rtt_p50_us: q(0.5),
         rtt_p99_us: q(0.99),
+        client_goodput_mb_s,
         udp_blast_mb_s: blast,
         fraction_of_blast: blast.map(|b| goodput / b),
         options: opts,

@@ -12,9 +12,16 @@ pub struct Args {
     /// Bytes per message.
     #[arg(long, default_value_t = 1024, value_parser = ranges::count::<usize>(1, ranges::MAX_MESSAGE_BYTES))]
     size: usize,
-    /// Messages in the bulk phase.
+    /// Messages in the bulk phase (per client), or requests per client.
     #[arg(long, default_value_t = 10_000, value_parser = ranges::count::<usize>(1, 100_000_000))]
     count: usize,
+    /// Traffic: `bulk` (the sender streams to every client) or `request-response` (each
+    /// client sends requests one at a time, each echoed back).
+    #[arg(long, value_enum, default_value_t = PatternArg::Bulk)]
+    pattern: PatternArg,
+    /// Receiving nodes, each with its own socket: the sender fans out to all of them.
+    #[arg(long, default_value_t = 1, value_parser = ranges::count::<usize>(1, 1000))]
+    clients: usize,
     /// Loss probability in [0, 1], applied in both directions.
     #[arg(long, default_value_t = 0.0, value_parser = ranges::probability())]
     loss: f64,
@@ -67,6 +74,13 @@ pub struct Args {
     json: Option<PathBuf>,
 }
 
+/// `--pattern`.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum PatternArg {
+    Bulk,
+    RequestResponse,
+}
+
 /// The bench's options, or why they are not valid.
 fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, String> {
     use cloudlight::transport::LinkProfile;
@@ -94,6 +108,11 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
         encrypt: !args.no_encrypt,
         congestion_control: !args.no_congestion_control,
         time_limit: std::time::Duration::from_secs_f64(args.time_limit_s),
+        pattern: match args.pattern {
+            PatternArg::Bulk => cloudlight::transport::bench::Pattern::Bulk,
+            PatternArg::RequestResponse => cloudlight::transport::bench::Pattern::RequestResponse,
+        },
+        clients: args.clients,
     })
 }
 
@@ -107,7 +126,11 @@ fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Tab
     let rows = [
         (
             "messages delivered / offered",
-            format!("{} / {}", report.delivered, report.options.count),
+            format!(
+                "{} / {}",
+                report.delivered,
+                report.options.count * report.options.clients
+            ),
         ),
         ("all delivered", yes(report.complete)),
         (
@@ -116,6 +139,22 @@ fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Tab
         ),
         ("in order (of those delivered)", judged(report.in_order)),
         ("goodput MB/s", format!("{:.1}", report.goodput_mb_s)),
+        (
+            "per client MB/s, min / max",
+            format!(
+                "{:.1} / {:.1}",
+                report
+                    .client_goodput_mb_s
+                    .iter()
+                    .copied()
+                    .fold(f64::INFINITY, f64::min),
+                report
+                    .client_goodput_mb_s
+                    .iter()
+                    .copied()
+                    .fold(0.0, f64::max)
+            ),
+        ),
         (
             "UDP blast MB/s (same datagrams)",
             report
@@ -133,7 +172,7 @@ fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Tab
             format!("{:.4}", report.retransmission_ratio),
         ),
         (
-            "bulk message completion p50 / p99 ms",
+            "message completion p50 / p99 ms",
             format!(
                 "{:.2} / {:.2}",
                 report.completion_ms_p50, report.completion_ms_p99
@@ -163,8 +202,8 @@ pub fn run(args: Args) -> ExitCode {
         Err(e) => return crate::cli::report_error(e),
     };
     eprintln!(
-        "transport bench: {} messages of {} bytes, link {:?}",
-        args.count, args.size, opts.link
+        "transport bench: {:?}, {} client(s), {} messages of {} bytes each, link {:?}",
+        opts.pattern, opts.clients, args.count, args.size, opts.link
     );
     let interrupted = async {
         if tokio::signal::ctrl_c().await.is_err() {
