@@ -122,6 +122,8 @@ pub struct BenchReport {
     pub rtt_p50_us: f64,
     /// 99th percentile message round trip, microseconds.
     pub rtt_p99_us: f64,
+    /// The sender's socket: system calls and datagrams.
+    pub sender_io: crate::driver::IoStats,
     /// Goodput of each client, MB/s (bulk: what it received; request-response: its
     /// answers).
     pub client_goodput_mb_s: Vec<f64>,
@@ -533,8 +535,7 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
         .iter()
         .map(|(_, t)| elapsed_of(t))
         .fold(1e-9, f64::max);
-    tokio::time::sleep(Duration::from_millis(20)).await;
-    let stats = a.handle.stats();
+    let stats = a.handle.fresh_stats().await;
     let (mut data_packets, mut retransmissions, mut wire_bytes) = (0, 0, 0);
     for (_, p) in &stats.peers {
         data_packets += p.data_packets_sent;
@@ -632,6 +633,7 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
         rtt_p50_us: q(0.5),
         rtt_p99_us: q(0.99),
         client_goodput_mb_s,
+        sender_io: stats.io,
         udp_blast_mb_s: blast,
         fraction_of_blast: blast.map(|b| goodput / b),
         options: opts,

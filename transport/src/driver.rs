@@ -178,6 +178,8 @@ pub enum Command {
         /// The run failed: peers downstream learn that their input ended early.
         failed: bool,
     },
+    /// Publish the counters now (see [`DriverHandle::fresh_stats`]).
+    Publish,
     /// Stop the thread at once, without goodbyes: peers see a crash (fault injection).
     Abort,
     /// Panic in the I/O thread (fault injection: how a node handles losing its network).
@@ -203,6 +205,8 @@ pub struct DriverStats {
     pub endpoint: crate::endpoint::EndpointStats,
     /// System calls and datagrams of the socket.
     pub io: IoStats,
+    /// How many times the thread published these counters.
+    pub generation: u64,
 }
 
 /// What the socket did: how many datagrams each system call moved.
@@ -471,6 +475,23 @@ impl DriverHandle {
         self.stats.lock().unwrap_or_else(|e| e.into_inner()).clone()
     }
 
+    /// Counters published after this call (the thread publishes every 20 ms while busy;
+    /// this asks for a snapshot now). Falls back to the latest after a second.
+    pub async fn fresh_stats(&self) -> DriverStats {
+        let generation = self.stats().generation;
+        if self.command(Command::Publish).await.is_err() {
+            return self.stats();
+        }
+        let deadline = Instant::now() + Duration::from_secs(1);
+        loop {
+            let s = self.stats();
+            if s.generation > generation || Instant::now() > deadline {
+                return s;
+            }
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+    }
+
     /// Why the I/O thread stopped by itself (an I/O error or a panic), if it did.
     pub fn failure(&self) -> Option<String> {
         self.failure
@@ -646,6 +667,7 @@ impl Io {
                 self.endpoint.close(failed);
                 self.closing = Some(now);
             }
+            Command::Publish => self.publish(),
             Command::Abort => self.aborted = true,
             Command::Panic => panic!("fault injected by Command::Panic"),
         }
@@ -697,6 +719,7 @@ impl Io {
             .collect();
         s.refused_sends = self.refused_sends;
         s.io = self.io_stats;
+        s.generation += 1;
     }
 
     /// Feeds what the socket holds to the endpoint.

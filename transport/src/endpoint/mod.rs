@@ -377,7 +377,13 @@ pub struct Endpoint {
     challenge_refill: Instant,
     scratch: Vec<u8>,
     closing: bool,
+    /// Whose turn it is to send data, and how many packets it sent in this turn.
+    data_turn: (usize, usize),
 }
+
+/// DATA packets one peer sends in a row before the next peer's turn: long enough for a GSO
+/// train (one system call for all of them), short enough to share the socket fairly.
+const DATA_BURST: usize = 32;
 
 impl Endpoint {
     /// A new endpoint; `now` starts its clock.
@@ -398,6 +404,7 @@ impl Endpoint {
             challenge_refill: now,
             scratch: Vec::new(),
             closing: false,
+            data_turn: (0, 0),
         }
     }
 
@@ -707,11 +714,17 @@ impl Endpoint {
                 return self.seal_to_peer(p, &credit, out);
             }
         }
-        // Data last, round robin over peers.
+        // Data last, round robin over peers in bursts of `DATA_BURST` packets.
         let n = self.peers.len();
         for k in 0..n {
-            let p = (self.data_cursor() + k) % n;
+            let p = (self.data_turn.0 + k) % n;
             if send::poll_data(self, p, now, out) {
+                let burst = if k == 0 { self.data_turn.1 + 1 } else { 1 };
+                self.data_turn = if burst >= DATA_BURST {
+                    ((p + 1) % n, 0)
+                } else {
+                    (p, burst)
+                };
                 let to = self.peers[p].addr;
                 return Some(self.account(p, to, out.len() - start));
             }
@@ -726,14 +739,6 @@ impl Endpoint {
         }
         let to = self.peers[p].addr;
         Some(self.account(p, to, out.len() - start))
-    }
-
-    fn data_cursor(&self) -> usize {
-        // Rotate by packets sent so that peers share the socket fairly.
-        self.peers
-            .iter()
-            .map(|p| p.stats.packets_sent as usize)
-            .sum::<usize>()
     }
 
     fn account(&mut self, p: usize, to: SocketAddr, bytes: usize) -> SocketAddr {
