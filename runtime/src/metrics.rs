@@ -145,6 +145,18 @@ pub struct TransportSnapshot {
     pub stale_handshakes: u64,
     /// Handshake answers withheld by the rate limit.
     pub rate_limited: u64,
+    /// Messages serialized for cut edges (once per message, however many edges send it).
+    #[serde(default)]
+    pub encodings: u64,
+    /// Sends that reused a message's serialization (fan-out to several cut edges).
+    #[serde(default)]
+    pub encodings_reused: u64,
+    /// Datagrams the node sent.
+    #[serde(default)]
+    pub datagrams_sent: u64,
+    /// System calls that sent datagrams (several per call with UDP GSO).
+    #[serde(default)]
+    pub send_calls: u64,
     /// Per peer.
     pub peers: Vec<PeerLinkSnapshot>,
 }

@@ -129,6 +129,62 @@ pub(crate) struct NodeNet {
     failures: UnboundedSender<String>,
     rejoin_timeout: Duration,
     max_message_bytes: usize,
+    encoded: Arc<EncodeCache>,
+}
+
+/// A message that may be gone, and its encoding.
+type Encoded = (std::sync::Weak<dyn std::any::Any + Send + Sync>, Arc<[u8]>);
+
+/// Encodings of the messages a node's sender proxies are sending, shared between them: a
+/// message fanned out to many cut edges (one per client) is serialized once, and its bytes
+/// are one allocation that every peer's transport state shares. An entry lives while its
+/// message does (entries of dropped messages are pruned as new ones come), so the cache
+/// holds nothing the proxies and the transport do not hold already.
+#[derive(Default)]
+pub(crate) struct EncodeCache {
+    entries: Mutex<HashMap<usize, Encoded>>,
+    /// Encodings made, and encodings reused.
+    made: AtomicU64,
+    reused: AtomicU64,
+}
+
+impl EncodeCache {
+    /// `msg`'s encoding by `ty`: made once per message, however many edges send it.
+    pub(crate) fn encode(
+        &self,
+        ty: &MessageType,
+        msg: &crate::message::AnyMessage,
+    ) -> Result<Arc<[u8]>, crate::codec::CodecError> {
+        let key = Arc::as_ptr(msg) as *const () as usize;
+        {
+            let entries = crate::toolkit::lock(&self.entries);
+            // A live weak pointer to the same allocation is this very message (an address
+            // is reused only after its message is gone).
+            if let Some((weak, bytes)) = entries.get(&key)
+                && weak.strong_count() > 0
+                && std::ptr::addr_eq(weak.as_ptr(), Arc::as_ptr(msg))
+            {
+                self.reused.fetch_add(1, Ordering::Relaxed);
+                return Ok(bytes.clone());
+            }
+        }
+        let bytes: Arc<[u8]> = ty.encode(msg)?.into();
+        self.made.fetch_add(1, Ordering::Relaxed);
+        let mut entries = crate::toolkit::lock(&self.entries);
+        if entries.len() >= 64 {
+            entries.retain(|_, (w, _)| w.strong_count() > 0);
+        }
+        entries.insert(key, (Arc::downgrade(msg), bytes.clone()));
+        Ok(bytes)
+    }
+
+    /// (encodings made, encodings reused).
+    pub(crate) fn counts(&self) -> (u64, u64) {
+        (
+            self.made.load(Ordering::Relaxed),
+            self.reused.load(Ordering::Relaxed),
+        )
+    }
 }
 
 impl NodeNet {
@@ -165,6 +221,7 @@ impl NodeNet {
             failures: args.failures,
             rejoin_timeout: Duration::from_secs_f64(settings.rejoin_timeout_s),
             max_message_bytes,
+            encoded: Arc::default(),
         })
     }
 
@@ -224,6 +281,7 @@ impl NodeNet {
                 ty,
                 shared: shared.clone(),
                 max_bytes: self.max_message_bytes,
+                encoded: self.encoded.clone(),
             },
             self.commander.clone(),
             control,
@@ -386,6 +444,10 @@ impl NodeNet {
             unknown_session: e.unknown_session,
             stale_handshakes: e.stale_handshakes,
             rate_limited: e.rate_limited,
+            encodings: self.encoded.counts().0,
+            encodings_reused: self.encoded.counts().1,
+            datagrams_sent: stats.io.datagrams_sent,
+            send_calls: stats.io.send_calls,
             peers,
         }
     }
@@ -454,6 +516,8 @@ struct SenderProxy {
     shared: Arc<SenderShared>,
     /// The transport's message size limit.
     max_bytes: usize,
+    /// The node's shared encodings.
+    encoded: Arc<EncodeCache>,
 }
 
 async fn sender_proxy(proxy: SenderProxy, commander: Commander, control: Arc<RunControl>) {
@@ -463,6 +527,7 @@ async fn sender_proxy(proxy: SenderProxy, commander: Commander, control: Arc<Run
         ty,
         shared,
         max_bytes,
+        encoded,
     } = proxy;
     let mut held: std::collections::VecDeque<Delivery> = std::collections::VecDeque::new();
     let mut sent: u64 = 0;
@@ -505,7 +570,7 @@ async fn sender_proxy(proxy: SenderProxy, commander: Commander, control: Arc<Run
                 emptied = true;
                 break;
             };
-            match ty.encode(d.message()) {
+            match encoded.encode(&ty, d.message()) {
                 Ok(bytes) if bytes.len() > max_bytes => {
                     // Dropping the delivery returns its credit; the drop is counted.
                     let n = shared.oversize.fetch_add(1, Ordering::SeqCst) + 1;
@@ -717,5 +782,47 @@ fn on_peer_event(watch: &Watch, senders: &HashMap<u32, (String, Arc<SenderShared
             waited_ms as f64 / 1000.0
         )),
         Event::Message { .. } | Event::Credit { .. } | Event::Delivered { .. } => {}
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::message::{AnyMessage, Stamped};
+
+    fn message(seq: u64) -> AnyMessage {
+        Arc::new(Stamped {
+            scene_time_s: 0.0,
+            produced_unix_ns: 0,
+            seq,
+            body: vec![seq as u8; 1000],
+        })
+    }
+
+    #[test]
+    fn a_message_fanned_out_to_many_edges_is_serialized_once() {
+        let cache = EncodeCache::default();
+        let ty = MessageType::of::<Vec<u8>>();
+        let m = message(1);
+        let first = cache.encode(&ty, &m).unwrap();
+        for _ in 0..9 {
+            let again = cache.encode(&ty, &m.clone()).unwrap();
+            assert!(Arc::ptr_eq(&first, &again), "one allocation shared");
+        }
+        assert_eq!(cache.counts(), (1, 9));
+        assert_eq!(&first[..], &ty.encode(&m).unwrap()[..]);
+        // An equal message is another message.
+        let twin = message(1);
+        assert!(!Arc::ptr_eq(&first, &cache.encode(&ty, &twin).unwrap()));
+        // Messages that are gone leave nothing behind, and a new message (perhaps at a
+        // freed address) gets its own bytes.
+        drop((m, twin));
+        for seq in 2..300 {
+            let m = message(seq);
+            let bytes = cache.encode(&ty, &m).unwrap();
+            assert_eq!(&bytes[..], &ty.encode(&m).unwrap()[..]);
+        }
+        assert_eq!(cache.counts().0, 2 + 298);
+        assert!(crate::toolkit::lock(&cache.entries).len() <= 64);
     }
 }

@@ -20,7 +20,9 @@
 //!   `cloudlight_peer_restarts_total`, `cloudlight_peer_replayed_total`,
 //!   `cloudlight_peer_forged_total` (`node`, `peer`);
 //! - `cloudlight_transport_strangers_total`, `cloudlight_transport_malformed_total`,
-//!   `cloudlight_transport_unknown_session_total`, `cloudlight_transport_rate_limited_total`
+//!   `cloudlight_transport_unknown_session_total`, `cloudlight_transport_rate_limited_total`,
+//!   `cloudlight_transport_encodings_total`, `cloudlight_transport_encodings_reused_total`,
+//!   `cloudlight_transport_datagrams_sent_total`, `cloudlight_transport_send_calls_total`
 //!   (`node`);
 //! - `cloudlight_client_indirect_age_seconds{quantile}`,
 //!   `cloudlight_client_frame_seconds{quantile}` (`node`, `stage`: every stage whose report
@@ -408,6 +410,26 @@ pub fn prometheus_text(snapshot: &MetricsSnapshot) -> String {
                 "cloudlight_transport_rate_limited",
                 "Handshake answers withheld by the rate limit",
                 t.rate_limited,
+            ),
+            (
+                "cloudlight_transport_encodings",
+                "Messages serialized for cut edges (once however many edges send one)",
+                t.encodings,
+            ),
+            (
+                "cloudlight_transport_encodings_reused",
+                "Sends that reused a message's serialization (fan-out)",
+                t.encodings_reused,
+            ),
+            (
+                "cloudlight_transport_datagrams_sent",
+                "Datagrams sent",
+                t.datagrams_sent,
+            ),
+            (
+                "cloudlight_transport_send_calls",
+                "System calls that sent datagrams (several datagrams each with UDP GSO)",
+                t.send_calls,
             ),
         ] {
             f.counter(name, help, &l, v as f64);

@@ -247,7 +247,10 @@ impl Side {
     async fn send(&mut self, edge: u32, bytes: Vec<u8>) -> Result<(), String> {
         *self.sent.entry(edge).or_default() += 1;
         self.handle
-            .command(Command::Send { edge, bytes })
+            .command(Command::Send {
+                edge,
+                bytes: bytes.into(),
+            })
             .await
             .map_err(|e| e.to_string())
     }

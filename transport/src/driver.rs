@@ -163,8 +163,8 @@ pub enum Command {
     Send {
         /// Edge id.
         edge: u32,
-        /// The bytes.
-        bytes: Vec<u8>,
+        /// The bytes (shared: a message fanned out to many peers is one allocation).
+        bytes: Arc<[u8]>,
     },
     /// The local consumer finished `n` messages of a receiving edge.
     Release {
@@ -576,7 +576,7 @@ struct Io {
     events: tokio::sync::mpsc::Sender<Vec<Event>>,
     stats: Arc<Mutex<DriverStats>>,
     emulators: HashMap<SocketAddr, (String, LinkEmulator)>,
-    backlog: HashMap<u32, VecDeque<Vec<u8>>>,
+    backlog: HashMap<u32, VecDeque<Arc<[u8]>>>,
     pending_events: VecDeque<Event>,
     refused_sends: u64,
     filtered: Arc<AtomicU64>,

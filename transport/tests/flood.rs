@@ -73,7 +73,7 @@ async fn a_stranger_flood_is_counted_and_holds_no_memory() {
     );
     a.command(Command::Send {
         edge: 1,
-        bytes: b"still here".to_vec(),
+        bytes: b"still here".as_slice().into(),
     })
     .await
     .unwrap();

@@ -62,7 +62,10 @@ async fn a_flood_from_many_addresses_holds_no_memory_and_spares_the_real_peer() 
         tokio::spawn(async move {
             for m in messages {
                 commander
-                    .command(Command::Send { edge: 1, bytes: m })
+                    .command(Command::Send {
+                        edge: 1,
+                        bytes: m.into(),
+                    })
                     .await
                     .unwrap();
                 tokio::time::sleep(Duration::from_micros(500)).await;

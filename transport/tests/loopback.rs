@@ -37,7 +37,7 @@ async fn messages_of_every_size_cross_a_lossy_emulated_link_intact_and_in_order(
     for (i, &n) in sizes.iter().enumerate() {
         a.command(Command::Send {
             edge: 1,
-            bytes: pattern(n, i as u8),
+            bytes: pattern(n, i as u8).into(),
         })
         .await
         .unwrap();
@@ -120,7 +120,7 @@ async fn a_killed_peer_is_reported_lost_and_a_restarted_one_rejoins() {
     wait_for(&mut a, |e| matches!(e, Event::PeerUp { .. })).await;
     a.command(Command::Send {
         edge: 1,
-        bytes: b"again".to_vec(),
+        bytes: b"again".as_slice().into(),
     })
     .await
     .unwrap();
@@ -212,7 +212,7 @@ async fn relayed_pair(seed: u64) -> (DriverHandle, DriverHandle, Relay) {
 async fn send_and_receive(a: &DriverHandle, b: &mut DriverHandle, bytes: &[u8]) {
     a.command(Command::Send {
         edge: 1,
-        bytes: bytes.to_vec(),
+        bytes: bytes.into(),
     })
     .await
     .unwrap();

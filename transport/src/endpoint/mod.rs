@@ -45,6 +45,7 @@ mod session;
 
 use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use rand::SeedableRng;
@@ -540,8 +541,10 @@ impl Endpoint {
         self.send_edges.get(&edge).map_or(0, |e| e.available())
     }
 
-    /// Queues a message on a sending edge; it goes out once the peer is up.
-    pub fn send(&mut self, edge: u32, data: Vec<u8>) -> Result<u64, SendError> {
+    /// Queues a message on a sending edge; it goes out once the peer is up. The bytes are
+    /// shared, not copied: one encoding of a message fanned out to many peers is held once.
+    pub fn send(&mut self, edge: u32, data: impl Into<Arc<[u8]>>) -> Result<u64, SendError> {
+        let data = data.into();
         if data.len() > self.config.max_message_bytes {
             return Err(SendError::TooLarge(data.len()));
         }

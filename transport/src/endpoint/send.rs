@@ -11,6 +11,7 @@
 //! packet is sent again only when it was lost.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::cc::{Bbr, SendMark};
@@ -53,7 +54,7 @@ impl SendEdge {
 }
 
 struct OutMsg {
-    data: Vec<u8>,
+    data: Arc<[u8]>,
     acked: Vec<bool>,
     remaining: u32,
 }
@@ -150,7 +151,13 @@ impl SendState {
         &self.cc
     }
 
-    pub(crate) fn queue_message(&mut self, edge: u32, seq: u64, data: Vec<u8>, chunk_bytes: usize) {
+    pub(crate) fn queue_message(
+        &mut self,
+        edge: u32,
+        seq: u64,
+        data: Arc<[u8]>,
+        chunk_bytes: usize,
+    ) {
         let chunks = data.len().div_ceil(chunk_bytes).max(1) as u32;
         self.msgs.insert(
             (edge, seq),
