@@ -46,6 +46,8 @@ pub struct BenchOptions {
     pub pattern: Pattern,
     /// Receivers (each its own node and socket); the sender fans out to all of them.
     pub clients: usize,
+    /// Batched socket I/O (GSO/GRO); off: laminar moves each datagram.
+    pub batched_io: bool,
 }
 
 /// The bench's traffic.
@@ -78,6 +80,7 @@ impl Default for BenchOptions {
             congestion_control: true,
             pattern: Pattern::Bulk,
             clients: 1,
+            batched_io: true,
         }
     }
 }
@@ -189,6 +192,7 @@ fn start(name: &str, incarnation: u64, opts: &BenchOptions) -> std::io::Result<D
     c.max_message_bytes = c.max_message_bytes.max(opts.size);
     let mut d = DriverConfig::new(c, SocketAddr::from(([127, 0, 0, 1], 0)));
     d.seed = opts.seed ^ incarnation;
+    d.batched_io = opts.batched_io;
     Driver::start(d)
 }
 

@@ -207,6 +207,8 @@ pub struct DriverStats {
     pub io: IoStats,
     /// How many times the thread published these counters.
     pub generation: u64,
+    /// Each peer link's congestion controller.
+    pub congestion: Vec<(String, crate::endpoint::cc::CongestionStats)>,
 }
 
 /// What the socket did: how many datagrams each system call moved.
@@ -719,6 +721,11 @@ impl Io {
             .collect();
         s.refused_sends = self.refused_sends;
         s.io = self.io_stats;
+        s.congestion = self
+            .endpoint
+            .peer_names()
+            .filter_map(|n| Some((n.to_string(), self.endpoint.congestion(n)?)))
+            .collect();
         s.generation += 1;
     }
 

@@ -60,6 +60,10 @@ pub struct Args {
     /// false` does.
     #[arg(long)]
     no_congestion_control: bool,
+    /// Move datagrams one per system call through laminar (what `batched_io = false` does)
+    /// instead of the batched path (UDP GSO/GRO).
+    #[arg(long)]
+    laminar_io: bool,
     /// Skip the plain UDP blast baseline.
     #[arg(long)]
     no_baseline: bool,
@@ -113,6 +117,7 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
             PatternArg::RequestResponse => cloudlight::transport::bench::Pattern::RequestResponse,
         },
         clients: args.clients,
+        batched_io: !args.laminar_io,
     })
 }
 
