@@ -432,14 +432,28 @@ async fn bulk(
         }
         Ok::<(), String>(())
     };
-    if let Ok(r) = tokio::time::timeout_at(deadline, send_all).await {
+    let out = finish(send_all, tasks, deadline).await?;
+    Ok((a, out))
+}
+
+/// A client's task: what it ends with, its side and tally.
+type ClientTask = tokio::task::JoinHandle<Result<(Side, ClientTally), String>>;
+
+/// Runs the sender's part `work` until it ends or the deadline passes, then waits for every
+/// client's task.
+async fn finish(
+    work: impl std::future::Future<Output = Result<(), String>>,
+    tasks: Vec<ClientTask>,
+    deadline: tokio::time::Instant,
+) -> Result<Vec<(Side, ClientTally)>, String> {
+    if let Ok(r) = tokio::time::timeout_at(deadline, work).await {
         r?;
     }
-    let mut out = Vec::with_capacity(n);
+    let mut out = Vec::with_capacity(tasks.len());
     for t in tasks {
         out.push(t.await.map_err(|e| e.to_string())??);
     }
-    Ok((a, out))
+    Ok(out)
 }
 
 /// Request-response: every client sends `count` requests, one at a time; `a` echoes each.
@@ -508,13 +522,7 @@ async fn request_response(
         }
         Ok::<(), String>(())
     };
-    if let Ok(r) = tokio::time::timeout_at(deadline, serve).await {
-        r?;
-    }
-    let mut out = Vec::with_capacity(n);
-    for t in tasks {
-        out.push(t.await.map_err(|e| e.to_string())??);
-    }
+    let out = finish(serve, tasks, deadline).await?;
     Ok((a, out))
 }
 

@@ -10,15 +10,6 @@ mod common;
 
 use cloudlight_transport::{Command, Event, LinkProfile};
 
-fn rss_bytes() -> u64 {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
-        .map_or(0, |kb| kb * 1024)
-}
-
 /// A laminar packet of delivery `Reliable`, ordering `Ordered`, with a gap before it so that
 /// laminar would hold it for the missing ones.
 fn laminar_reliable_ordered(i: u32) -> Vec<u8> {
@@ -39,7 +30,7 @@ async fn a_stranger_flood_is_counted_and_holds_no_memory() {
     let mut b = common::start("b", "flood-test", 2);
     common::connect(&a, &b, LinkProfile::default(), 4).await;
     common::wait_for(&mut b, |e| matches!(e, Event::PeerUp { .. })).await;
-    let before = rss_bytes();
+    let before = common::rss_bytes();
     let attacker = UdpSocket::bind("127.0.0.1:0").unwrap();
     let target = b.local_addr();
     let started = Instant::now();
@@ -59,7 +50,7 @@ async fn a_stranger_flood_is_counted_and_holds_no_memory() {
         }
     }
     tokio::time::sleep(Duration::from_millis(300)).await;
-    let grown = rss_bytes().saturating_sub(before);
+    let grown = common::rss_bytes().saturating_sub(before);
     let stats = b.stats();
     assert!(
         grown < 24 << 20,

@@ -11,15 +11,6 @@ mod common;
 
 use cloudlight_transport::{Command, Event, LinkProfile};
 
-fn rss_bytes() -> u64 {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
-        .map_or(0, |kb| kb * 1024)
-}
-
 /// A datagram that looks like the transport's: laminar's unreliable header, then our magic,
 /// version and a session packet's kind, then noise.
 fn lookalike(i: u32) -> Vec<u8> {
@@ -36,7 +27,7 @@ async fn a_flood_from_many_addresses_holds_no_memory_and_spares_the_real_peer() 
     let mut b = common::start("b", "flood-test", 2);
     common::connect(&a, &b, LinkProfile::default(), 64).await;
     common::wait_for(&mut b, |e| matches!(e, Event::PeerUp { .. })).await;
-    let before = rss_bytes();
+    let before = common::rss_bytes();
     let target = b.local_addr();
     let flood = std::thread::spawn(move || {
         let sockets: Vec<UdpSocket> = (0..97)
@@ -85,12 +76,12 @@ async fn a_flood_from_many_addresses_holds_no_memory_and_spares_the_real_peer() 
             got.push(bytes);
             b.command(Command::Release { edge: 1, n: 1 }).await.unwrap();
         }
-        peak = peak.max(rss_bytes());
+        peak = peak.max(common::rss_bytes());
     }
     send.await.unwrap();
     let (sent, took) = flood.join().unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;
-    peak = peak.max(rss_bytes());
+    peak = peak.max(common::rss_bytes());
     assert!(
         got == messages,
         "the real messages arrive intact and in order"

@@ -69,3 +69,13 @@ pub async fn wait_for(a: &mut DriverHandle, want: fn(&Event) -> bool) -> Event {
         .await
         .expect("event within 5 s")
 }
+
+/// This process's resident memory, bytes (0 where /proc is not there).
+pub fn rss_bytes() -> u64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .map_or(0, |kb| kb * 1024)
+}
