@@ -104,7 +104,10 @@ pub struct EndpointConfig {
     pub stall_timeout: Duration,
     /// Interval between handshake attempts.
     pub hello_interval: Duration,
-    /// Lower bound of the retransmission timeout.
+    /// Lower bound of the probe timeout: RFC 9002's timer granularity (1 ms). A higher floor
+    /// made every tail loss on a sub-millisecond path (a LAN, loopback) wait for it: 1 MiB at
+    /// 20% loss ran at 126 MB/s with 5 ms, 217 MB/s with 1 ms, no spurious retransmission
+    /// loss-free.
     pub min_rto: Duration,
     /// Upper bound of the retransmission timeout.
     pub max_rto: Duration,
@@ -137,7 +140,7 @@ impl EndpointConfig {
             peer_timeout: Duration::from_secs(2),
             stall_timeout: Duration::from_secs(15),
             hello_interval: Duration::from_millis(50),
-            min_rto: Duration::from_millis(5),
+            min_rto: Duration::from_millis(1),
             max_rto: Duration::from_secs(1),
             challenges_per_s: 50.0,
         }
