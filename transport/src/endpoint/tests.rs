@@ -95,6 +95,27 @@ impl Sim {
         }
     }
 
+    /// Both endpoints afresh (before they connect), with `tweak` applied to each one's
+    /// configuration; edge 7 as before, capacity 4.
+    fn reconfigure(&mut self, tweak: impl Fn(&mut EndpointConfig)) {
+        let now = self.now;
+        for (side, peer, port, dir) in [
+            ("a", "b", B, EdgeDirection::Send),
+            ("b", "a", A, EdgeDirection::Receive),
+        ] {
+            let mut c = if side == "a" {
+                self.a.config().clone()
+            } else {
+                self.b.config().clone()
+            };
+            tweak(&mut c);
+            let mut e = Endpoint::new(c, now);
+            e.add_peer(peer, addr(port), now);
+            e.open_edge(7, peer, dir, 4).unwrap();
+            if side == "a" { self.a = e } else { self.b = e }
+        }
+    }
+
     /// A datagram after the path's impairments: `None` when lost.
     fn impair(&mut self, now: Instant, mut d: Vec<u8>) -> Option<Vec<u8>> {
         use rand::RngExt;
@@ -806,22 +827,9 @@ fn a_link_with_a_second_of_latency_each_way_comes_up_and_delivers() {
         ..Default::default()
     };
     let mut s = Sim::new(profile, 9);
-    let now = s.now;
-    for (ep, peer, port, edge_dir) in [
-        ("a", "b", B, EdgeDirection::Send),
-        ("b", "a", A, EdgeDirection::Receive),
-    ] {
-        let mut c = if ep == "a" {
-            s.a.config().clone()
-        } else {
-            s.b.config().clone()
-        };
+    s.reconfigure(|c| {
         c.peer_timeout = Duration::from_secs(5);
-        let mut e = Endpoint::new(c, now);
-        e.add_peer(peer, addr(port), now);
-        e.open_edge(7, peer, edge_dir, 4).unwrap();
-        if ep == "a" { s.a = e } else { s.b = e }
-    }
+    });
     let ok = s.transfer(&[vec![1; 3000], vec![2]], Duration::from_secs(60));
     assert!(ok, "a: {:?}\nb: {:?}", s.a_events, s.b_events);
     let sessions = s.a.peer_stats("b").unwrap().handshakes;
@@ -1026,22 +1034,9 @@ fn a_two_second_blackhole_mid_transfer_is_ridden_out_in_the_same_session() {
         },
         2,
     );
-    let now = s.now;
-    for (side, peer, port, dir) in [
-        ("a", "b", B, EdgeDirection::Send),
-        ("b", "a", A, EdgeDirection::Receive),
-    ] {
-        let mut c = if side == "a" {
-            s.a.config().clone()
-        } else {
-            s.b.config().clone()
-        };
+    s.reconfigure(|c| {
         c.peer_timeout = Duration::from_secs(5);
-        let mut e = Endpoint::new(c, now);
-        e.add_peer(peer, addr(port), now);
-        e.open_edge(7, peer, dir, 4).unwrap();
-        if side == "a" { s.a = e } else { s.b = e }
-    }
+    });
     assert!(s.run_until(Duration::from_secs(1), |s| s.a.is_up("b") && s.b.is_up("a")));
     let hole = s.now + Duration::from_millis(300);
     s.blackhole = Some((hole, hole + Duration::from_secs(2)));
@@ -1153,21 +1148,9 @@ fn a_750_ms_path_connects_and_moves_a_window_per_round_trip() {
         8,
     );
     let now = s.now;
-    for (side, peer, port, dir) in [
-        ("a", "b", B, EdgeDirection::Send),
-        ("b", "a", A, EdgeDirection::Receive),
-    ] {
-        let mut c = if side == "a" {
-            s.a.config().clone()
-        } else {
-            s.b.config().clone()
-        };
+    s.reconfigure(|c| {
         c.peer_timeout = Duration::from_secs(10);
-        let mut e = Endpoint::new(c, now);
-        e.add_peer(peer, addr(port), now);
-        e.open_edge(7, peer, dir, 4).unwrap();
-        if side == "a" { s.a = e } else { s.b = e }
-    }
+    });
     assert!(s.run_until(Duration::from_secs(10), |s| s.a.is_up("b")
         && s.b.is_up("a")));
     let connected = s.now - now;
@@ -1359,22 +1342,9 @@ fn keys_change_under_way_without_a_pause_or_a_loss() {
         },
         12,
     );
-    let now = s.now;
-    for (side, peer, port, dir) in [
-        ("a", "b", B, EdgeDirection::Send),
-        ("b", "a", A, EdgeDirection::Receive),
-    ] {
-        let mut c = if side == "a" {
-            s.a.config().clone()
-        } else {
-            s.b.config().clone()
-        };
+    s.reconfigure(|c| {
         c.key_update_packets = 4096;
-        let mut e = Endpoint::new(c, now);
-        e.add_peer(peer, addr(port), now);
-        e.open_edge(7, peer, dir, 4).unwrap();
-        if side == "a" { s.a = e } else { s.b = e }
-    }
+    });
     assert!(s.run_until(Duration::from_secs(2), |s| s.a.is_up("b") && s.b.is_up("a")));
     let messages: Vec<Vec<u8>> = (0..8).map(|i| pattern(2 << 20, i)).collect();
     assert!(s.transfer(&messages, Duration::from_secs(60)));
