@@ -103,6 +103,9 @@ pub struct BenchReport {
     pub byte_identical: Option<bool>,
     /// Whether messages arrived in sending order, each once (`None`: none arrived).
     pub in_order: Option<bool>,
+    /// Milliseconds until every session was up (the handshakes, before any message; not
+    /// part of `elapsed_s`).
+    pub connect_ms: f64,
     /// Seconds from the first send to the last delivery.
     pub elapsed_s: f64,
     /// Message bytes delivered per second, MB/s (10⁶ bytes).
@@ -194,6 +197,17 @@ fn start(name: &str, incarnation: u64, opts: &BenchOptions) -> std::io::Result<D
     d.seed = opts.seed ^ incarnation;
     d.batched_io = opts.batched_io;
     Driver::start(d)
+}
+
+/// Waits until `side` has seen `peers` sessions come up.
+async fn wait_up(side: &mut Side, peers: usize) -> Result<(), String> {
+    let mut up = 0;
+    while up < peers {
+        if let Event::PeerUp { .. } = side.next().await? {
+            up += 1;
+        }
+    }
+    Ok(())
 }
 
 /// Edge ids of client `i`: from the sender to it, and back.
@@ -531,8 +545,24 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
     if opts.clients == 0 {
         return Err("the bench needs at least one client".into());
     }
-    let (a, clients) = cluster(&opts).await?;
+    let connect_t = Instant::now();
     let deadline = tokio::time::Instant::now() + opts.time_limit;
+    let (mut a, mut clients) = cluster(&opts).await?;
+    // The clock starts once every session is up: a handshake that lost its HELLOs (50 ms
+    // apart) would otherwise count against the goodput of the transfer.
+    let connecting = async {
+        wait_up(&mut a, clients.len()).await?;
+        for b in &mut clients {
+            wait_up(b, 1).await?;
+        }
+        Ok::<(), String>(())
+    };
+    match tokio::time::timeout_at(deadline, connecting).await {
+        Ok(r) => r?,
+        // Reported as what it is: nothing delivered within the time limit.
+        Err(_) => tracing::warn!("the sessions did not come up within the time limit"),
+    }
+    let connect_ms = connect_t.elapsed().as_secs_f64() * 1e3;
     let patterns = Arc::new(Patterns::new(opts.size));
     let start_t = Instant::now();
     let (mut a, tallies) = match opts.pattern {
@@ -632,6 +662,7 @@ pub async fn run(opts: BenchOptions) -> Result<BenchReport, String> {
         complete,
         byte_identical: (delivered > 0).then(|| tallies.iter().all(|t| t.identical)),
         in_order: (delivered > 0).then(|| tallies.iter().all(|t| t.in_order)),
+        connect_ms,
         elapsed_s,
         goodput_mb_s: goodput,
         data_packets,

@@ -564,6 +564,8 @@ struct Batched {
 
 /// Receive calls per wake-up at most, so that sending and timers interleave with a flood.
 const RECV_CALLS_PER_WAKE: usize = 16;
+/// Packets of one read between acknowledgements sent in its course (one GRO train).
+const ACK_EVERY_IN_READ: u32 = 64;
 /// Datagrams queued before the outbox is flushed (GSO takes at most 64 per call).
 const OUTBOX_FLUSH_AT: usize = 64;
 
@@ -736,6 +738,7 @@ impl Io {
             endpoint,
             io_stats,
             filtered,
+            emulators,
             ..
         } = self;
         match net {
@@ -751,9 +754,34 @@ impl Io {
             Net::Batched(b) => {
                 let mut dropped = 0;
                 b.unread = true;
+                let Batched {
+                    socket,
+                    state,
+                    outbox,
+                    inbox,
+                    ..
+                } = &mut **b;
                 for _ in 0..RECV_CALLS_PER_WAKE {
-                    match b.inbox.recv(&b.state, &b.socket, &mut dropped, |from, d| {
-                        endpoint.handle_datagram(now, from, d)
+                    match inbox.recv(state, socket, &mut dropped, |from, d| {
+                        endpoint.handle_datagram(now, from, d);
+                        // Acknowledge as the read goes, not once at its end.
+                        loop {
+                            let (start, buf) = outbox.begin();
+                            match endpoint.poll_ack_into(now, ACK_EVERY_IN_READ, buf) {
+                                None => {
+                                    outbox.abort(start);
+                                    break;
+                                }
+                                Some(to) => match emulators.get_mut(&to) {
+                                    Some((_, em)) => match em.pass_now() {
+                                        Some(true) => outbox.commit(to, start),
+                                        Some(false) => outbox.abort(start),
+                                        None => em.send(now, outbox.take(start)),
+                                    },
+                                    None => outbox.commit(to, start),
+                                },
+                            }
+                        }
                     }) {
                         Ok(n) => {
                             io_stats.recv_calls += 1;
@@ -845,7 +873,11 @@ impl Io {
                             break;
                         }
                         Some(to) => match self.emulators.get_mut(&to) {
-                            Some((_, em)) => em.send(now, b.outbox.take(start)),
+                            Some((_, em)) => match em.pass_now() {
+                                Some(true) => b.outbox.commit(to, start),
+                                Some(false) => b.outbox.abort(start),
+                                None => em.send(now, b.outbox.take(start)),
+                            },
                             None => b.outbox.commit(to, start),
                         },
                     }

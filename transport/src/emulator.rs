@@ -236,6 +236,32 @@ impl LinkEmulator {
         self.push(at, datagram);
     }
 
+    /// For a link that only loses (no delay, jitter, bandwidth cap, reordering or
+    /// duplication) with nothing held: decides the fate of one datagram offered now without
+    /// taking it — `Some(true)` when it passes (the caller sends it at once, as
+    /// [`LinkEmulator::send`] then [`LinkEmulator::poll`] would), `Some(false)` when it is
+    /// lost; `None` when the link needs the datagram ([`LinkEmulator::send`]). A sender
+    /// then neither copies nor queues what the link would hand straight back.
+    pub fn pass_now(&mut self) -> Option<bool> {
+        let p = self.profile;
+        let immediate = p.latency_ms == 0.0
+            && p.jitter_ms == 0.0
+            && p.bandwidth_mbps.is_none()
+            && p.reorder == 0.0
+            && p.duplicate == 0.0
+            && self.queue.is_empty();
+        if !immediate {
+            return None;
+        }
+        self.stats.offered += 1;
+        if p.loss > 0.0 && self.rng.random::<f64>() < p.loss {
+            self.stats.lost += 1;
+            return Some(false);
+        }
+        self.stats.delivered += 1;
+        Some(true)
+    }
+
     /// The next datagram due at `now`, if any.
     pub fn poll(&mut self, now: Instant) -> Option<Vec<u8>> {
         if self
@@ -300,6 +326,30 @@ mod tests {
             (0..10).collect::<Vec<_>>()
         );
         assert_eq!(out[0].0, t0 + Duration::from_millis(20));
+    }
+
+    /// A loss-only link decides in place what `send` and `poll` would: the same datagrams
+    /// pass, in the same order, for the same seed.
+    #[test]
+    fn a_loss_only_link_passes_in_place_what_it_would_queue() {
+        let profile = LinkProfile {
+            loss: 0.3,
+            ..Default::default()
+        };
+        let now = Instant::now();
+        let (mut queued, mut in_place) =
+            (LinkEmulator::new(profile, 7), LinkEmulator::new(profile, 7));
+        for i in 0..1000u32 {
+            queued.send(now, i.to_le_bytes().to_vec());
+            let passed = queued.poll(now).is_some();
+            assert_eq!(in_place.pass_now(), Some(passed), "datagram {i}");
+        }
+        assert_eq!(queued.stats(), in_place.stats());
+        let delayed = LinkProfile {
+            latency_ms: 1.0,
+            ..profile
+        };
+        assert_eq!(LinkEmulator::new(delayed, 7).pass_now(), None);
     }
 
     #[test]

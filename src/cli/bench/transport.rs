@@ -143,6 +143,7 @@ fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Tab
             judged(report.byte_identical),
         ),
         ("in order (of those delivered)", judged(report.in_order)),
+        ("sessions up after ms", format!("{:.1}", report.connect_ms)),
         ("goodput MB/s", format!("{:.1}", report.goodput_mb_s)),
         (
             "per client MB/s, min / max",

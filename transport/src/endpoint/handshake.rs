@@ -37,7 +37,7 @@ fn confirm_timeout(peer_timeout: Duration) -> Duration {
 pub(crate) struct Initiation {
     nonce_i: [u8; NONCE_BYTES],
     /// When its first HELLO left: the CHALLENGE gives a first round-trip sample (an
-    /// overestimate when HELLOs were lost, which only delays the first loss detection).
+    /// overestimate when HELLOs were lost: the first sample of data replaces it).
     since: Instant,
 }
 
@@ -282,7 +282,7 @@ impl Endpoint {
         if peer.send.srtt_known() {
             return;
         }
-        peer.send.rtt_sample(rtt, &self.config);
+        peer.send.provisional_rtt_sample(rtt, &self.config);
         peer.stats.srtt_s = peer.send.srtt().as_secs_f64();
     }
 

@@ -738,6 +738,31 @@ impl Endpoint {
         None
     }
 
+    /// Appends an acknowledgement to a peer from which `every` packets (at least
+    /// `ack_every`) arrived since the last to `out`, and returns where it goes. A driver
+    /// calls it between the datagrams of one read, so that a read of a whole window is
+    /// acknowledged as it is taken in, several times, rather than once at its end: one lost
+    /// ACK then costs nothing, where a single one lost left the sender waiting for its probe
+    /// timeout, and the sender learns of losses while the read goes on.
+    pub fn poll_ack_into(
+        &mut self,
+        now: Instant,
+        every: u32,
+        out: &mut Vec<u8>,
+    ) -> Option<SocketAddr> {
+        let every = every.max(self.config.ack_every);
+        for p in 0..self.peers.len() {
+            let peer = &self.peers[p];
+            if peer.recv.unacked < every || peer.session.as_ref().is_none_or(|s| !s.confirmed) {
+                continue;
+            }
+            if let Some(ack) = recv::poll_ack(self, p, now) {
+                return self.seal_to_peer(p, &ack, out);
+            }
+        }
+        None
+    }
+
     fn seal_to_peer(&mut self, p: usize, body: &Body<'_>, out: &mut Vec<u8>) -> Option<SocketAddr> {
         let start = out.len();
         if !self.seal_onto(p, body, out) {

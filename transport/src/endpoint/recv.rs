@@ -76,12 +76,29 @@ impl Received {
         }
     }
 
-    /// The newest ranges, highest first, at most [`MAX_ACK_RANGES`].
-    pub(crate) fn ack_ranges(&self) -> Vec<(u64, u64)> {
+    /// The largest packet number received.
+    fn largest(&self) -> Option<u64> {
+        self.ranges.iter().next_back().map(|r| *r.end())
+    }
+
+    /// The newest ranges, highest first, at most [`MAX_ACK_RANGES`], and only those that
+    /// reach within `span` packet numbers of the largest received.
+    ///
+    /// Older ranges tell the sender nothing it can still use: once it has any ACK of a
+    /// number `n`, everything it has in flight below `n − 3` is acknowledged or declared
+    /// lost, and an ACK covers the last `span` numbers many times over before they leave
+    /// it. Reporting them cost both ends as much as the data at 20% loss (hundreds of ranges
+    /// in every ACK).
+    pub(crate) fn ack_ranges(&self, span: u64) -> Vec<(u64, u64)> {
+        let Some(largest) = self.largest() else {
+            return Vec::new();
+        };
+        let floor = largest.saturating_sub(span);
         self.ranges
             .iter()
             .rev()
             .take(MAX_ACK_RANGES)
+            .take_while(|r| *r.end() >= floor)
             .map(|r| (*r.start(), *r.end()))
             .collect()
     }
@@ -92,7 +109,7 @@ impl Received {
 pub(crate) struct RecvState {
     received: Received,
     pub(crate) ack_due: Option<Instant>,
-    unacked: u32,
+    pub(crate) unacked: u32,
     pub(crate) credit_dirty: bool,
     reassembly_bytes: usize,
 }
@@ -231,12 +248,18 @@ pub(crate) fn poll_ack(ep: &mut Endpoint, p: usize, now: Instant) -> Option<Body
     s.unacked = 0;
     s.ack_due = None;
     // As many of the newest ranges as one packet holds.
-    let mut ranges = s.received.ack_ranges();
+    let mut ranges = s.received.ack_ranges(ack_span(config));
     let budget = config
         .max_packet_bytes
         .saturating_sub(crate::wire::SESSION_HEADER_BYTES + crate::wire::TAG_BYTES);
     ranges.truncate(crate::wire::ack_ranges_fitting(&ranges, budget).max(1));
     Some(Body::Ack { ranges })
+}
+
+/// How far below the largest packet number received an ACK reports ranges: twice the
+/// send window (a sender's packets in flight span about one window of numbers).
+pub(crate) fn ack_span(config: &super::EndpointConfig) -> u64 {
+    2 * config.window_packets as u64
 }
 
 /// A CREDIT packet for peer `p` when grants changed or are due again.
@@ -284,7 +307,7 @@ mod tests {
                 r.record(pn);
                 got.insert(pn);
                 if i % ack_every == 0 {
-                    let ranges = r.ack_ranges();
+                    let ranges = r.ack_ranges(u64::MAX);
                     prop_assert!(ranges.len() <= MAX_ACK_RANGES);
                     for (lo, hi) in ranges {
                         prop_assert!(lo <= hi);
@@ -304,9 +327,13 @@ mod tests {
         for pn in (0..10_000u64).step_by(2) {
             r.record(pn);
         }
-        let ranges = r.ack_ranges();
+        let ranges = r.ack_ranges(u64::MAX);
         assert_eq!(ranges.len(), MAX_ACK_RANGES);
         assert_eq!(ranges[0], (9_998, 9_998));
         assert!(ranges.iter().all(|&(lo, hi)| lo == hi && lo % 2 == 0));
+        // Within a span: the ranges reaching 100 numbers below the largest, no older.
+        let near = r.ack_ranges(100);
+        assert_eq!(near.len(), 51);
+        assert_eq!(near.last(), Some(&(9_898, 9_898)));
     }
 }

@@ -14,7 +14,7 @@ use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::cc::{Bbr, SendMark};
+use super::cc::{BURST_TIME, Bbr, SendMark};
 use super::{EdgeWireStats, Endpoint, EndpointConfig, Event, Peer};
 use crate::wire::{
     Body, DATA_OVERHEAD, FRAME_HEADER_BYTES, Frame, K_FRAMES, SESSION_HEADER_BYTES, TAG_BYTES,
@@ -84,6 +84,11 @@ pub(crate) struct SendState {
     srtt: Option<Duration>,
     latest_rtt: Duration,
     rttvar: Duration,
+    /// The round trip known is the handshake's, which spans every HELLO lost before it
+    /// (200 ms and more at 20% loss): the first sample of data replaces it instead of
+    /// averaging in, or the loss detection's time threshold waits on it for dozens of
+    /// samples.
+    rtt_provisional: bool,
     backoff: u32,
     /// When the newest DATA packet was sent (or a probe timeout last fired): the probe
     /// timeout counts from here (RFC 9002 §6.2.1), so a lost tail is probed one timeout after
@@ -117,6 +122,7 @@ impl SendState {
             srtt: None,
             latest_rtt: Duration::ZERO,
             rttvar: Duration::ZERO,
+            rtt_provisional: false,
             backoff: 0,
             last_sent: now,
             data_progress: now,
@@ -230,9 +236,19 @@ impl SendState {
         self.srtt.unwrap_or(Duration::ZERO)
     }
 
+    /// A round-trip sample of the handshake: sets the timers until data gives one.
+    pub(crate) fn provisional_rtt_sample(&mut self, rtt: Duration, config: &EndpointConfig) {
+        self.rtt_sample(rtt, config);
+        self.rtt_provisional = true;
+    }
+
     pub(crate) fn rtt_sample(&mut self, rtt: Duration, _config: &EndpointConfig) {
         self.latest_rtt = rtt;
         match self.srtt {
+            _ if std::mem::take(&mut self.rtt_provisional) => {
+                self.srtt = Some(rtt);
+                self.rttvar = rtt / 2;
+            }
             None => {
                 self.srtt = Some(rtt);
                 self.rttvar = rtt / 2;
@@ -261,8 +277,14 @@ impl SendState {
             Some(s) => {
                 // RFC 9002 §6.2.1: the variance term is at least the timer granularity.
                 let pto = s + (self.rttvar * 4).max(Duration::from_millis(1)) + config.ack_delay;
+                // The tail loss probe's round trip is the latest one when that is shorter:
+                // a window sent at once measures the queue it builds at the receiver (a
+                // smoothed 2 ms on loopback), while the few packets of a tail cross an
+                // empty path; waiting twice the smoothed round trip for them was most of a
+                // lossy transfer's time. A probe sent early costs two packets, not the
+                // window (it never shrinks the congestion window).
                 let pto = if self.backoff == 0 {
-                    pto.min(s * 2 + config.ack_delay)
+                    pto.min(s.min(self.latest_rtt) * 2 + config.ack_delay)
                 } else {
                     pto
                 };
@@ -320,9 +342,9 @@ impl SendState {
     }
 }
 
-/// Bytes a pacer at `rate` may send at once: 2 ms worth, at least 16 packets.
+/// Bytes a pacer at `rate` may send at once: [`BURST_TIME`] worth, at least 16 packets.
 fn burst(config: &EndpointConfig, rate: f64) -> f64 {
-    (16.0 * config.max_packet_bytes as f64).max(rate * 0.002)
+    (16.0 * config.max_packet_bytes as f64).max(rate * BURST_TIME.as_secs_f64())
 }
 
 /// The next chunk worth sending: pops entries of chunks already acknowledged or of
@@ -492,9 +514,17 @@ pub(crate) fn on_ack(ep: &mut Endpoint, p: usize, now: Instant, ranges: &[(u64, 
     let s = &mut peer.send;
     let mut newest: Option<(u64, Instant, bool, SendMark)> = None;
     let mut acked_bytes = 0;
+    // Ranges come highest first; those below the oldest packet in flight acknowledge
+    // nothing new.
+    let oldest = s.in_flight.keys().next().copied().unwrap_or(u64::MAX);
+    let mut pns = Vec::new();
     for &(lo, hi) in ranges {
-        let pns: Vec<u64> = s.in_flight.range(lo..=hi).map(|(pn, _)| *pn).collect();
-        for pn in pns {
+        if hi < oldest {
+            break;
+        }
+        pns.clear();
+        pns.extend(s.in_flight.range(lo.max(oldest)..=hi).map(|(pn, _)| *pn));
+        for &pn in &pns {
             let sent = s.in_flight.remove(&pn).expect("listed above");
             s.bytes_in_flight -= sent.size;
             acked_bytes += sent.size;
@@ -546,6 +576,7 @@ pub(crate) fn detect_losses(ep: &mut Endpoint, p: usize, now: Instant) {
         .filter(|(pn, sent)| **pn + 3 <= s.largest_acked || sent.at + threshold <= now)
         .map(|(pn, _)| *pn)
         .collect();
+    let by_threshold = !lost.is_empty();
     if lost.is_empty() && !s.in_flight.is_empty() && now >= s.last_sent + s.pto(config) {
         // Probe with the two oldest packets (RFC 9002 §6.2.4 allows two): at 20-30% loss a
         // single probe or its ACK is lost often enough for the doubling timeout to dominate.
@@ -557,6 +588,9 @@ pub(crate) fn detect_losses(ep: &mut Endpoint, p: usize, now: Instant) {
     for pn in lost.into_iter().rev() {
         let sent = s.in_flight.remove(&pn).expect("listed above");
         s.bytes_in_flight -= sent.size;
+        if by_threshold {
+            s.cc.on_loss(sent.size);
+        }
         for &(edge, seq, chunk) in sent.chunks.iter().rev() {
             if s.msgs
                 .get(&(edge, seq))

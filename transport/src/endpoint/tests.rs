@@ -1188,9 +1188,17 @@ fn thirty_percent_loss_does_not_collapse_the_rate() {
         assert!(s.transfer(&messages, Duration::from_secs(120)));
         (8 << 20) as f64 * 8.0 / (s.now - start).as_secs_f64() / 1e6
     };
-    let (clean, lossy) = (run(0.0), run(0.3));
-    eprintln!("100 Mbit/s, 20 ms: {clean:.1} Mbit/s loss-free, {lossy:.1} at 30% loss");
-    assert!(lossy > 0.4 * clean, "{lossy:.1} of {clean:.1} Mbit/s");
+    let clean = run(0.0);
+    for loss in [0.2, 0.3] {
+        let lossy = run(loss);
+        eprintln!("100 Mbit/s, 20 ms: {clean:.1} Mbit/s loss-free, {lossy:.1} at {loss} loss");
+        // Random loss is made up for in the rate model (`cc.rs`): BBR v1 ran at 58% of the
+        // loss-free rate here at 30%.
+        assert!(
+            lossy > 0.65 * clean,
+            "{lossy:.1} of {clean:.1} Mbit/s at {loss}"
+        );
+    }
 }
 
 /// The interop runner's "cross traffic" case: two senders through one 50 Mbit/s, 80 ms
@@ -1356,4 +1364,40 @@ fn keys_change_under_way_without_a_pause_or_a_loss() {
     let epochs = a.packets_sent / 4096;
     assert!(epochs >= 3, "{a:?}");
     assert_eq!((a.forged, b.forged, a.handshakes), (0, 0, 1), "{a:?} {b:?}");
+}
+
+/// A read that takes in a whole window is acknowledged as it goes, every 64 packets
+/// (`poll_ack_into`, called by the driver between a read's datagrams), not once at its end:
+/// one ACK lost then leaves the sender waiting for nothing.
+#[test]
+fn a_read_of_a_whole_window_is_acknowledged_as_it_goes() {
+    let mut s = Sim::new(LinkProfile::default(), 5);
+    s.reconfigure(|c| c.congestion_control = false);
+    assert!(s.run_until(Duration::from_secs(5), |s| s.a.is_up("b") && s.b.is_up("a")));
+    let chunks = 300;
+    s.a.send(7, pattern(chunks * s.a.config().chunk_bytes(), 1))
+        .unwrap();
+    let now = s.now;
+    let mut packets = Vec::new();
+    while let Some((_, d)) = s.a.poll_transmit(now) {
+        packets.push(d);
+    }
+    assert!(packets.len() >= chunks, "{} packets", packets.len());
+    let mut acks = Vec::new();
+    for d in &packets {
+        s.b.handle_datagram(now, addr(A), d);
+        let mut out = Vec::new();
+        while s.b.poll_ack_into(now, 64, &mut out).is_some() {
+            acks.push(std::mem::take(&mut out));
+        }
+    }
+    assert_eq!(acks.len(), chunks / 64, "an ACK per 64 packets of the read");
+    // Each is an authentic ACK a takes, and none makes a resend anything.
+    let before = s.a.peer_stats("b").unwrap().packets_received;
+    for ack in &acks {
+        s.a.handle_datagram(now, addr(B), ack);
+    }
+    let st = s.a.peer_stats("b").unwrap();
+    assert_eq!(st.packets_received, before + acks.len() as u64);
+    assert_eq!(st.retransmissions, 0);
 }
