@@ -879,7 +879,9 @@ fn loss_recovery(loss: f64, size: usize, seed: u64) -> (f64, f64) {
 fn loss_costs_a_few_round_trips_and_retransmissions_track_the_loss() {
     for size in [1usize << 20, 8 << 20] {
         let (clean, _) = loss_recovery(0.0, size, 0);
-        for (loss, extra_mean, extra_max) in [(0.1, 6.0, 12.0), (0.2, 10.0, 20.0)] {
+        // Measured: +2.7 / +4.0 round trips (1 / 8 MiB) at 10%, +5.5 / +7.3 at 20% — about
+        // the rounds in which 10-20% of what is left is lost again (log N / log(1/loss)).
+        for (loss, extra_mean, extra_max) in [(0.1, 5.0, 7.0), (0.2, 8.5, 11.0)] {
             let runs: Vec<(f64, f64)> =
                 (0..6).map(|seed| loss_recovery(loss, size, seed)).collect();
             let mean = runs.iter().map(|r| r.0).sum::<f64>() / runs.len() as f64;
