@@ -579,8 +579,8 @@ struct Io {
     commands: Receiver<Command>,
     events: tokio::sync::mpsc::Sender<Vec<Event>>,
     stats: Arc<Mutex<DriverStats>>,
-    emulators: HashMap<SocketAddr, (String, LinkEmulator)>,
-    backlog: HashMap<u32, VecDeque<Arc<[u8]>>>,
+    emulators: crate::FastMap<SocketAddr, (String, LinkEmulator)>,
+    backlog: crate::FastMap<u32, VecDeque<Arc<[u8]>>>,
     pending_events: VecDeque<Event>,
     refused_sends: u64,
     filtered: Arc<AtomicU64>,
@@ -618,7 +618,7 @@ impl Io {
         } = shared;
         let now = Instant::now();
         let endpoint = Endpoint::new(config.endpoint, now);
-        let emulators = HashMap::new();
+        let emulators = crate::FastMap::default();
         let mut io = Io {
             seed: config.seed,
             sleeping,
@@ -630,7 +630,7 @@ impl Io {
             events,
             stats,
             emulators,
-            backlog: HashMap::new(),
+            backlog: Default::default(),
             pending_events: VecDeque::new(),
             refused_sends: 0,
             filtered,

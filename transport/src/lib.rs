@@ -27,6 +27,9 @@ pub mod endpoint;
 mod udp;
 pub mod wire;
 
+/// A hash map for keys looked up per packet (foldhash: fast on small keys, seeded per map).
+pub(crate) type FastMap<K, V> = std::collections::HashMap<K, V, foldhash::fast::RandomState>;
+
 pub use driver::{Command, Commander, Driver, DriverConfig, DriverHandle, DriverStats};
 pub use emulator::{LinkEmulator, LinkProfile};
 pub use endpoint::{

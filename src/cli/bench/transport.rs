@@ -43,9 +43,11 @@ pub struct Args {
     /// Largest packet handed to laminar, bytes (the UDP datagram is 5 bytes more).
     #[arg(long, default_value_t = 1200, value_parser = ranges::count::<usize>(128, 65_000))]
     packet_bytes: usize,
-    /// Messages in flight end to end (the edge capacity).
-    #[arg(long, default_value_t = 64, value_parser = ranges::count::<u64>(1, 1_000_000))]
-    capacity: u64,
+    /// Messages in flight end to end (the edge capacity) [default: as many as hold 4 MiB,
+    /// at least 64: the window the receiver agrees to hold is bytes, and 64 messages of 1 KiB
+    /// are 64 KiB per credit round trip, which limits a stream to ~250 MB/s here]
+    #[arg(long, value_parser = ranges::count::<u64>(1, 1_000_000))]
+    capacity: Option<u64>,
     /// Most unacknowledged packets per peer (the transport's send window).
     #[arg(long, default_value_t = 1024, value_parser = ranges::count::<usize>(1, 65_536))]
     window: usize,
@@ -105,7 +107,9 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
             reorder: args.reorder,
         },
         packet_bytes: args.packet_bytes,
-        capacity: args.capacity,
+        capacity: args
+            .capacity
+            .unwrap_or_else(|| cloudlight_transport::bench::default_capacity(args.size)),
         window_packets: args.window.max(1),
         seed: args.seed,
         udp_baseline: !args.no_baseline,

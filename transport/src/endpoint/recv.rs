@@ -1,7 +1,7 @@
 //! Receiving side of a peer link: bounded reassembly, in-order delivery per edge,
 //! acknowledgements and credit grants.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::time::Instant;
 
 use rangemap::RangeInclusiveSet;
@@ -17,7 +17,7 @@ pub(crate) struct RecvEdge {
     pub(crate) next_seq: u64,
     /// Messages the local consumer finished (credit basis).
     pub(crate) released: u64,
-    partial: HashMap<u64, Partial>,
+    partial: crate::FastMap<u64, Partial>,
     done: BTreeMap<u64, Vec<u8>>,
     pub(crate) stats: EdgeWireStats,
 }
@@ -35,7 +35,7 @@ impl RecvEdge {
             capacity,
             next_seq: 0,
             released: 0,
-            partial: HashMap::new(),
+            partial: Default::default(),
             done: BTreeMap::new(),
             stats: EdgeWireStats::default(),
         }

@@ -10,7 +10,7 @@
 //! it all. ACKs report every gap of the window (see [`crate::wire::MAX_ACK_RANGES`]), so a
 //! packet is sent again only when it was lost.
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -76,7 +76,7 @@ struct Sent {
 /// Per-peer sending state.
 pub(crate) struct SendState {
     next_pn: u64,
-    msgs: HashMap<(u32, u64), OutMsg>,
+    msgs: crate::FastMap<(u32, u64), OutMsg>,
     /// Chunks to send, retransmissions first: (edge, seq, chunk, is retransmission).
     pending: VecDeque<(u32, u64, u32, bool)>,
     in_flight: BTreeMap<u64, Sent>,
@@ -115,7 +115,7 @@ impl SendState {
     pub(crate) fn new(config: &EndpointConfig, now: Instant) -> Self {
         SendState {
             next_pn: 1,
-            msgs: HashMap::new(),
+            msgs: Default::default(),
             pending: VecDeque::new(),
             in_flight: BTreeMap::new(),
             largest_acked: 0,
