@@ -34,6 +34,11 @@ const CONGESTIVE_LOSS: f64 = 0.05;
 /// The longest burst the sender's pacer lets go at once (`send::burst`): queueing up to it
 /// at the ends is the sender's own, not the path's.
 pub(crate) const BURST_TIME: Duration = Duration::from_millis(2);
+/// ProbeBW's window: this many times the bandwidth over the round trip (and the ends'
+/// delays), plus [`HEADROOM_PACKETS`] (BBR v1: 2×, and 4 packets).
+const CWND_GAIN: f64 = 1.75;
+/// Packets every flow's ProbeBW window holds beyond its share (see [`Bbr::window`]).
+const HEADROOM_PACKETS: u64 = 64;
 /// How long ProbeRTT holds the window at [`MIN_PACKETS`] (BBR's 200 ms).
 const PROBE_RTT_FOR: Duration = Duration::from_millis(200);
 /// Packets in flight allowed before the path is measured, and at the least.
@@ -200,12 +205,20 @@ impl Bbr {
             None => INITIAL_PACKETS * self.datagram,
             Some(bdp) => {
                 let gain = if self.phase == Phase::ProbeBw {
-                    2.0
+                    CWND_GAIN
                 } else {
                     HIGH_GAIN
                 };
-                // A few packets more, so that acknowledgement aggregation does not starve it.
-                ((gain * bdp) as u64 + 4 * self.datagram).max(floor)
+                // The same number of packets for every flow, beyond its share: flows limited
+                // by their windows share a queue in proportion to them, and a window
+                // proportional to the estimate keeps any split as it is (BBR v1's probing
+                // moved 66/34 by 0.15 Mbit/s a second); an equal addend moves them towards
+                // equal shares, as additive increase does. At most one product (a path of a
+                // few packets keeps a few), at least 4 packets, so that acknowledgement
+                // aggregation does not starve a small window.
+                let dg = self.datagram as f64;
+                let head = (HEADROOM_PACKETS as f64 * dg).min(bdp.max(4.0 * dg));
+                ((gain * bdp + head) as u64).max(floor)
             }
         }
     }

@@ -1323,14 +1323,14 @@ fn two_senders(offset: Duration) -> ([f64; 2], u64) {
     ([mbps[0], mbps[1]], forward.stats().queue_drops)
 }
 
-/// The interop runner's "cross traffic" case, the second sender starting 1, 1.5 or 2 s after
-/// the first. The link stays busy and the queue does not overflow much. The target is 40-60%
-/// each; what holds today is less: BBR v1's probing converges slowly from where the second
-/// flow's Startup left it (68/32 at 1.5 s, 59/41 at 2 s, 53/47 at 1 s, 66/34 at 2.5-4 s;
-/// ~0.15 Mbit/s a second towards the fair share), so this asserts at least 25% each.
+/// The interop runner's "cross traffic" case, the second sender starting 0.5 to 4 s after
+/// the first: over the last 10 s of 20 each gets 40-60% of the link, the link stays busy, and
+/// the queue overflows little. (BBR v1's windows, proportional to each flow's estimate, kept
+/// whatever split the second flow's Startup left: 66-68/32-34 at most offsets; the equal
+/// headroom of `cc.rs` evens it out: 46-56%.)
 #[test]
-fn two_senders_share_a_bottleneck() {
-    for ms in [1000, 1500, 2000] {
+fn two_senders_share_a_bottleneck_fairly() {
+    for ms in [500, 1000, 1500, 2000, 2500, 3000, 4000] {
         let (mbps, drops) = two_senders(Duration::from_millis(ms));
         let total: f64 = mbps.iter().sum();
         eprintln!(
@@ -1339,9 +1339,10 @@ fn two_senders_share_a_bottleneck() {
         );
         assert!(total >= 0.8 * 50.0 * 0.95 * 0.9, "{total:.1} Mbit/s in all");
         for m in &mbps {
-            assert!(m / total >= 0.25, "shares {mbps:?}");
+            assert!((0.4..=0.6).contains(&(m / total)), "shares {mbps:?}");
         }
-        assert!(drops < 1000, "{drops} queue drops");
+        // Of ~99,000 packets; most at the second flow's Startup.
+        assert!(drops < 2_500, "{drops} queue drops");
     }
 }
 
