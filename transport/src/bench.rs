@@ -306,7 +306,6 @@ impl Side {
 }
 
 /// What one client saw.
-#[derive(Default)]
 struct ClientTally {
     delivered: usize,
     identical: bool,
@@ -315,6 +314,19 @@ struct ClientTally {
     /// the round trip).
     completions: Vec<Duration>,
     last: Option<Instant>,
+}
+
+impl ClientTally {
+    /// Nothing seen yet: identical and in order until a message says otherwise.
+    fn new() -> Self {
+        ClientTally {
+            delivered: 0,
+            identical: true,
+            in_order: true,
+            completions: Vec::new(),
+            last: None,
+        }
+    }
 }
 
 /// Starts the sender ("a") and the clients ("b0", "b1", ...), declares them to each other
@@ -388,11 +400,7 @@ async fn bulk(
         let (down, _) = edges(i);
         let (patterns, handed, count) = (patterns.clone(), handed.clone(), opts.count);
         tasks.push(tokio::spawn(async move {
-            let mut t = ClientTally {
-                identical: true,
-                in_order: true,
-                ..Default::default()
-            };
+            let mut t = ClientTally::new();
             let run = async {
                 while t.delivered < count {
                     // Take everything already waiting, then release it with one command.
@@ -493,11 +501,7 @@ async fn request_response(
         b.granted.insert(up, opts.capacity);
         let (patterns, count) = (patterns.clone(), opts.count);
         tasks.push(tokio::spawn(async move {
-            let mut t = ClientTally {
-                identical: true,
-                in_order: true,
-                ..Default::default()
-            };
+            let mut t = ClientTally::new();
             let run = async {
                 for k in 0..count as u64 {
                     b.wait_credit(up).await?;

@@ -596,6 +596,25 @@ fn panic_text(panic: &(dyn std::any::Any + Send)) -> String {
         .unwrap_or_else(|| "(no message)".into())
 }
 
+/// Sends the datagram begun at `start` of the outbox to `to`: through its emulated link if it
+/// has one (decided in place when the link only loses), else straight out.
+fn route(
+    outbox: &mut Outbox,
+    emulators: &mut crate::FastMap<SocketAddr, (String, LinkEmulator)>,
+    now: Instant,
+    to: SocketAddr,
+    start: usize,
+) {
+    match emulators.get_mut(&to) {
+        Some((_, em)) => match em.pass_now() {
+            Some(true) => outbox.commit(to, start),
+            Some(false) => outbox.abort(start),
+            None => em.send(now, outbox.take(start)),
+        },
+        None => outbox.commit(to, start),
+    }
+}
+
 /// A stable hash of a peer name, to give each emulated link its own seed.
 fn hash_name(name: &str) -> u64 {
     name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
@@ -772,14 +791,7 @@ impl Io {
                                     outbox.abort(start);
                                     break;
                                 }
-                                Some(to) => match emulators.get_mut(&to) {
-                                    Some((_, em)) => match em.pass_now() {
-                                        Some(true) => outbox.commit(to, start),
-                                        Some(false) => outbox.abort(start),
-                                        None => em.send(now, outbox.take(start)),
-                                    },
-                                    None => outbox.commit(to, start),
-                                },
+                                Some(to) => route(outbox, emulators, now, to, start),
                             }
                         }
                     }) {
@@ -872,14 +884,7 @@ impl Io {
                             b.outbox.abort(start);
                             break;
                         }
-                        Some(to) => match self.emulators.get_mut(&to) {
-                            Some((_, em)) => match em.pass_now() {
-                                Some(true) => b.outbox.commit(to, start),
-                                Some(false) => b.outbox.abort(start),
-                                None => em.send(now, b.outbox.take(start)),
-                            },
-                            None => b.outbox.commit(to, start),
-                        },
+                        Some(to) => route(&mut b.outbox, &mut self.emulators, now, to, start),
                     }
                     if b.outbox.len() >= OUTBOX_FLUSH_AT {
                         self.flush()?;
