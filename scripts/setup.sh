@@ -11,6 +11,8 @@
 #     iproute2                         `ip netns` + veth for the network-namespace cluster test
 #     ffmpeg                           ffprobe/ffmpeg: the independent decoder the video tests compare with
 #     python3-venv                     a virtual environment for PyPI's kubernetes-validate (below)
+#     libembree-dev                    Embree 3: the yardstick `bench rays --against-embree` and
+#                                      the tests compare ray casting with (opened at run time)
 # Usage: scripts/setup.sh [runtime|build|all] (default all: runtime + build + test);
 #        scripts/setup.sh --list ROLE prints the packages of ROLE and does nothing else.
 # Installed from Debian's archive with apt-get when run as root; otherwise prints the exact
@@ -19,7 +21,7 @@
 set -euo pipefail
 runtime=(mesa-vulkan-drivers libvulkan1 libegl-mesa0 libgl1-mesa-dri fonts-dejavu-core)
 build=(nasm g++)
-test=(iproute2 ffmpeg python3-venv)
+test=(iproute2 ffmpeg python3-venv libembree-dev)
 role_packages() {
   case "$1" in
     runtime) echo "${runtime[*]}" ;;

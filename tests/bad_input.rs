@@ -396,7 +396,7 @@ fn numeric_flags() -> Vec<(Vec<String>, &'static str)> {
         flags.push((s(&["bench", "quality"]), f));
     }
     flags.push((s(&["bench", "raster"]), "--rounds"));
-    for f in ["--threads", "--rounds"] {
+    for f in ["--threads", "--passes"] {
         flags.push((s(&["bench", "rays"]), f));
     }
     flags

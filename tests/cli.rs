@@ -890,6 +890,56 @@ fn irradiance_benchmarks_print_the_papers_rows_scale_sweep_and_split_the_frame()
 }
 
 #[test]
+fn bench_rays_compares_with_embree_or_says_why_not() {
+    let dir = tempfile::tempdir().unwrap();
+    for (library, expect_embree) in [(None, true), (Some("/nonexistent/libembree3.so"), false)] {
+        let json = dir.path().join("rays.json");
+        let mut cmd = cloudlight();
+        cmd.args(["bench", "rays", "--scene", "cornell", "--threads", "1"])
+            .args(["--passes", "1", "--against-embree", "--json"])
+            .arg(&json);
+        if let Some(l) = library {
+            cmd.env("CLOUDLIGHT_EMBREE", l);
+        }
+        let out = cmd.output().unwrap();
+        ok(&out);
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        let rows = v["rows"].as_array().unwrap();
+        let embree_rows = rows
+            .iter()
+            .filter(|r| r["backend"].as_str().unwrap().starts_with("Embree"))
+            .count();
+        let unavailable = v["embree_unavailable"].as_str();
+        if expect_embree && unavailable.is_none() {
+            // Installed (scripts/setup.sh installs it): three modes on three ray sets.
+            assert_eq!(embree_rows, 9, "{v}");
+        } else {
+            // Not loadable: the flag says so and the project's own rows are still measured.
+            assert_eq!(embree_rows, 0, "{v}");
+            assert!(
+                unavailable.unwrap().contains("Embree 3 is not installed"),
+                "{v}"
+            );
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(
+                err.contains("--against-embree: Embree 3 is not installed"),
+                "{err}"
+            );
+        }
+        for r in rows {
+            assert!(r["mrays_s"].as_f64().unwrap() > 0.0, "{r}");
+            assert!(r["agreement"].as_f64().unwrap() > 0.99, "{r}");
+        }
+        assert_eq!(
+            rows.len() - embree_rows,
+            6,
+            "two obvhs layouts on three ray sets"
+        );
+    }
+}
+
+#[test]
 fn benchmarks_of_missing_techniques_say_so() {
     let out = cloudlight()
         .args(["bench", "table2", "--technique", "rays"])

@@ -7,6 +7,7 @@
 
 pub mod bvh;
 pub mod direct_light;
+pub mod embree;
 pub mod hdr_map;
 pub mod image_io;
 pub mod lightmap;

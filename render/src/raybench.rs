@@ -1,29 +1,104 @@
 //! The ray-casting benchmark behind `cloudlight bench rays`: BVH build time, and rays per
-//! second for coherent camera rays (1280×720 primary rays) and incoherent diffuse-bounce
-//! rays (cosine directions from those primary hits), per BVH layout and thread count.
+//! second on three ray sets (1280×720 camera rays, a cosine bounce from each of their hits,
+//! 1M random rays inside the bounds), per backend and thread count, with the hits of every
+//! backend checked against a reference backend's in the same run. `--against-embree` adds
+//! Embree 3 on the same triangles and rays: one ray at a time, 8-wide packets and streams.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use cloudlight_scenes::Scene;
-use glam::Vec2;
+use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 
 use crate::bvh::{BvhKind, RayQuery, SceneBvh};
-use crate::sampling::{Rng, basis, cosine_hemisphere};
+use crate::embree::{Embree, EmbreeScene};
+use crate::sampling::{Rng, basis, cosine_hemisphere, uniform_sphere};
+
+/// Rays handed to a worker at once (a multiple of 8, Embree's packet width).
+const CHUNK: usize = 1024;
+
+/// A way of casting rays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// obvhs, one ray at a time, in this layout.
+    Obvhs(BvhKind),
+    /// Embree 3, `rtcIntersect1`.
+    EmbreeOne,
+    /// Embree 3, `rtcIntersect8` over consecutive groups of eight rays.
+    EmbreePackets,
+    /// Embree 3, `rtcIntersect1M` over chunks of rays (coherent flag on camera rays).
+    EmbreeStream,
+}
+
+impl Backend {
+    /// Short name for tables.
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Obvhs(BvhKind::Bvh2) => "obvhs BVH2",
+            Backend::Obvhs(BvhKind::Cwbvh) => "obvhs CWBVH",
+            Backend::EmbreeOne => "Embree 1 ray",
+            Backend::EmbreePackets => "Embree packets of 8",
+            Backend::EmbreeStream => "Embree streams",
+        }
+    }
+
+    /// Whether this is the yardstick rather than the project's own code.
+    pub fn is_embree(self) -> bool {
+        !matches!(self, Backend::Obvhs(_))
+    }
+}
+
+/// One ray set.
+pub struct RaySet {
+    /// `camera`, `bounce` or `random`.
+    pub name: &'static str,
+    /// Whether neighbouring rays are coherent (the target is then 0.5× Embree, else 0.8×).
+    pub coherent: bool,
+    /// The rays, meters.
+    pub rays: Vec<RayQuery>,
+}
 
 /// One measured configuration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RayBenchRow {
-    /// BVH layout.
-    pub kind: BvhKind,
+    /// How the rays were cast.
+    pub backend: Backend,
+    /// Which ray set.
+    pub rays: &'static str,
     /// Worker threads.
     pub threads: usize,
-    /// BVH build time, seconds (obvhs core build).
-    pub build_s: f64,
-    /// Coherent camera rays, millions per second.
-    pub coherent_mrays_s: f64,
-    /// Incoherent diffuse-bounce rays, millions per second.
-    pub incoherent_mrays_s: f64,
+    /// Median of the timed passes, million rays per second.
+    pub mrays_s: f64,
+    /// Fastest and slowest pass, million rays per second.
+    pub range: (f64, f64),
+    /// Fraction of rays whose result matches the reference backend's (both miss, or both hit
+    /// with t within 1e-4 relative).
+    pub agreement: f64,
+}
+
+/// A build of one backend at one thread count.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BuildRow {
+    /// `obvhs BVH2`, `obvhs CWBVH` or `Embree MEDIUM`.
+    pub what: &'static str,
+    /// Build threads.
+    pub threads: usize,
+    /// Seconds.
+    pub seconds: f64,
+}
+
+/// What a run measured.
+pub struct RayBenchReport {
+    /// Ray counts per set.
+    pub sets: Vec<(&'static str, usize)>,
+    /// Builds.
+    pub builds: Vec<BuildRow>,
+    /// Casting rates.
+    pub rows: Vec<RayBenchRow>,
+    /// Which backend the agreement is measured against.
+    pub reference: Backend,
+    /// Where Embree was asked for but could not be used: why.
+    pub embree_unavailable: Option<String>,
 }
 
 /// The camera rays of a 1280×720 view, and diffuse bounce rays from their hits.
@@ -67,45 +142,260 @@ pub fn make_rays(scene: &Scene, bvh: &SceneBvh) -> (Vec<RayQuery>, Vec<RayQuery>
     (camera_rays, bounce_rays)
 }
 
-fn rate(bvh: &SceneBvh, rays: &[RayQuery], rounds: usize) -> f64 {
-    let mut best = f64::INFINITY;
-    for _ in 0..rounds {
-        let t = Instant::now();
-        let hits = rays
-            .par_iter()
-            .filter(|&&(o, d, m)| bvh.closest_hit(o, d, m).is_some())
-            .count();
-        std::hint::black_box(hits);
-        best = best.min(t.elapsed().as_secs_f64());
-    }
-    rays.len() as f64 / best / 1e6
+/// `n` rays from uniform points inside `bounds` in uniform directions, unbounded.
+pub fn random_rays(bounds: (Vec3, Vec3), n: usize) -> Vec<RayQuery> {
+    let (lo, hi) = bounds;
+    let mut rng = Rng::new(2, 0);
+    (0..n)
+        .map(|_| {
+            let o = lo + (hi - lo) * Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
+            let d = uniform_sphere(rng.next_f32(), rng.next_f32());
+            (o, d, f32::INFINITY)
+        })
+        .collect()
 }
 
-/// Measures every layout at every thread count (best of `rounds` passes over the rays).
-pub fn run(scene: &Scene, threads: &[usize], rounds: usize) -> Vec<RayBenchRow> {
-    let mut rows = Vec::new();
-    for kind in [BvhKind::Cwbvh, BvhKind::Bvh2] {
-        let bvh = SceneBvh::at(scene, 0.0, kind);
-        let (coherent, incoherent) = make_rays(scene, &bvh);
-        for &n in threads {
+/// The three ray sets of the benchmark.
+pub fn ray_sets(scene: &Scene, bvh: &SceneBvh) -> Vec<RaySet> {
+    let (camera, bounce) = make_rays(scene, bvh);
+    vec![
+        RaySet {
+            name: "camera",
+            coherent: true,
+            rays: camera,
+        },
+        RaySet {
+            name: "bounce",
+            coherent: false,
+            rays: bounce,
+        },
+        RaySet {
+            name: "random",
+            coherent: false,
+            rays: random_rays(bvh.bounds(), 1_000_000),
+        },
+    ]
+}
+
+type Hits = Vec<Option<(f32, u32)>>;
+
+/// A built backend that can cast a chunk of rays.
+enum Caster<'a> {
+    Obvhs(&'a SceneBvh),
+    Embree(&'a EmbreeScene<'a>, Backend),
+}
+
+impl Caster<'_> {
+    fn cast(&self, rays: &[RayQuery], coherent: bool, out: &mut [Option<(f32, u32)>]) {
+        match self {
+            Caster::Obvhs(b) => {
+                for (o, &(p, d, t)) in out.iter_mut().zip(rays) {
+                    *o = b.closest_hit(p, d, t).map(|h| (h.t, h.triangle));
+                }
+            }
+            Caster::Embree(e, Backend::EmbreeOne) => {
+                for (o, r) in out.iter_mut().zip(rays) {
+                    *o = e.closest_hit(r);
+                }
+            }
+            Caster::Embree(e, Backend::EmbreePackets) => e.closest_hits_packets(rays, out),
+            Caster::Embree(e, _) => e.closest_hits_stream(rays, coherent, out),
+        }
+    }
+}
+
+/// One pass over `rays` in parallel chunks, timed.
+fn pass(caster: &Caster, set: &RaySet, out: &mut Hits) -> Duration {
+    let t = Instant::now();
+    set.rays
+        .par_chunks(CHUNK)
+        .zip(out.par_chunks_mut(CHUNK))
+        .for_each(|(r, o)| caster.cast(r, set.coherent, o));
+    t.elapsed()
+}
+
+fn agree(a: &Option<(f32, u32)>, b: &Option<(f32, u32)>) -> bool {
+    match (a, b) {
+        (None, None) => true,
+        (Some((s, _)), Some((t, _))) => (s - t).abs() <= 1e-4 * s.abs().max(t.abs()).max(1e-3),
+        _ => false,
+    }
+}
+
+/// Fraction of entries that agree.
+pub fn agreement(a: &[Option<(f32, u32)>], b: &[Option<(f32, u32)>]) -> f64 {
+    let same = a.iter().zip(b).filter(|(x, y)| agree(x, y)).count();
+    same as f64 / a.len().max(1) as f64
+}
+
+/// Median and range of `passes` timed passes after one warm-up, million rays per second.
+fn measure(caster: &Caster, set: &RaySet, passes: usize, out: &mut Hits) -> (f64, (f64, f64)) {
+    pass(caster, set, out);
+    let mut rates: Vec<f64> = (0..passes.max(1))
+        .map(|_| set.rays.len() as f64 / pass(caster, set, out).as_secs_f64() / 1e6)
+        .collect();
+    rates.sort_by(f64::total_cmp);
+    (rates[rates.len() / 2], (rates[0], rates[rates.len() - 1]))
+}
+
+/// Measures every backend on every ray set at every thread count: the median of `passes`
+/// timed passes after a warm-up. `progress` hears of each row as it is measured.
+pub fn run(
+    scene: &Scene,
+    threads: &[usize],
+    passes: usize,
+    against_embree: bool,
+    mut progress: impl FnMut(&RayBenchRow),
+) -> RayBenchReport {
+    let triangles = scene.triangles_at(0.0);
+    let pools: Vec<(usize, rayon::ThreadPool)> = threads
+        .iter()
+        .map(|&n| {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(n.max(1))
                 .build()
                 .expect("a thread pool");
-            let (c, i) = pool.install(|| {
-                (
-                    rate(&bvh, &coherent, rounds),
-                    rate(&bvh, &incoherent, rounds),
-                )
+            (n, pool)
+        })
+        .collect();
+    let mut builds = Vec::new();
+    let mut bvhs = Vec::new();
+    for kind in [BvhKind::Bvh2, BvhKind::Cwbvh] {
+        for (n, pool) in &pools {
+            let bvh = pool.install(|| SceneBvh::build(triangles.clone(), kind));
+            builds.push(BuildRow {
+                what: Backend::Obvhs(kind).name(),
+                threads: *n,
+                seconds: bvh.build_time().as_secs_f64(),
             });
-            rows.push(RayBenchRow {
-                kind,
-                threads: n,
-                build_s: bvh.build_time().as_secs_f64(),
-                coherent_mrays_s: c,
-                incoherent_mrays_s: i,
-            });
+            if *n == threads[0] {
+                bvhs.push((kind, bvh));
+            }
         }
     }
-    rows
+    let sets = ray_sets(scene, &bvhs[0].1);
+    let embree = if against_embree {
+        Some(Embree::load())
+    } else {
+        None
+    };
+    let embree_unavailable = match &embree {
+        Some(Err(e)) => Some(e.clone()),
+        _ => None,
+    };
+    let embree = embree.and_then(Result::ok);
+    // One Embree scene per thread count (its build threads), kept for the rays at that count.
+    let mut embree_scenes = Vec::new();
+    let mut embree_error = embree_unavailable;
+    if let Some(e) = &embree {
+        for (n, pool) in &pools {
+            match pool.install(|| e.scene(&triangles, *n)) {
+                Ok(s) => {
+                    builds.push(BuildRow {
+                        what: "Embree MEDIUM",
+                        threads: *n,
+                        seconds: s.build_time.as_secs_f64(),
+                    });
+                    embree_scenes.push((*n, s));
+                }
+                Err(err) => {
+                    embree_error = Some(err);
+                    embree_scenes.clear();
+                    break;
+                }
+            }
+        }
+    }
+    let reference = if embree_scenes.is_empty() {
+        Backend::Obvhs(BvhKind::Bvh2)
+    } else {
+        Backend::EmbreeOne
+    };
+    // Reference hits: one pass of the reference backend per set.
+    let reference_hits: Vec<Hits> = sets
+        .iter()
+        .map(|set| {
+            let caster = match embree_scenes.first() {
+                Some((_, s)) => Caster::Embree(s, Backend::EmbreeOne),
+                None => Caster::Obvhs(&bvhs[0].1),
+            };
+            let mut out = vec![None; set.rays.len()];
+            pass(&caster, set, &mut out);
+            out
+        })
+        .collect();
+    let mut rows = Vec::new();
+    for (n, pool) in &pools {
+        let mut casters: Vec<(Backend, Caster)> = bvhs
+            .iter()
+            .map(|(k, b)| (Backend::Obvhs(*k), Caster::Obvhs(b)))
+            .collect();
+        if let Some((_, s)) = embree_scenes.iter().find(|(m, _)| m == n) {
+            for b in [
+                Backend::EmbreeOne,
+                Backend::EmbreePackets,
+                Backend::EmbreeStream,
+            ] {
+                casters.push((b, Caster::Embree(s, b)));
+            }
+        }
+        for (set, reference) in sets.iter().zip(&reference_hits) {
+            for (backend, caster) in &casters {
+                let mut out = vec![None; set.rays.len()];
+                let (mrays_s, range) = pool.install(|| measure(caster, set, passes, &mut out));
+                let row = RayBenchRow {
+                    backend: *backend,
+                    rays: set.name,
+                    threads: *n,
+                    mrays_s,
+                    range,
+                    agreement: agreement(&out, reference),
+                };
+                progress(&row);
+                rows.push(row);
+            }
+        }
+    }
+    RayBenchReport {
+        sets: sets.iter().map(|s| (s.name, s.rays.len())).collect(),
+        builds,
+        rows,
+        reference,
+        embree_unavailable: embree_error,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embree_agrees_with_obvhs_where_installed() {
+        let Ok(embree) = Embree::load() else {
+            eprintln!("Embree 3 not installed: nothing to compare");
+            return;
+        };
+        let scene = cloudlight_scenes::builtin("city:5000").unwrap();
+        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::Bvh2);
+        let es = embree.scene(bvh.triangles(), 1).expect("builds");
+        let rays = random_rays(bvh.bounds(), 3000);
+        let ours: Hits = rays
+            .iter()
+            .map(|&(o, d, t)| bvh.closest_hit(o, d, t).map(|h| (h.t, h.triangle)))
+            .collect();
+        let one: Hits = rays.iter().map(|r| es.closest_hit(r)).collect();
+        let mut packets = vec![None; rays.len()];
+        es.closest_hits_packets(&rays, &mut packets);
+        let mut stream = vec![None; rays.len()];
+        es.closest_hits_stream(&rays, false, &mut stream);
+        assert!(agreement(&ours, &one) > 0.999, "{}", agreement(&ours, &one));
+        assert_eq!(agreement(&one, &packets), 1.0);
+        assert_eq!(agreement(&one, &stream), 1.0);
+        for (r, h) in rays.iter().zip(&one).take(500) {
+            if let Some((t, _)) = h {
+                assert!(es.occluded(&(r.0, r.1, t * 1.001)));
+                assert!(!es.occluded(&(r.0, r.1, t * 0.999)));
+            }
+        }
+    }
 }

@@ -57,9 +57,10 @@ pub enum BenchCommand {
     /// and the relative luminance and chroma error of an HDR light map packed into 8-bit
     /// 4:2:0 (alone and coded, per QP); the paper's hardware-encoder figures beside ours.
     Video(video::Args),
-    /// Ray casting on a scene: BVH build time, and million rays per second for coherent
-    /// camera rays (1280x720) and incoherent diffuse-bounce rays, for CWBVH and BVH2 at each
-    /// thread count (best of --rounds passes).
+    /// Ray casting on a scene: BVH build times and million rays per second on camera rays
+    /// (1280x720), a diffuse bounce from each of their hits and 1M random rays in the bounds,
+    /// per backend and thread count (median of --passes after a warm-up), with the agreement
+    /// of every backend's hits with the reference's (Embree one ray at a time when loaded).
     Rays {
         /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.
         #[arg(long, default_value = "city:250000")]
@@ -67,9 +68,17 @@ pub enum BenchCommand {
         /// Thread counts, comma-separated.
         #[arg(long, value_delimiter = ',', default_value = "1,2", value_parser = ranges::count::<usize>(1, 1024))]
         threads: Vec<usize>,
-        /// Passes over the rays; the best is kept.
-        #[arg(long, default_value_t = 3, value_parser = ranges::count::<usize>(1, 1000))]
-        rounds: usize,
+        /// Timed passes over each ray set after one warm-up; the median is reported.
+        #[arg(long, alias = "rounds", default_value_t = 5, value_parser = ranges::count::<usize>(1, 1000))]
+        passes: usize,
+        /// Also cast the same rays with Embree 3 (Debian's libembree-dev, opened at run time;
+        /// CLOUDLIGHT_EMBREE names another libembree3.so): one ray at a time, 8-wide packets
+        /// and streams, and print our speed as a ratio of Embree's best.
+        #[arg(long)]
+        against_embree: bool,
+        /// Also write the figures as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
     },
 }
 
@@ -85,8 +94,10 @@ pub fn run(what: BenchCommand) -> ExitCode {
         BenchCommand::Rays {
             scene,
             threads,
-            rounds,
-        } => rays::run(&scene, &threads, rounds),
+            passes,
+            against_embree,
+            json,
+        } => rays::run(&scene, &threads, passes, against_embree, json.as_ref()),
     }
 }
 

@@ -1,9 +1,23 @@
-//! `cloudlight bench rays`: BVH build and ray casting speed.
+//! `cloudlight bench rays`: BVH build and ray casting speed, against Embree in the same run.
 
+use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-pub fn run(scene: &str, threads: &[usize], rounds: usize) -> ExitCode {
+use cloudlight::render::raybench::{self, Backend, RayBenchReport, RayBenchRow};
+
+/// The targets of TARGETS.md as a fraction of Embree's best mode on the same rays.
+fn target(coherent: bool) -> f64 {
+    if coherent { 0.5 } else { 0.8 }
+}
+
+pub fn run(
+    scene: &str,
+    threads: &[usize],
+    passes: usize,
+    against_embree: bool,
+    json_path: Option<&PathBuf>,
+) -> ExitCode {
     let t = Instant::now();
     let scene = match cloudlight::scenes::load(scene) {
         Ok(s) => s,
@@ -13,40 +27,143 @@ pub fn run(scene: &str, threads: &[usize], rounds: usize) -> ExitCode {
         }
     };
     eprintln!(
-        "{}: {} triangles, generated in {:.2} s",
+        "{}: {} triangles, generated in {:.2} s; {} timed passes per figure after a warm-up",
         scene.name,
         scene.triangle_count(),
-        t.elapsed().as_secs_f64()
+        t.elapsed().as_secs_f64(),
+        passes
     );
-    let rows = cloudlight::render::raybench::run(&scene, threads, rounds.max(1));
+    let report = raybench::run(&scene, threads, passes, against_embree, |r| {
+        eprintln!(
+            "  {:>6} rays, {} thread(s), {:<20} {:7.2} Mrays/s",
+            r.rays,
+            r.threads,
+            r.backend.name(),
+            r.mrays_s
+        )
+    });
+    if let Some(why) = &report.embree_unavailable {
+        eprintln!("--against-embree: {why}; measured without it");
+    }
+    print_report(&report);
+    let json = serde_json::json!({
+        "scene": scene.name,
+        "triangles": scene.triangle_count(),
+        "passes": passes,
+        "ray_sets": report.sets.iter().map(|(n, c)| serde_json::json!({"name": n, "rays": c})).collect::<Vec<_>>(),
+        "builds": report.builds.iter().map(|b| serde_json::json!({
+            "what": b.what, "threads": b.threads, "seconds": b.seconds})).collect::<Vec<_>>(),
+        "reference": report.reference.name(),
+        "embree_unavailable": report.embree_unavailable,
+        "rows": report.rows.iter().map(|r| serde_json::json!({
+            "backend": r.backend.name(), "rays": r.rays, "threads": r.threads,
+            "mrays_s": r.mrays_s, "min_mrays_s": r.range.0, "max_mrays_s": r.range.1,
+            "agreement": r.agreement,
+            "of_embree_best": best_embree(&report.rows, r).map(|b| r.mrays_s / b.mrays_s),
+        })).collect::<Vec<_>>(),
+    });
+    println!("{json}");
+    if let Err(e) = super::write_json(json_path, &json.to_string()) {
+        eprintln!("error: {e}");
+        return ExitCode::from(1);
+    }
+    ExitCode::SUCCESS
+}
+
+/// Embree's fastest mode on the same rays at the same thread count.
+fn best_embree<'a>(rows: &'a [RayBenchRow], r: &RayBenchRow) -> Option<&'a RayBenchRow> {
+    rows.iter()
+        .filter(|e| e.backend.is_embree() && e.rays == r.rays && e.threads == r.threads)
+        .max_by(|a, b| a.mrays_s.total_cmp(&b.mrays_s))
+}
+
+fn print_report(report: &RayBenchReport) {
+    let mut builds = comfy_table::Table::new();
+    builds
+        .load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
+        .set_header([
+            "build",
+            "threads",
+            "seconds",
+            "of Embree MEDIUM (target <= 1.5)",
+        ]);
+    for b in &report.builds {
+        let embree = report
+            .builds
+            .iter()
+            .find(|e| e.what == "Embree MEDIUM" && e.threads == b.threads);
+        builds.add_row([
+            b.what.to_owned(),
+            b.threads.to_string(),
+            format!("{:.3}", b.seconds),
+            match embree {
+                Some(e) if b.what != e.what => format!("{:.2}x", b.seconds / e.seconds),
+                _ => String::new(),
+            },
+        ]);
+    }
+    println!("{builds}");
     let mut table = comfy_table::Table::new();
     table
         .load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
         .set_header([
-            "BVH",
+            "rays",
+            "backend",
             "threads",
-            "build s",
-            "coherent Mrays/s",
-            "incoherent Mrays/s",
+            "Mrays/s (median)",
+            "min-max",
+            &format!("agrees with {}", report.reference.name()),
+            "of Embree's best (target)",
         ]);
-    let mut json = Vec::new();
-    for r in &rows {
+    for r in &report.rows {
+        let coherent = r.rays == "camera";
+        let ratio = match best_embree(&report.rows, r) {
+            Some(b) if !r.backend.is_embree() => {
+                let x = r.mrays_s / b.mrays_s;
+                let met = if x >= target(coherent) {
+                    "met"
+                } else {
+                    "not met"
+                };
+                format!(
+                    "{x:.2} of {} ({} {met})",
+                    short(b.backend),
+                    target(coherent)
+                )
+            }
+            _ => String::new(),
+        };
         table.add_row([
-            format!("{:?}", r.kind),
+            format!("{} ({})", r.rays, count(report, r.rays)),
+            r.backend.name().to_owned(),
             r.threads.to_string(),
-            format!("{:.3}", r.build_s),
-            format!("{:.2}", r.coherent_mrays_s),
-            format!("{:.2}", r.incoherent_mrays_s),
+            format!("{:.2}", r.mrays_s),
+            format!("{:.2}-{:.2}", r.range.0, r.range.1),
+            format!("{:.4}%", 100.0 * r.agreement),
+            ratio,
         ]);
-        json.push(serde_json::json!({
-            "bvh": format!("{:?}", r.kind), "threads": r.threads, "build_s": r.build_s,
-            "coherent_mrays_s": r.coherent_mrays_s, "incoherent_mrays_s": r.incoherent_mrays_s,
-        }));
     }
     println!("{table}");
-    println!(
-        "{}",
-        serde_json::json!({ "scene": scene.name, "triangles": scene.triangle_count(), "rows": json })
-    );
-    ExitCode::SUCCESS
+}
+
+fn short(b: Backend) -> &'static str {
+    match b {
+        Backend::EmbreeOne => "1 ray",
+        Backend::EmbreePackets => "packets",
+        Backend::EmbreeStream => "streams",
+        other => other.name(),
+    }
+}
+
+fn count(report: &RayBenchReport, set: &str) -> String {
+    let n = report
+        .sets
+        .iter()
+        .find(|(s, _)| *s == set)
+        .map_or(0, |(_, n)| *n);
+    if n >= 1_000_000 {
+        format!("{:.2}M", n as f64 / 1e6)
+    } else {
+        format!("{}k", n / 1000)
+    }
 }
