@@ -933,8 +933,8 @@ fn bench_rays_compares_with_embree_or_says_why_not() {
         }
         assert_eq!(
             rows.len() - embree_rows,
-            6,
-            "two obvhs layouts on three ray sets"
+            12,
+            "three layouts of the project and its streams on three ray sets"
         );
     }
 }

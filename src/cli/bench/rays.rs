@@ -54,6 +54,10 @@ pub fn run(
         "builds": report.builds.iter().map(|b| serde_json::json!({
             "what": b.what, "threads": b.threads, "seconds": b.seconds})).collect::<Vec<_>>(),
         "reference": report.reference.name(),
+        "work_per_ray": report.work.iter().map(|w| serde_json::json!({
+            "rays": w.rays, "nodes": w.nodes, "blocks": w.blocks})).collect::<Vec<_>>(),
+        "sah": {"nodes": report.sah.0.0, "blocks": report.sah.0.1,
+                "inner_nodes": report.sah.1.0, "leaf_blocks": report.sah.1.1},
         "embree_unavailable": report.embree_unavailable,
         "rows": report.rows.iter().map(|r| serde_json::json!({
             "backend": r.backend.name(), "rays": r.rays, "threads": r.threads,
@@ -144,6 +148,27 @@ fn print_report(report: &RayBenchReport) {
         ]);
     }
     println!("{table}");
+    let ((sah_nodes, sah_blocks), (nodes, blocks)) = report.sah;
+    let mut work = comfy_table::Table::new();
+    work.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
+        .set_header([
+            "BVH8 work per ray",
+            "inner nodes (8 boxes each)",
+            "leaf blocks (4 triangles each)",
+        ]);
+    for w in &report.work {
+        work.add_row([
+            w.rays.to_owned(),
+            format!("{:.1}", w.nodes),
+            format!("{:.1}", w.blocks),
+        ]);
+    }
+    work.add_row([
+        format!("SAH: a line through the root box, no early exit ({nodes} nodes, {blocks} blocks)"),
+        format!("{sah_nodes:.1}"),
+        format!("{sah_blocks:.1}"),
+    ]);
+    println!("{work}");
 }
 
 fn short(b: Backend) -> &'static str {

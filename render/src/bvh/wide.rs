@@ -1,0 +1,620 @@
+//! An 8-wide BVH for one ray at a time: obvhs builds a binary BVH (PLOC, reinsertion, leaf
+//! collapse), which is collapsed here into nodes of eight children whose boxes sit in
+//! structure-of-arrays form (one step tests eight boxes), with the triangles of each leaf in
+//! blocks of four, laid out for the test (vertex, two edges and the normal, precomputed).
+//! This is Embree's layout for one-ray traversal (BVH8 over "triangle4v" blocks, Wald et al.,
+//! "Embree: a kernel framework for efficient CPU ray tracing", 2014).
+//!
+//! The loops over the eight lanes are written in scalar Rust for LLVM to vectorize; they are
+//! compiled a second time for AVX2 and FMA and that copy is chosen at run time where the CPU
+//! has them (pulp's dispatch), so the binary still runs on any x86-64.
+
+// Lane loops index several arrays by the same lane, the form LLVM vectorizes.
+#![allow(clippy::needless_range_loop)]
+
+use obvhs::bvh2::Bvh2;
+use obvhs::triangle::Triangle;
+
+/// Children per node.
+const W: usize = 8;
+/// Set on a child that is a leaf: bits 28-30 hold its block count, 0-27 its first block.
+const LEAF: u32 = 1 << 31;
+const BLOCK_SHIFT: u32 = 28;
+const FIRST_MASK: u32 = (1 << BLOCK_SHIFT) - 1;
+/// Most triangles in a leaf (obvhs' leaf size limit): at most 7 blocks of 4 fit the bits.
+pub(crate) const MAX_LEAF_TRIANGLES: u32 = 8;
+/// An empty child slot.
+const EMPTY: u32 = u32::MAX;
+/// Traversal stack entries held on the stack; deeper trees use a heap stack.
+/// Box far distances are scaled up by this (1 + 2γ₃, Ize's "Robust BVH ray traversal") so
+/// rounding never drops a box the ray touches.
+const FAR_SCALE: f32 = 1.0 + 2.0 * 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
+
+#[repr(C, align(64))]
+#[derive(Clone, Copy)]
+struct Node {
+    /// Child boxes: min x, max x, min y, max y, min z, max z (empty slots: +inf, -inf).
+    b: [[f32; W]; 6],
+    /// Inner child: node index; leaf child: `LEAF | blocks << 28 | first block`; `EMPTY`.
+    child: [u32; W],
+}
+
+impl Node {
+    fn empty() -> Self {
+        let (lo, hi) = ([f32::INFINITY; W], [f32::NEG_INFINITY; W]);
+        Node {
+            b: [lo, hi, lo, hi, lo, hi],
+            child: [EMPTY; W],
+        }
+    }
+}
+
+/// Four triangles: a vertex, the two edges and the (unnormalized) normal of each, as used by
+/// obvhs' intersection test (madmann91's form of Möller–Trumbore); unused lanes are NaN.
+#[repr(C, align(16))]
+#[derive(Clone, Copy)]
+struct Tri4 {
+    v0: [[f32; 4]; 3],
+    e1: [[f32; 4]; 3],
+    e2: [[f32; 4]; 3],
+    n: [[f32; 4]; 3],
+    id: [u32; 4],
+}
+
+/// Work one traversal did: boxes tested (node visits) and triangles tested.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Visits {
+    /// Inner nodes visited (each tests eight boxes).
+    pub nodes: u64,
+    /// Leaf blocks visited (each tests four triangles).
+    pub blocks: u64,
+}
+
+/// The wide BVH.
+pub struct WideBvh {
+    nodes: Vec<Node>,
+    tris: Vec<Tri4>,
+    /// Stack entries the deepest path can need.
+    stack_need: usize,
+    arch: pulp::Arch,
+    /// Σ area(inner node) / area(root) and Σ area(leaf) · blocks / area(root): the expected
+    /// node and block visits of a random line through the root box without early exit (the
+    /// SAH's cost terms).
+    sah: (f64, f64),
+}
+
+fn half_area(lo: [f32; 3], hi: [f32; 3]) -> f64 {
+    let d = [hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]].map(|x| x.max(0.0) as f64);
+    d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+}
+
+struct Collapser<'a> {
+    bvh: &'a Bvh2,
+    tris: &'a [Triangle],
+    nodes: Vec<Node>,
+    blocks: Vec<Tri4>,
+    root_area: f64,
+    sah: (f64, f64),
+    depth: usize,
+}
+
+impl Collapser<'_> {
+    fn aabb(&self, i: usize) -> ([f32; 3], [f32; 3]) {
+        let a = self.bvh.nodes[i].aabb;
+        (a.min.to_array(), a.max.to_array())
+    }
+
+    fn leaf(&mut self, i: usize) -> u32 {
+        let n = &self.bvh.nodes[i];
+        let ids = &self.bvh.primitive_indices
+            [n.first_index as usize..(n.first_index + n.prim_count) as usize];
+        let first = self.blocks.len() as u32;
+        for chunk in ids.chunks(4) {
+            let nan = [f32::NAN; 4];
+            let mut b = Tri4 {
+                v0: [nan; 3],
+                e1: [nan; 3],
+                e2: [nan; 3],
+                n: [nan; 3],
+                id: [u32::MAX; 4],
+            };
+            for (l, &id) in chunk.iter().enumerate() {
+                let t = &self.tris[id as usize];
+                let e1 = t.v0 - t.v1;
+                let e2 = t.v2 - t.v0;
+                let n = e1.cross(e2);
+                for k in 0..3 {
+                    b.v0[k][l] = t.v0[k];
+                    b.e1[k][l] = e1[k];
+                    b.e2[k][l] = e2[k];
+                    b.n[k][l] = n[k];
+                }
+                b.id[l] = id;
+            }
+            self.blocks.push(b);
+        }
+        let count = self.blocks.len() as u32 - first;
+        assert!(
+            count < 8 && first <= FIRST_MASK,
+            "leaf too large for its encoding"
+        );
+        let (lo, hi) = self.aabb(i);
+        self.sah.1 += half_area(lo, hi) / self.root_area * count as f64;
+        LEAF | count << BLOCK_SHIFT | first
+    }
+
+    /// Emits the wide node for BVH2 inner node `i` and returns its index.
+    fn inner(&mut self, i: usize, depth: usize) -> u32 {
+        self.depth = self.depth.max(depth);
+        let (lo, hi) = self.aabb(i);
+        self.sah.0 += half_area(lo, hi) / self.root_area;
+        let first = self.bvh.nodes[i].first_index as usize;
+        let mut kids = vec![first, first + 1];
+        // Open the inner child of largest area until eight children (Embree's BVH8 collapse).
+        while kids.len() < W {
+            let open = kids
+                .iter()
+                .enumerate()
+                .filter(|(_, k)| self.bvh.nodes[**k].prim_count == 0)
+                .max_by(|a, b| {
+                    let (la, ha) = self.aabb(*a.1);
+                    let (lb, hb) = self.aabb(*b.1);
+                    half_area(la, ha).total_cmp(&half_area(lb, hb))
+                })
+                .map(|(j, _)| j);
+            let Some(j) = open else { break };
+            let f = self.bvh.nodes[kids[j]].first_index as usize;
+            kids[j] = f;
+            kids.push(f + 1);
+        }
+        let index = self.nodes.len();
+        self.nodes.push(Node::empty());
+        for (slot, &k) in kids.iter().enumerate() {
+            let child = if self.bvh.nodes[k].prim_count > 0 {
+                self.leaf(k)
+            } else {
+                self.inner(k, depth + 1)
+            };
+            let (lo, hi) = self.aabb(k);
+            let node = &mut self.nodes[index];
+            node.child[slot] = child;
+            for a in 0..3 {
+                node.b[2 * a][slot] = lo[a];
+                node.b[2 * a + 1][slot] = hi[a];
+            }
+        }
+        index as u32
+    }
+}
+
+/// One traversal as pulp's operation: `with_simd` is compiled once per instruction set and
+/// everything it calls is inlined into it (a closure is not: measured, it stayed SSE-only).
+struct Trace<'a, const ANY: bool> {
+    bvh: &'a WideBvh,
+    ray: &'a WideRay,
+}
+
+impl<const ANY: bool> pulp::WithSimd for Trace<'_, ANY> {
+    type Output = Option<(f32, u32)>;
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) -> Self::Output {
+        self.bvh
+            .traverse::<ANY, false>(self.ray, &mut Visits::default())
+    }
+}
+
+/// Rays traversed together by [`WideBvh::intersect_stream`] (one bit each in a `u64`).
+pub const STREAM: usize = 64;
+
+struct Stream<'a> {
+    bvh: &'a WideBvh,
+    rays: &'a [WideRay],
+    out: &'a mut [Option<(f32, u32)>],
+}
+
+impl pulp::WithSimd for Stream<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) -> Self::Output {
+        self.bvh.stream(self.rays, self.out)
+    }
+}
+
+/// `1 / x`, with components too small to invert replaced by ±1e-18 (Embree's `rcp_safe`):
+/// box distances then stay finite and never NaN.
+#[inline(always)]
+fn rcp_safe(x: f32) -> f32 {
+    let x = if x.abs() < 1e-18 {
+        1e-18f32.copysign(x)
+    } else {
+        x
+    };
+    1.0 / x
+}
+
+#[inline(always)]
+fn max(a: f32, b: f32) -> f32 {
+    if a > b { a } else { b }
+}
+
+#[inline(always)]
+fn min(a: f32, b: f32) -> f32 {
+    if a < b { a } else { b }
+}
+
+/// A ray in the BVH's frame.
+#[derive(Clone, Copy, Debug)]
+pub struct WideRay {
+    /// Origin.
+    pub o: [f32; 3],
+    /// Direction (need not be unit; distances are in its units).
+    pub d: [f32; 3],
+    /// Nearest and farthest distance accepted.
+    pub t: (f32, f32),
+}
+
+impl WideBvh {
+    /// Collapses obvhs' `bvh` over `tris` (whose leaves hold at most
+    /// [`MAX_LEAF_TRIANGLES`]).
+    pub fn new(bvh: &Bvh2, tris: &[Triangle]) -> Self {
+        let mut c = Collapser {
+            bvh,
+            tris,
+            nodes: Vec::with_capacity(bvh.nodes.len() / 4 + 1),
+            blocks: Vec::with_capacity(tris.len() / 2 + 1),
+            root_area: 1.0,
+            sah: (0.0, 0.0),
+            depth: 0,
+        };
+        if !bvh.nodes.is_empty() {
+            let (lo, hi) = c.aabb(0);
+            c.root_area = half_area(lo, hi).max(f64::MIN_POSITIVE);
+            if bvh.nodes[0].prim_count > 0 {
+                // A single leaf: a root with one child.
+                let leaf = c.leaf(0);
+                let mut node = Node::empty();
+                node.child[0] = leaf;
+                for a in 0..3 {
+                    node.b[2 * a][0] = lo[a];
+                    node.b[2 * a + 1][0] = hi[a];
+                }
+                c.nodes.push(node);
+                c.sah.0 = 1.0;
+            } else {
+                c.inner(0, 1);
+            }
+        }
+        WideBvh {
+            stack_need: (W - 1) * (c.depth + 1) + 1,
+            nodes: c.nodes,
+            tris: c.blocks,
+            arch: pulp::Arch::new(),
+            sah: c.sah,
+        }
+    }
+
+    /// Expected inner-node and leaf-block visits of a line through the root box (SAH terms).
+    pub fn sah_visits(&self) -> (f64, f64) {
+        self.sah
+    }
+
+    /// The triangle indices of every leaf, in leaf order (a test's view of the packing).
+    #[cfg(test)]
+    pub(crate) fn triangle_ids(&self) -> Vec<u32> {
+        self.tris
+            .iter()
+            .flat_map(|b| b.id)
+            .filter(|&id| id != u32::MAX)
+            .collect()
+    }
+
+    /// Inner nodes and leaf blocks.
+    pub fn size(&self) -> (usize, usize) {
+        (self.nodes.len(), self.tris.len())
+    }
+
+    /// The closest hit: (t, triangle index), or with `any` the first hit found.
+    pub fn intersect(&self, ray: &WideRay, any: bool) -> Option<(f32, u32)> {
+        if any {
+            self.arch.dispatch(Trace::<true> { bvh: self, ray })
+        } else {
+            self.arch.dispatch(Trace::<false> { bvh: self, ray })
+        }
+    }
+
+    /// The closest hits of up to [`STREAM`] rays traversed together (`out[i]` for
+    /// `rays[i]`): each node is tested for every ray still active in it, so the rays' work
+    /// overlaps instead of waiting on one ray's chain of node loads, and a node's boxes are
+    /// loaded once for all of them. For rays that share their paths: camera rays, a photon
+    /// batch's first segments, gather bundles.
+    pub fn intersect_stream(&self, rays: &[WideRay], out: &mut [Option<(f32, u32)>]) {
+        for (rays, out) in rays.chunks(STREAM).zip(out.chunks_mut(STREAM)) {
+            self.arch.dispatch(Stream {
+                bvh: self,
+                rays,
+                out,
+            });
+        }
+    }
+
+    #[inline(always)]
+    fn stream(&self, rays: &[WideRay], out: &mut [Option<(f32, u32)>]) {
+        debug_assert!(rays.len() <= STREAM && out.len() == rays.len());
+        out.fill(None);
+        if self.nodes.is_empty() || rays.is_empty() {
+            return;
+        }
+        let p: Vec<Prepared> = rays.iter().map(Prepared::new).collect();
+        let mut t_max: Vec<f32> = rays.iter().map(|r| r.t.1).collect();
+        let all = u64::MAX >> (STREAM - rays.len());
+        // (nearest entry of any ray, child, rays) entries.
+        let mut stack = vec![(0f32, 0u32, 0u64); self.stack_need];
+        let mut sp = 0usize;
+        let (mut cur, mut active) = (0u32, all);
+        loop {
+            if cur & LEAF == 0 {
+                let node = &self.nodes[cur as usize];
+                let mut rays_of = [0u64; W];
+                let mut nearest = [f32::INFINITY; W];
+                let mut m = active;
+                while m != 0 {
+                    let r = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    let (mut hits, tn) = p[r].boxes(node, t_max[r]);
+                    for i in 0..W {
+                        nearest[i] = min(nearest[i], tn[i]);
+                    }
+                    while hits != 0 {
+                        let c = hits.trailing_zeros() as usize;
+                        hits &= hits - 1;
+                        rays_of[c] |= 1 << r;
+                    }
+                }
+                let mut kids = 0u32;
+                for (c, r) in rays_of.iter().enumerate() {
+                    kids |= u32::from(*r != 0) << c;
+                }
+                if kids.count_ones() == 1 {
+                    let c = kids.trailing_zeros() as usize;
+                    (cur, active) = (node.child[c], rays_of[c]);
+                    continue;
+                }
+                // Push every child some ray entered, farthest first, and take the nearest.
+                let base = sp;
+                while kids != 0 {
+                    let c = kids.trailing_zeros() as usize;
+                    kids &= kids - 1;
+                    let e = (nearest[c], node.child[c], rays_of[c]);
+                    let mut k = sp;
+                    while k > base && stack[k - 1].0 < e.0 {
+                        stack[k] = stack[k - 1];
+                        k -= 1;
+                    }
+                    stack[k] = e;
+                    sp += 1;
+                }
+            } else {
+                let first = (cur & FIRST_MASK) as usize;
+                let count = ((cur & !LEAF) >> BLOCK_SHIFT) as usize;
+                let mut m = active;
+                while m != 0 {
+                    let r = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    for b in &self.tris[first..first + count] {
+                        if let Some(h) = intersect4(b, &rays[r], rays[r].t.0, t_max[r]) {
+                            t_max[r] = h.0;
+                            out[r] = Some(h);
+                        }
+                    }
+                }
+            }
+            // Pop the next entry, without the rays that already hit something nearer.
+            loop {
+                if sp == 0 {
+                    return;
+                }
+                sp -= 1;
+                let (d, c, mut m) = stack[sp];
+                let mut left = m;
+                while left != 0 {
+                    let r = left.trailing_zeros() as usize;
+                    left &= left - 1;
+                    if d > t_max[r] * FAR_SCALE {
+                        m &= !(1 << r);
+                    }
+                }
+                if m != 0 {
+                    (cur, active) = (c, m);
+                    break;
+                }
+            }
+        }
+    }
+
+    /// As [`Self::intersect`], counting the work done.
+    pub fn intersect_counted(&self, ray: &WideRay, visits: &mut Visits) -> Option<(f32, u32)> {
+        self.traverse::<false, true>(ray, visits)
+    }
+
+    #[inline(always)]
+    fn traverse<const ANY: bool, const COUNT: bool>(
+        &self,
+        ray: &WideRay,
+        visits: &mut Visits,
+    ) -> Option<(f32, u32)> {
+        if self.nodes.is_empty() {
+            return None;
+        }
+        // The stack is zeroed for each ray (no `unsafe` here), so it is sized to the tree:
+        // measured, zeroing 256 entries cost a quarter of a camera ray.
+        match self.stack_need {
+            0..=32 => self.traverse_with::<ANY, COUNT>(ray, &mut [0u64; 32], visits),
+            33..=64 => self.traverse_with::<ANY, COUNT>(ray, &mut [0u64; 64], visits),
+            65..=128 => self.traverse_with::<ANY, COUNT>(ray, &mut [0u64; 128], visits),
+            n => self.traverse_with::<ANY, COUNT>(ray, &mut vec![0u64; n], visits),
+        }
+    }
+
+    #[inline(always)]
+    fn traverse_with<const ANY: bool, const COUNT: bool>(
+        &self,
+        ray: &WideRay,
+        stack: &mut [u64],
+        visits: &mut Visits,
+    ) -> Option<(f32, u32)> {
+        let p = Prepared::new(ray);
+        let t_min = ray.t.0;
+        let mut t_max = ray.t.1;
+        let mut best: Option<(f32, u32)> = None;
+        let mut sp = 0usize;
+        let mut cur = 0u32;
+        loop {
+            if cur & LEAF == 0 {
+                let node = &self.nodes[cur as usize];
+                if COUNT {
+                    visits.nodes += 1;
+                }
+                let (mask, tn) = p.boxes(node, t_max);
+                match mask.count_ones() {
+                    0 => {}
+                    1 => {
+                        cur = node.child[mask.trailing_zeros() as usize];
+                        continue;
+                    }
+                    _ => {
+                        // Push every hit child, then order the pushed run so the nearest is
+                        // on top, and take it.
+                        let base = sp;
+                        let mut m = mask;
+                        while m != 0 {
+                            let i = m.trailing_zeros() as usize;
+                            m &= m - 1;
+                            stack[sp] = u64::from(tn[i].to_bits()) << 32 | u64::from(node.child[i]);
+                            sp += 1;
+                        }
+                        // Insertion sort, farthest first (distances are >= 0: their bits
+                        // order as the values).
+                        for j in base + 1..sp {
+                            let e = stack[j];
+                            let mut k = j;
+                            while k > base && stack[k - 1] < e {
+                                stack[k] = stack[k - 1];
+                                k -= 1;
+                            }
+                            stack[k] = e;
+                        }
+                        sp -= 1;
+                        cur = stack[sp] as u32;
+                        continue;
+                    }
+                }
+            } else {
+                let first = (cur & FIRST_MASK) as usize;
+                let count = ((cur & !LEAF) >> BLOCK_SHIFT) as usize;
+                for b in &self.tris[first..first + count] {
+                    if COUNT {
+                        visits.blocks += 1;
+                    }
+                    if let Some((t, id)) = intersect4(b, ray, t_min, t_max) {
+                        if ANY {
+                            return Some((t, id));
+                        }
+                        t_max = t;
+                        best = Some((t, id));
+                    }
+                }
+            }
+            // Pop the nearest entry still closer than the closest hit.
+            loop {
+                if sp == 0 {
+                    return best;
+                }
+                sp -= 1;
+                let e = stack[sp];
+                if f32::from_bits((e >> 32) as u32) <= t_max * FAR_SCALE {
+                    cur = e as u32;
+                    break;
+                }
+            }
+        }
+    }
+}
+
+/// A ray made ready for box tests: reciprocal direction, origin times it, and which bound
+/// is near on each axis.
+#[derive(Clone, Copy)]
+struct Prepared {
+    inv: [f32; 3],
+    oi: [f32; 3],
+    near: [usize; 3],
+    t_min: f32,
+}
+
+impl Prepared {
+    #[inline(always)]
+    fn new(ray: &WideRay) -> Self {
+        let inv = ray.d.map(rcp_safe);
+        Prepared {
+            inv,
+            oi: [ray.o[0] * inv[0], ray.o[1] * inv[1], ray.o[2] * inv[2]],
+            near: [0, 1, 2].map(|a| if inv[a] >= 0.0 { 2 * a } else { 2 * a + 1 }),
+            t_min: ray.t.0,
+        }
+    }
+
+    /// The eight child boxes of `node` against the ray up to `t_max`: a bit per box hit,
+    /// and the entry distances (+inf where missed).
+    #[inline(always)]
+    fn boxes(&self, node: &Node, t_max: f32) -> (u32, [f32; W]) {
+        let (inv, oi, near) = (self.inv, self.oi, self.near);
+        let far = near.map(|n| n ^ 1);
+        let mut tn = [0f32; W];
+        let mut mask = 0u32;
+        for i in 0..W {
+            let x0 = node.b[near[0]][i] * inv[0] - oi[0];
+            let y0 = node.b[near[1]][i] * inv[1] - oi[1];
+            let z0 = node.b[near[2]][i] * inv[2] - oi[2];
+            let x1 = node.b[far[0]][i] * inv[0] - oi[0];
+            let y1 = node.b[far[1]][i] * inv[1] - oi[1];
+            let z1 = node.b[far[2]][i] * inv[2] - oi[2];
+            let n = max(max(x0, y0), max(z0, self.t_min));
+            let f = min(min(x1, y1), min(z1, t_max)) * FAR_SCALE;
+            let hit = n <= f;
+            tn[i] = if hit { n } else { f32::INFINITY };
+            mask |= u32::from(hit) << i;
+        }
+        (mask, tn)
+    }
+}
+
+/// The nearest of four triangles hit within `(t_min, t_max)`, if any.
+#[inline(always)]
+fn intersect4(b: &Tri4, ray: &WideRay, t_min: f32, t_max: f32) -> Option<(f32, u32)> {
+    let (o, d) = (ray.o, ray.d);
+    let mut t = [f32::INFINITY; 4];
+    for l in 0..4 {
+        let c = [b.v0[0][l] - o[0], b.v0[1][l] - o[1], b.v0[2][l] - o[2]];
+        let r = [
+            d[1] * c[2] - d[2] * c[1],
+            d[2] * c[0] - d[0] * c[2],
+            d[0] * c[1] - d[1] * c[0],
+        ];
+        let det = b.n[0][l] * d[0] + b.n[1][l] * d[1] + b.n[2][l] * d[2];
+        let inv = 1.0 / det;
+        let u = (r[0] * b.e2[0][l] + r[1] * b.e2[1][l] + r[2] * b.e2[2][l]) * inv;
+        let v = (r[0] * b.e1[0][l] + r[1] * b.e1[1][l] + r[2] * b.e1[2][l]) * inv;
+        let w = 1.0 - u - v;
+        let tt = (b.n[0][l] * c[0] + b.n[1][l] * c[1] + b.n[2][l] * c[2]) * inv;
+        let hit = u >= 0.0 && v >= 0.0 && w >= 0.0 && tt >= t_min && tt < t_max;
+        t[l] = if hit { tt } else { f32::INFINITY };
+    }
+    let mut best = 0;
+    for l in 1..4 {
+        if t[l] < t[best] {
+            best = l;
+        }
+    }
+    (t[best] < f32::INFINITY).then_some((t[best], b.id[best]))
+}
