@@ -25,7 +25,7 @@ use rayon::prelude::*;
 
 mod wide;
 
-pub use wide::{Visits, WideBvh, WideRay};
+pub use wide::{Visits, WideBvh, WideHit, WideRay};
 
 /// Which layout to build and traverse.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -196,6 +196,14 @@ impl SceneBvh {
         )
     }
 
+    fn hit_from(&self, h: WideHit) -> Hit {
+        Hit {
+            t: h.t / self.scale,
+            triangle: h.triangle,
+            uv: Vec2::from(h.uv),
+        }
+    }
+
     fn wide_ray(&self, origin: Vec3, dir: Vec3, t_max: f32) -> WideRay {
         WideRay {
             o: (origin * self.scale).to_array(),
@@ -207,13 +215,8 @@ impl SceneBvh {
     /// The closest hit along `dir` (unit) from `origin` within `t_max`.
     pub fn closest_hit(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
         if let Tree::Wide(w) = &self.tree {
-            let (t, triangle) = w.intersect(&self.wide_ray(origin, dir, t_max), false)?;
-            let ray = self.ray(origin, dir, t_max);
-            return Some(Hit {
-                t: t / self.scale,
-                triangle,
-                uv: barycentric(&self.rt[triangle as usize], &ray),
-            });
+            let h = w.intersect(&self.wide_ray(origin, dir, t_max), false)?;
+            return Some(self.hit_from(h));
         }
         let ray = self.ray(origin, dir, t_max);
         let mut hit = RayHit::none();
@@ -295,12 +298,8 @@ impl SceneBvh {
             }
             let n = rays.len();
             w.intersect_stream(&wide_rays[..n], &mut hits[..n]);
-            for ((o, h), &(p, d, t)) in out.iter_mut().zip(&hits[..n]).zip(rays) {
-                *o = h.map(|(t_hit, triangle)| Hit {
-                    t: t_hit / self.scale,
-                    triangle,
-                    uv: barycentric(&self.rt[triangle as usize], &self.ray(p, d, t)),
-                });
+            for (o, h) in out.iter_mut().zip(&hits[..n]) {
+                *o = h.map(|h| self.hit_from(h));
             }
         }
     }
