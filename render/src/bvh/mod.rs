@@ -293,10 +293,10 @@ impl SceneBvh {
         }; wide::STREAM];
         let mut hits = [None; wide::STREAM];
         for (rays, out) in rays.chunks(wide::STREAM).zip(out.chunks_mut(wide::STREAM)) {
+            let n = rays.len();
             for (w, &(o, d, t)) in wide_rays.iter_mut().zip(rays) {
                 *w = self.wide_ray(o, d, t);
             }
-            let n = rays.len();
             w.intersect_stream(&wide_rays[..n], &mut hits[..n]);
             for (o, h) in out.iter_mut().zip(&hits[..n]) {
                 *o = h.map(|h| self.hit_from(h));

@@ -215,6 +215,9 @@ struct Frustum {
     inv: [[f32; STREAM]; 3],
     oi: [[f32; STREAM]; 3],
     t_min: [f32; STREAM],
+    /// Origins and directions, for the triangle tests.
+    org: [[f32; STREAM]; 3],
+    dir: [[f32; STREAM]; 3],
     near: [usize; 3],
     o: ([f32; 3], [f32; 3]),
     i: ([f32; 3], [f32; 3]),
@@ -233,6 +236,8 @@ impl Frustum {
             inv: [[1.0; STREAM]; 3],
             oi: [[0.0; STREAM]; 3],
             t_min: [f32::INFINITY; STREAM],
+            org: [[0.0; STREAM]; 3],
+            dir: [[0.0; STREAM]; 3],
             near,
             o: ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
             i: ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
@@ -242,6 +247,8 @@ impl Frustum {
             for a in 0..3 {
                 f.inv[a][r] = q.inv[a];
                 f.oi[a][r] = q.oi[a];
+                f.org[a][r] = ray.o[a];
+                f.dir[a][r] = ray.d[a];
                 f.o.0[a] = f.o.0[a].min(ray.o[a]);
                 f.o.1[a] = f.o.1[a].max(ray.o[a]);
                 f.i.0[a] = f.i.0[a].min(q.inv[a]);
@@ -270,7 +277,8 @@ impl Frustum {
         for t in t_max {
             t_max_all = max(t_max_all, *t);
         }
-        // The frustum against the eight boxes: interval bounds of every ray's entry and exit.
+        // The frustum against the eight boxes: interval bounds of every ray's entry and exit;
+        // the lower bound of the entries orders and culls the children.
         let mut touched = 0u32;
         for i in 0..W {
             let mut n = self.t_min_all;
@@ -285,6 +293,7 @@ impl Frustum {
                 f = min(f, max(max(e0 * il, e0 * ih), max(e1 * il, e1 * ih)));
             }
             touched |= u32::from(n <= f * FAR_SCALE && node.child[i] != EMPTY) << i;
+            nearest[i] = n;
         }
         // The rays against the touched boxes, eight at a time (the same arithmetic as one
         // ray's test, so the same decisions).
@@ -321,17 +330,7 @@ impl Frustum {
                     hits |= u8::from(n[l] <= f[l]) << l;
                 }
                 hits &= lanes;
-                let mut closest = f32::INFINITY;
-                for l in 0..8 {
-                    let near = if (hits >> l) & 1 == 1 {
-                        n[l]
-                    } else {
-                        f32::INFINITY
-                    };
-                    closest = min(closest, near);
-                }
                 rays_of[c] |= u64::from(hits) << (8 * k);
-                nearest[c] = min(nearest[c], closest);
             }
         }
     }
@@ -340,6 +339,77 @@ impl Frustum {
 /// Largest spread of a stream's origins, as a fraction of the scene's diagonal, for which it
 /// is traversed as a stream.
 pub const STREAM_SPREAD: f32 = 0.05;
+
+impl Frustum {
+    /// The active rays against a leaf's triangles, one triangle against eight rays per step
+    /// (the test of [`intersect4`]); hits shorten `t_max` and are kept in `hit`.
+    #[inline(always)]
+    fn leaf(&self, blocks: &[Tri4], active: u64, t_max: &mut [f32; STREAM], hit: &mut Hits) {
+        for b in blocks {
+            for j in 0..4 {
+                if b.id[j] == u32::MAX {
+                    continue;
+                }
+                let v0 = [b.v0[0][j], b.v0[1][j], b.v0[2][j]];
+                let e1 = [b.e1[0][j], b.e1[1][j], b.e1[2][j]];
+                let e2 = [b.e2[0][j], b.e2[1][j], b.e2[2][j]];
+                let n = [b.n[0][j], b.n[1][j], b.n[2][j]];
+                for k in 0..STREAM / 8 {
+                    let lanes = (active >> (8 * k)) as u8;
+                    if lanes == 0 {
+                        continue;
+                    }
+                    let span = 8 * k..8 * k + 8;
+                    let lane = |a: &[f32; STREAM]| -> [f32; 8] {
+                        a[span.clone()].try_into().expect("eight lanes")
+                    };
+                    let o = [lane(&self.org[0]), lane(&self.org[1]), lane(&self.org[2])];
+                    let d = [lane(&self.dir[0]), lane(&self.dir[1]), lane(&self.dir[2])];
+                    let t0 = lane(&self.t_min);
+                    let mut tm = lane(t_max);
+                    let mut u8s = lane(&hit.u);
+                    let mut v8s = lane(&hit.v);
+                    let mut ids: [u32; 8] = hit.id[span.clone()].try_into().expect("eight");
+                    for l in 0..8 {
+                        let c = [v0[0] - o[0][l], v0[1] - o[1][l], v0[2] - o[2][l]];
+                        let r = [
+                            d[1][l] * c[2] - d[2][l] * c[1],
+                            d[2][l] * c[0] - d[0][l] * c[2],
+                            d[0][l] * c[1] - d[1][l] * c[0],
+                        ];
+                        let det = n[0] * d[0][l] + n[1] * d[1][l] + n[2] * d[2][l];
+                        let inv = 1.0 / det;
+                        let u = (r[0] * e2[0] + r[1] * e2[1] + r[2] * e2[2]) * inv;
+                        let v = (r[0] * e1[0] + r[1] * e1[1] + r[2] * e1[2]) * inv;
+                        let w = 1.0 - u - v;
+                        let t = (n[0] * c[0] + n[1] * c[1] + n[2] * c[2]) * inv;
+                        let ok = (u >= 0.0)
+                            & (v >= 0.0)
+                            & (w >= 0.0)
+                            & (t >= t0[l])
+                            & (t < tm[l])
+                            & ((lanes >> l) & 1 == 1);
+                        tm[l] = if ok { t } else { tm[l] };
+                        u8s[l] = if ok { u } else { u8s[l] };
+                        v8s[l] = if ok { v } else { v8s[l] };
+                        ids[l] = if ok { b.id[j] } else { ids[l] };
+                    }
+                    t_max[span.clone()].copy_from_slice(&tm);
+                    hit.u[span.clone()].copy_from_slice(&u8s);
+                    hit.v[span.clone()].copy_from_slice(&v8s);
+                    hit.id[span].copy_from_slice(&ids);
+                }
+            }
+        }
+    }
+}
+
+/// The hits of a stream's rays so far (`id` `u32::MAX`: none).
+struct Hits {
+    id: [u32; STREAM],
+    u: [f32; STREAM],
+    v: [f32; STREAM],
+}
 
 /// Rays traversed together by [`WideBvh::intersect_stream`] (one bit each in a `u64`).
 pub const STREAM: usize = 64;
@@ -485,25 +555,11 @@ impl WideBvh {
     /// rays 0.8-0.9× as fast in streams, bounce rays from neighbouring pixels 1.4×).
     pub fn intersect_stream(&self, rays: &[WideRay], out: &mut [Option<WideHit>]) {
         for (rays, out) in rays.chunks(STREAM).zip(out.chunks_mut(STREAM)) {
-            let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-            for r in rays {
-                for a in 0..3 {
-                    lo[a] = lo[a].min(r.o[a]);
-                    hi[a] = hi[a].max(r.o[a]);
-                }
-            }
-            let spread = (0..3).map(|a| (hi[a] - lo[a]).powi(2)).sum::<f32>().sqrt();
-            if spread <= STREAM_SPREAD * self.extent {
-                self.arch.dispatch(Stream {
-                    bvh: self,
-                    rays,
-                    out,
-                });
-            } else {
-                for (o, r) in out.iter_mut().zip(rays) {
-                    *o = self.intersect(r, false);
-                }
-            }
+            self.arch.dispatch(Stream {
+                bvh: self,
+                rays,
+                out,
+            });
         }
     }
 
@@ -514,14 +570,40 @@ impl WideBvh {
         if self.nodes.is_empty() || rays.is_empty() {
             return;
         }
-        let p: Vec<Prepared> = rays.iter().map(Prepared::new).collect();
+        let mut p = [Prepared {
+            inv: [1.0; 3],
+            oi: [0.0; 3],
+            near: [0, 2, 4],
+            t_min: 0.0,
+        }; STREAM];
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for (q, r) in p.iter_mut().zip(rays) {
+            *q = Prepared::new(r);
+            for a in 0..3 {
+                lo[a] = min(lo[a], r.o[a]);
+                hi[a] = max(hi[a], r.o[a]);
+            }
+        }
+        let spread = [0, 1, 2].map(|a| (hi[a] - lo[a]) * (hi[a] - lo[a]));
+        if spread[0] + spread[1] + spread[2] > (STREAM_SPREAD * self.extent).powi(2) {
+            for (o, r) in out.iter_mut().zip(rays) {
+                *o = self.traverse::<false, false>(r, &mut Visits::default());
+            }
+            return;
+        }
+        let p = &p[..rays.len()];
         // Unused lanes never hit anything.
         let mut t_max = [f32::NEG_INFINITY; STREAM];
         for (t, r) in t_max.iter_mut().zip(rays) {
             *t = r.t.1;
         }
         let all = u64::MAX >> (STREAM - rays.len());
-        let frustum = Frustum::new(&p, rays);
+        let frustum = Frustum::new(p, rays);
+        let mut hits = Hits {
+            id: [u32::MAX; STREAM],
+            u: [0.0; STREAM],
+            v: [0.0; STREAM],
+        };
         // (nearest entry of any ray, child, rays) entries.
         let mut stack = vec![(0f32, 0u32, 0u64); self.stack_need];
         let mut sp = 0usize;
@@ -574,7 +656,15 @@ impl WideBvh {
             } else {
                 let first = (cur & FIRST_MASK) as usize;
                 let count = ((cur & !LEAF) >> BLOCK_SHIFT) as usize;
-                let mut m = active;
+                if let Some(f) = &frustum {
+                    f.leaf(
+                        &self.tris[first..first + count],
+                        active,
+                        &mut t_max,
+                        &mut hits,
+                    );
+                }
+                let mut m = if frustum.is_some() { 0 } else { active };
                 while m != 0 {
                     let r = m.trailing_zeros() as usize;
                     m &= m - 1;
@@ -589,18 +679,28 @@ impl WideBvh {
             // Pop the next entry, without the rays that already hit something nearer.
             loop {
                 if sp == 0 {
+                    if frustum.is_some() {
+                        for (r, o) in out.iter_mut().enumerate() {
+                            *o = (hits.id[r] != u32::MAX).then_some(WideHit {
+                                t: t_max[r],
+                                triangle: hits.id[r],
+                                uv: [hits.u[r], hits.v[r]],
+                            });
+                        }
+                    }
                     return;
                 }
                 sp -= 1;
                 let (d, c, mut m) = stack[sp];
-                let mut left = m;
-                while left != 0 {
-                    let r = left.trailing_zeros() as usize;
-                    left &= left - 1;
-                    if d > t_max[r] * FAR_SCALE {
-                        m &= !(1 << r);
+                let mut keep = 0u64;
+                for (k, lanes) in t_max.chunks_exact(8).enumerate() {
+                    let mut b = 0u8;
+                    for (l, t) in lanes.iter().enumerate() {
+                        b |= u8::from(d <= *t * FAR_SCALE) << l;
                     }
+                    keep |= u64::from(b) << (8 * k);
                 }
+                m &= keep;
                 if m != 0 {
                     (cur, active) = (c, m);
                     break;
