@@ -304,11 +304,14 @@ impl SceneBvh {
         }
     }
 
-    /// Closest hits of many rays `(origin, unit direction, t_max)`, in parallel.
+    /// Closest hits of many rays `(origin, unit direction, t_max)`, in parallel, in
+    /// streams where neighbouring rays share their paths ([`Self::closest_hits_into`]).
     pub fn closest_hits(&self, rays: &[RayQuery]) -> Vec<Option<Hit>> {
-        rays.par_iter()
-            .map(|&(o, d, t)| self.closest_hit(o, d, t))
-            .collect()
+        let mut out = vec![None; rays.len()];
+        rays.par_chunks(16 * wide::STREAM)
+            .zip(out.par_chunks_mut(16 * wide::STREAM))
+            .for_each(|(r, o)| self.closest_hits_into(r, o));
+        out
     }
 
     /// Occlusion of many rays, in parallel.

@@ -151,24 +151,36 @@ impl Collapser<'_> {
         let (lo, hi) = self.aabb(i);
         self.sah.0 += half_area(lo, hi) / self.root_area;
         let first = self.bvh.nodes[i].first_index as usize;
-        let mut kids = vec![first, first + 1];
+        // Children and their areas (-1 for leaves, which are not opened).
+        let mut kids = [0usize; W];
+        let mut area = [0f64; W];
+        let mut n = 0;
+        let add = |k: usize, kids: &mut [usize; W], area: &mut [f64; W], at: usize| {
+            let node = &self.bvh.nodes[k];
+            kids[at] = k;
+            area[at] = if node.prim_count == 0 {
+                half_area(node.aabb.min.to_array(), node.aabb.max.to_array())
+            } else {
+                -1.0
+            };
+        };
+        add(first, &mut kids, &mut area, 0);
+        add(first + 1, &mut kids, &mut area, 1);
+        n += 2;
         // Open the inner child of largest area until eight children (Embree's BVH8 collapse).
-        while kids.len() < W {
-            let open = kids
-                .iter()
-                .enumerate()
-                .filter(|(_, k)| self.bvh.nodes[**k].prim_count == 0)
-                .max_by(|a, b| {
-                    let (la, ha) = self.aabb(*a.1);
-                    let (lb, hb) = self.aabb(*b.1);
-                    half_area(la, ha).total_cmp(&half_area(lb, hb))
-                })
-                .map(|(j, _)| j);
-            let Some(j) = open else { break };
+        while n < W {
+            let j = (0..n)
+                .max_by(|&a, &b| area[a].total_cmp(&area[b]))
+                .unwrap_or(0);
+            if area[j] < 0.0 {
+                break;
+            }
             let f = self.bvh.nodes[kids[j]].first_index as usize;
-            kids[j] = f;
-            kids.push(f + 1);
+            add(f, &mut kids, &mut area, j);
+            add(f + 1, &mut kids, &mut area, n);
+            n += 1;
         }
+        let kids = &kids[..n];
         let index = self.nodes.len();
         self.nodes.push(Node::empty());
         for (slot, &k) in kids.iter().enumerate() {
