@@ -617,7 +617,14 @@ impl WideBvh {
             v: [0.0; STREAM],
         };
         // (nearest entry of any ray, child, rays) entries.
-        let mut stack = vec![(0f32, 0u32, 0u64); self.stack_need];
+        let mut small = [(0f32, 0u32, 0u64); 128];
+        let mut big;
+        let stack: &mut [(f32, u32, u64)] = if self.stack_need <= small.len() {
+            &mut small
+        } else {
+            big = vec![(0f32, 0u32, 0u64); self.stack_need];
+            &mut big
+        };
         let mut sp = 0usize;
         let (mut cur, mut active) = (0u32, all);
         loop {
