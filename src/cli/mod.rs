@@ -96,6 +96,14 @@ impl Cli {
 }
 
 /// Prints an error with its causes and exits 1.
+/// A table in the CLI's one style with this header.
+fn table<const N: usize>(header: [&str; N]) -> comfy_table::Table {
+    let mut t = comfy_table::Table::new();
+    t.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
+        .set_header(header);
+    t
+}
+
 fn report_error(e: anyhow::Error) -> ExitCode {
     eprintln!("error: {e:#}");
     ExitCode::FAILURE

@@ -41,14 +41,12 @@ pub fn run(args: Args) -> ExitCode {
             l.power_w.element_sum()
         );
     }
-    let mut t = comfy_table::Table::new();
-    t.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
-        .set_header([
-            "photons: light",
-            "W (sum of channels)",
-            "photons",
-            "batches",
-        ]);
+    let mut t = crate::cli::table([
+        "photons: light",
+        "W (sum of channels)",
+        "photons",
+        "batches",
+    ]);
     for l in &p.lights {
         t.add_row([
             l.name.clone(),
@@ -61,9 +59,7 @@ pub fn run(args: Args) -> ExitCode {
         "photons ({} per W, {} per batch):\n{t}",
         settings.photons_per_watt, settings.batch_size
     );
-    let mut v = comfy_table::Table::new();
-    v.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
-        .set_header(["voxels: level", "grid", "occupied", "of grid", "MiB"]);
+    let mut v = crate::cli::table(["voxels: level", "grid", "occupied", "of grid", "MiB"]);
     let per_voxel = cloudlight::render::voxel::BYTES_PER_VOXEL;
     for (l, n) in p.voxels_per_level.iter().enumerate() {
         let cells = 1u64 << (3 * l);

@@ -82,15 +82,12 @@ fn best_embree<'a>(rows: &'a [RayBenchRow], r: &RayBenchRow) -> Option<&'a RayBe
 }
 
 fn print_report(report: &RayBenchReport) {
-    let mut builds = comfy_table::Table::new();
-    builds
-        .load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
-        .set_header([
-            "build",
-            "threads",
-            "seconds",
-            "of Embree MEDIUM (target <= 1.5)",
-        ]);
+    let mut builds = crate::cli::table([
+        "build",
+        "threads",
+        "seconds",
+        "of Embree MEDIUM (target <= 1.5)",
+    ]);
     for b in &report.builds {
         let embree = report
             .builds
@@ -107,18 +104,16 @@ fn print_report(report: &RayBenchReport) {
         ]);
     }
     println!("{builds}");
-    let mut table = comfy_table::Table::new();
-    table
-        .load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
-        .set_header([
-            "rays",
-            "backend",
-            "threads",
-            "Mrays/s (median)",
-            "min-max",
-            &format!("agrees with {}", report.reference.name()),
-            "of Embree's best (target)",
-        ]);
+    let agrees = format!("agrees with {}", report.reference.name());
+    let mut table = crate::cli::table([
+        "rays",
+        "backend",
+        "threads",
+        "Mrays/s (median)",
+        "min-max",
+        &agrees,
+        "of Embree's best (target)",
+    ]);
     for r in &report.rows {
         let coherent = r.rays == "camera";
         let ratio = match best_embree(&report.rows, r) {
@@ -149,13 +144,11 @@ fn print_report(report: &RayBenchReport) {
     }
     println!("{table}");
     let ((sah_nodes, sah_blocks), (nodes, blocks)) = report.sah;
-    let mut work = comfy_table::Table::new();
-    work.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
-        .set_header([
-            "BVH8 work per ray",
-            "inner nodes (8 boxes each)",
-            "leaf blocks (4 triangles each)",
-        ]);
+    let mut work = crate::cli::table([
+        "BVH8 work per ray",
+        "inner nodes (8 boxes each)",
+        "leaf blocks (4 triangles each)",
+    ]);
     for w in &report.work {
         work.add_row([
             w.rays.to_owned(),

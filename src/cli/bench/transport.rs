@@ -129,9 +129,7 @@ fn options(args: &Args) -> Result<cloudlight::transport::bench::BenchOptions, St
 fn table(report: &cloudlight::transport::bench::BenchReport) -> comfy_table::Table {
     let yes = |b: bool| if b { "yes" } else { "NO" }.to_string();
     let judged = |b: Option<bool>| b.map_or("– (none delivered)".to_string(), yes);
-    let mut t = comfy_table::Table::new();
-    t.load_preset(comfy_table::presets::UTF8_FULL_CONDENSED)
-        .set_header(["measure", "value"]);
+    let mut t = crate::cli::table(["measure", "value"]);
     let rows = [
         (
             "messages delivered / offered",
