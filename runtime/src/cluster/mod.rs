@@ -597,6 +597,16 @@ impl Cluster {
                 }
             }
         };
+        // A network failure reported in the same instant as the end it caused (an upstream
+        // peer that left after failing also ends this node's input) must not be lost to the
+        // order `select!` happened to pick: the failure is sent before the peer is marked
+        // gone, so it is already queued here (seen in CI: exit 0 instead of 5).
+        if end == EndReason::Finished
+            && let Ok(why) = self.net_failures.try_recv()
+        {
+            failure = Some(Failure::Network(why));
+            end = EndReason::Failed;
+        }
         tracing::info!(?end, "run ending");
         self.control.begin_stopping();
         for n in &self.nets {
