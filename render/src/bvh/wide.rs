@@ -237,39 +237,48 @@ struct Frustum {
 }
 
 impl Frustum {
-    /// `None` when the rays point into different octants.
+    /// The rays (all pointing into one octant) in structure-of-arrays form; unused lanes
+    /// repeat the first ray.
     #[inline(always)]
-    fn new(p: &[Prepared], rays: &[WideRay]) -> Option<Self> {
-        let near = p[0].near;
-        if p.iter().any(|q| q.near != near) {
-            return None;
-        }
+    fn new(rays: &[WideRay]) -> Self {
         let mut f = Frustum {
             inv: [[1.0; STREAM]; 3],
             oi: [[0.0; STREAM]; 3],
-            t_min: [f32::INFINITY; STREAM],
+            t_min: [0.0; STREAM],
             org: [[0.0; STREAM]; 3],
             dir: [[0.0; STREAM]; 3],
-            near,
+            near: [0, 2, 4],
             o: ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
             i: ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
             t_min_all: f32::INFINITY,
         };
-        for (r, (q, ray)) in p.iter().zip(rays).enumerate() {
+        for r in 0..STREAM {
+            let ray = rays.get(r).unwrap_or(&rays[0]);
             for a in 0..3 {
-                f.inv[a][r] = q.inv[a];
-                f.oi[a][r] = q.oi[a];
                 f.org[a][r] = ray.o[a];
                 f.dir[a][r] = ray.d[a];
-                f.o.0[a] = f.o.0[a].min(ray.o[a]);
-                f.o.1[a] = f.o.1[a].max(ray.o[a]);
-                f.i.0[a] = f.i.0[a].min(q.inv[a]);
-                f.i.1[a] = f.i.1[a].max(q.inv[a]);
             }
-            f.t_min[r] = q.t_min;
-            f.t_min_all = f.t_min_all.min(q.t_min);
+            f.t_min[r] = ray.t.0;
         }
-        Some(f)
+        // Lane loops (vectorized): reciprocals and their bounds, origin bounds.
+        for a in 0..3 {
+            for r in 0..STREAM {
+                let inv = rcp_safe(f.dir[a][r]);
+                f.inv[a][r] = inv;
+                f.oi[a][r] = f.org[a][r] * inv;
+            }
+            f.near[a] = if f.inv[a][0] >= 0.0 { 2 * a } else { 2 * a + 1 };
+            for r in 0..STREAM {
+                f.i.0[a] = min(f.i.0[a], f.inv[a][r]);
+                f.i.1[a] = max(f.i.1[a], f.inv[a][r]);
+                f.o.0[a] = min(f.o.0[a], f.org[a][r]);
+                f.o.1[a] = max(f.o.1[a], f.org[a][r]);
+            }
+        }
+        for r in 0..STREAM {
+            f.t_min_all = min(f.t_min_all, f.t_min[r]);
+        }
+        f
     }
 
     /// Fills `rays_of` (a bit per ray of `active` that enters the child) and `nearest` (the
@@ -582,19 +591,17 @@ impl WideBvh {
         if self.nodes.is_empty() || rays.is_empty() {
             return;
         }
-        let mut p = [Prepared {
-            inv: [1.0; 3],
-            oi: [0.0; 3],
-            near: [0, 2, 4],
-            t_min: 0.0,
-        }; STREAM];
+        // Origin bounds and whether every direction lies in the first one's octant.
+        let signs = |r: &WideRay| r.d.map(|c| rcp_safe(c) < 0.0);
+        let first = signs(&rays[0]);
         let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-        for (q, r) in p.iter_mut().zip(rays) {
-            *q = Prepared::new(r);
+        let mut uniform = true;
+        for r in rays {
             for a in 0..3 {
                 lo[a] = min(lo[a], r.o[a]);
                 hi[a] = max(hi[a], r.o[a]);
             }
+            uniform &= signs(r) == first;
         }
         let spread = [0, 1, 2].map(|a| (hi[a] - lo[a]) * (hi[a] - lo[a]));
         if spread[0] + spread[1] + spread[2] > (STREAM_SPREAD * self.extent).powi(2) {
@@ -603,14 +610,25 @@ impl WideBvh {
             }
             return;
         }
-        let p = &p[..rays.len()];
+        // One-ray box tests where the rays point into different octants.
+        let mut p = [Prepared {
+            inv: [1.0; 3],
+            oi: [0.0; 3],
+            near: [0, 2, 4],
+            t_min: 0.0,
+        }; STREAM];
+        if !uniform {
+            for (q, r) in p.iter_mut().zip(rays) {
+                *q = Prepared::new(r);
+            }
+        }
+        let frustum = uniform.then(|| Frustum::new(rays));
         // Unused lanes never hit anything.
         let mut t_max = [f32::NEG_INFINITY; STREAM];
         for (t, r) in t_max.iter_mut().zip(rays) {
             *t = r.t.1;
         }
         let all = u64::MAX >> (STREAM - rays.len());
-        let frustum = Frustum::new(p, rays);
         let mut hits = Hits {
             id: [u32::MAX; STREAM],
             u: [0.0; STREAM],
