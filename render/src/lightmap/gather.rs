@@ -32,7 +32,7 @@ use std::time::Instant;
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::bvh::{BvhKind, SceneBvh};
+use crate::bvh::{BvhKind, Hit, RayQuery, SceneBvh};
 use crate::direct_light::DirectLight;
 use crate::hdr_map::{HdrMap, bilinear};
 use crate::sampling::{Rng, basis, cosine_hemisphere, morton2, radical_inverse3};
@@ -546,16 +546,19 @@ impl Gatherer {
             }
         };
         let tiles: &TileChanges = tiles;
-        // One ray leaving texel `from` along sample `s` (rotated by `r`): π · B(hit), one
-        // sample of the irradiance there (0 for a miss or a back face); where its segment
-        // ends (the hit, or where it leaves the scene); the map tile it read.
-        let ray = |from: usize, s: &[f32; 3], r: (f32, f32)| -> (Vec3, Vec3, Option<u32>) {
+        // The ray leaving texel `from` along sample `s` (rotated by `r`).
+        let ray_of = |from: usize, s: &[f32; 3], r: (f32, f32)| -> RayQuery {
             let (x, n) = (pos[from], nrm[from]);
             let (t, b) = basis(n);
             let l = cosine_hemisphere((s[0] + r.0).fract(), (s[1] + r.1).fract());
             let d = (t * l.x + b * l.y + n * l.z).normalize();
-            let o = x + n * eps;
-            match bvh.closest_hit(o, d, f32::INFINITY) {
+            (x + n * eps, d, f32::INFINITY)
+        };
+        // What a ray found: π · B(hit), one sample of the irradiance there (0 for a miss or
+        // a back face); where its segment ends (the hit, or where it leaves the scene); the
+        // map tile it read.
+        let shade = |(o, d, _): RayQuery, hit: Option<Hit>| -> (Vec3, Vec3, Option<u32>) {
+            match hit {
                 Some(hit) => {
                     let end = o + d * hit.t;
                     if bvh.geometric_normal(hit.triangle).dot(d) >= 0.0 {
@@ -572,6 +575,13 @@ impl Gatherer {
                 None => (Vec3::ZERO, scene_box.exit(o, d), None),
             }
         };
+        // A point's rays leave together: same or neighbouring origins, directions in Morton
+        // order over the sample square, traced in streams ([`SceneBvh::closest_hits_into`]).
+        let trace = |queries: &[RayQuery], hits: &mut Vec<Option<Hit>>| {
+            hits.clear();
+            hits.resize(queries.len(), None);
+            bvh.closest_hits_into(queries, hits);
+        };
         // A fixed rotation per point decorrelates neighbours' sample sets.
         let rotation = |texel: usize| {
             let mut rng = Rng::new(self.settings.seed, texel as u64);
@@ -583,7 +593,7 @@ impl Gatherer {
                 let gathered: Vec<(usize, GatheredBasis)> = (0..count)
                     .into_par_iter()
                     .filter(|&k| dirty[k])
-                    .map(|k| {
+                    .map_init(Scratch::default, |scratch, k| {
                         let b = &lm.bases.bases[k];
                         let centre = b.texel as usize;
                         let (tangent, bitangent) = basis(nrm[centre]);
@@ -603,21 +613,32 @@ impl Gatherer {
                             read.extend(tile);
                             e
                         };
-                        if self.settings.fit == BasisFit::Constant {
-                            let sum: Vec3 = self
-                                .samples
-                                .iter()
-                                .map(|s| note(centre, ray(centre, s, r)))
-                                .sum();
-                            light.c[0] = sum / n.max(1) as f32;
-                        } else {
-                            let members = lm.bases.members_of(k);
-                            let samples = self.samples.iter().map(|s| {
+                        // The texel each sample leaves from, its ray, and what they hit.
+                        let members = lm.bases.members_of(k);
+                        let from = |s: &[f32; 3]| match self.settings.fit {
+                            BasisFit::Constant => centre,
+                            _ => {
                                 let m =
                                     ((s[2] * members.len() as f32) as usize).min(members.len() - 1);
-                                let from = members[m] as usize;
-                                let d = (pos[from] - light.centre) / light.scale_m;
-                                let e = note(from, ray(from, s, r));
+                                members[m] as usize
+                            }
+                        };
+                        let Scratch { queries, hits } = scratch;
+                        queries.clear();
+                        queries.extend(self.samples.iter().map(|s| ray_of(from(s), s, r)));
+                        trace(queries, hits);
+                        let found = self
+                            .samples
+                            .iter()
+                            .zip(queries.iter().zip(hits.iter()))
+                            .map(|(s, (q, h))| (from(s), shade(*q, *h)));
+                        if self.settings.fit == BasisFit::Constant {
+                            let sum: Vec3 = found.map(|(f, x)| note(f, x)).sum();
+                            light.c[0] = sum / n.max(1) as f32;
+                        } else {
+                            let samples = found.map(|(f, x)| {
+                                let d = (pos[f] - light.centre) / light.scale_m;
+                                let e = note(f, x);
                                 (d.dot(tangent), d.dot(bitangent), e)
                             });
                             light.c = match self.settings.fit {
@@ -662,10 +683,17 @@ impl Gatherer {
                 let n = self.settings.rays_per_texel;
                 let texels: Vec<Vec3> = (0..lm.texels.valid.len())
                     .into_par_iter()
-                    .map(|i| {
+                    .map_init(Scratch::default, |Scratch { queries, hits }, i| {
                         if lm.texels.valid[i] {
                             let r = rotation(i);
-                            let sum: Vec3 = self.samples.iter().map(|s| ray(i, s, r).0).sum();
+                            queries.clear();
+                            queries.extend(self.samples.iter().map(|s| ray_of(i, s, r)));
+                            trace(queries, hits);
+                            let sum: Vec3 = queries
+                                .iter()
+                                .zip(hits.iter())
+                                .map(|(q, h)| shade(*q, *h).0)
+                                .sum();
                             sum / n.max(1) as f32
                         } else {
                             Vec3::ZERO
@@ -677,6 +705,13 @@ impl Gatherer {
             }
         }
     }
+}
+
+/// A worker's buffers for one point's rays and their hits.
+#[derive(Default)]
+struct Scratch {
+    queries: Vec<RayQuery>,
+    hits: Vec<Option<Hit>>,
 }
 
 /// Mean of the valid texels' channel sums.
