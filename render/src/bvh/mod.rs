@@ -277,8 +277,9 @@ impl SceneBvh {
     }
 
     /// Closest hits of `rays` into `out` (as long), on this thread. The BVH8 traverses
-    /// consecutive groups of [`wide::STREAM`] rays together ([`WideBvh::intersect_stream`]):
-    /// order rays so that neighbours share their paths.
+    /// groups of [`wide::STREAM`] rays together ([`WideBvh::intersect_stream`]): the rays
+    /// of each direction octant, in the order given; order rays so that neighbours share
+    /// their paths.
     pub fn closest_hits_into(&self, rays: &[RayQuery], out: &mut [Option<Hit>]) {
         let Tree::Wide(w) = &self.tree else {
             for (o, &(p, d, t)) in out.iter_mut().zip(rays) {
@@ -292,14 +293,39 @@ impl SceneBvh {
             t: (0.0, 0.0),
         }; wide::STREAM];
         let mut hits = [None; wide::STREAM];
-        for (rays, out) in rays.chunks(wide::STREAM).zip(out.chunks_mut(wide::STREAM)) {
-            let n = rays.len();
-            for (w, &(o, d, t)) in wide_rays.iter_mut().zip(rays) {
-                *w = self.wide_ray(o, d, t);
-            }
-            w.intersect_stream(&wide_rays[..n], &mut hits[..n]);
-            for (o, h) in out.iter_mut().zip(&hits[..n]) {
-                *o = h.map(|h| self.hit_from(h));
+        // Rays by the octant of their direction (a stable counting sort), then streams of
+        // neighbours within an octant: a one-octant stream culls with a frustum and tests
+        // eight rays per step (measured on city:250000's bounce rays, one thread: 15-16 ->
+        // 21 Mrays/s).
+        let octant = |d: Vec3| {
+            let neg = d.to_array().map(|c| usize::from(c.is_sign_negative()));
+            neg[0] | neg[1] << 1 | neg[2] << 2
+        };
+        let mut start = [0usize; 9];
+        for &(_, d, _) in rays {
+            start[octant(d) + 1] += 1;
+        }
+        for k in 0..8 {
+            start[k + 1] += start[k];
+        }
+        let mut order = vec![0u32; rays.len()];
+        let mut next = start;
+        for (i, &(_, d, _)) in rays.iter().enumerate() {
+            let k = octant(d);
+            order[next[k]] = i as u32;
+            next[k] += 1;
+        }
+        for k in 0..8 {
+            for ids in order[start[k]..start[k + 1]].chunks(wide::STREAM) {
+                let n = ids.len();
+                for (w, &i) in wide_rays.iter_mut().zip(ids) {
+                    let (o, d, t) = rays[i as usize];
+                    *w = self.wide_ray(o, d, t);
+                }
+                w.intersect_stream(&wide_rays[..n], &mut hits[..n]);
+                for (&i, h) in ids.iter().zip(&hits[..n]) {
+                    out[i as usize] = h.map(|h| self.hit_from(h));
+                }
             }
         }
     }
