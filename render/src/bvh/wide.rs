@@ -770,6 +770,28 @@ impl WideBvh {
         }
     }
 
+    /// Asks the cache for a child's node (its four lines) or its first leaf block while the
+    /// ray goes on: the children pushed on the stack arrive while the nearest is traversed
+    /// (measured on city:250000's 1M random rays, one thread: 4.5-5.0 -> 5.1-5.7 Mrays/s).
+    #[inline(always)]
+    #[allow(unsafe_code)]
+    fn prefetch(&self, child: u32) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+            let p = if child & LEAF == 0 {
+                self.nodes.as_ptr().wrapping_add(child as usize) as *const i8
+            } else {
+                let first = (child & FIRST_MASK) as usize;
+                self.tris.as_ptr().wrapping_add(first) as *const i8
+            };
+            for line in 0..4 {
+                // SAFETY: a prefetch is a hint: it never faults and reads nothing Rust sees.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64 * line)) };
+            }
+        }
+    }
+
     #[inline(always)]
     fn traverse_with<const ANY: bool, const COUNT: bool>(
         &self,
@@ -804,6 +826,7 @@ impl WideBvh {
                         while m != 0 {
                             let i = m.trailing_zeros() as usize;
                             m &= m - 1;
+                            self.prefetch(node.child[i]);
                             stack[sp] = u64::from(tn[i].to_bits()) << 32 | u64::from(node.child[i]);
                             sp += 1;
                         }
