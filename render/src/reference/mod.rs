@@ -18,7 +18,7 @@ use cloudlight_scenes::{Camera, Scene};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 
-use crate::bvh::SceneBvh;
+use crate::bvh::{Hit, SceneBvh};
 use crate::direct_light::DirectLight;
 use crate::sampling::{Rng, basis, cosine_hemisphere};
 
@@ -114,87 +114,132 @@ impl<'a> ReferenceRenderer<'a> {
     }
 
     /// Adds samples `first_sample .. first_sample + count` of every pixel to `images`.
+    ///
+    /// A row's paths advance together, one bounce at a time, their rays cast as a batch
+    /// ([`SceneBvh::closest_hits_into`]: camera rays of neighbouring pixels in streams,
+    /// bounces sorted by octant): each path keeps its own random sequence, so the result is
+    /// that of tracing the paths one by one.
     pub fn render_pass(&self, images: &mut ReferenceImages, first_sample: u32, count: u32) {
         let s = self.settings;
         let aspect = s.width as f32 / s.height as f32;
+        let width = s.width as usize;
+        // Paths of one row in flight at once, a pixel's samples in order.
+        let per_pixel = count.max(1) as usize;
+        let pixels_per_batch = (PATHS_PER_BATCH / per_pixel).max(1);
         images
             .direct_sum
-            .par_chunks_mut(s.width as usize)
-            .zip(images.indirect_sum.par_chunks_mut(s.width as usize))
+            .par_chunks_mut(width)
+            .zip(images.indirect_sum.par_chunks_mut(width))
             .enumerate()
             .for_each(|(y, (direct_row, indirect_row))| {
-                for x in 0..s.width as usize {
-                    let pixel = (y * s.width as usize + x) as u64;
-                    for k in first_sample..first_sample + count {
-                        let mut rng = Rng::new(s.seed, pixel * 1_000_003 + k as u64);
-                        let jitter = Vec2::new(rng.next_f32(), rng.next_f32());
-                        let ndc = Vec2::new(
-                            ((x as f32 + jitter.x) / s.width as f32) * 2.0 - 1.0,
-                            1.0 - ((y as f32 + jitter.y) / s.height as f32) * 2.0,
-                        );
-                        let dir = s.camera.ray_direction(ndc, aspect);
-                        let (d, i) = self.trace(s.camera.position, dir, &mut rng);
-                        direct_row[x] += d;
-                        indirect_row[x] += i;
+                let mut paths = Vec::new();
+                let mut queries = Vec::new();
+                let mut hits = Vec::new();
+                let mut alive = Vec::new();
+                for x0 in (0..width).step_by(pixels_per_batch) {
+                    let x1 = (x0 + pixels_per_batch).min(width);
+                    paths.clear();
+                    for x in x0..x1 {
+                        let pixel = (y * width + x) as u64;
+                        for k in first_sample..first_sample + count {
+                            let mut rng = Rng::new(s.seed, pixel * 1_000_003 + k as u64);
+                            let jitter = Vec2::new(rng.next_f32(), rng.next_f32());
+                            let ndc = Vec2::new(
+                                ((x as f32 + jitter.x) / s.width as f32) * 2.0 - 1.0,
+                                1.0 - ((y as f32 + jitter.y) / s.height as f32) * 2.0,
+                            );
+                            paths.push(Path {
+                                o: s.camera.position,
+                                d: s.camera.ray_direction(ndc, aspect),
+                                throughput: Vec3::ONE,
+                                direct: Vec3::ZERO,
+                                indirect: Vec3::ZERO,
+                                rng,
+                                x,
+                            });
+                        }
+                    }
+                    alive.clear();
+                    alive.extend(0..paths.len());
+                    for bounce in 0..s.max_bounces {
+                        if alive.is_empty() {
+                            break;
+                        }
+                        queries.clear();
+                        queries.extend(alive.iter().map(|&i| {
+                            let p: &Path = &paths[i];
+                            (p.o, p.d, f32::INFINITY)
+                        }));
+                        hits.clear();
+                        hits.resize(queries.len(), None);
+                        self.bvh.closest_hits_into(&queries, &mut hits);
+                        let mut next = 0;
+                        for j in 0..alive.len() {
+                            let i = alive[j];
+                            if let Some(hit) = hits[j]
+                                && self.step(&mut paths[i], bounce, &hit)
+                            {
+                                alive[next] = i;
+                                next += 1;
+                            }
+                        }
+                        alive.truncate(next);
+                    }
+                    for p in &paths {
+                        direct_row[p.x] += p.direct;
+                        indirect_row[p.x] += p.indirect;
                     }
                 }
             });
         images.spp += count;
     }
 
-    /// Radiance along one camera ray, split into (direct, indirect).
-    fn trace(&self, origin: Vec3, dir: Vec3, rng: &mut Rng) -> (Vec3, Vec3) {
-        let mut direct = Vec3::ZERO;
-        let mut indirect = Vec3::ZERO;
-        let mut throughput = Vec3::ONE;
-        let (mut o, mut d) = (origin, dir);
-        for bounce in 0..self.settings.max_bounces {
-            let Some(hit) = self.bvh.closest_hit(o, d, f32::INFINITY) else {
-                break;
-            };
-            let tri = &self.bvh.triangles()[hit.triangle as usize];
-            let material = &self.scene.materials[tri.material as usize];
-            let ng = self.bvh.geometric_normal(hit.triangle);
-            let front = ng.dot(d) < 0.0;
-            if bounce == 0 && front {
-                direct += material.emission;
-            }
-            // Two-sided diffuse: shade with the normal facing the incoming ray.
-            let mut n = self.bvh.shading_normal(&hit);
-            let ng = if front { ng } else { -ng };
-            if n.dot(ng) < 0.0 {
-                n = -n;
-            }
-            let albedo = material.albedo
-                * material
-                    .texture
-                    .as_ref()
-                    .map_or(Vec3::ONE, |t| t.sample(self.bvh.hit_uv(&hit)));
-            let x = o + d * hit.t + ng * self.eps;
-            let nee = self.next_event(x, n, albedo, rng);
-            if bounce == 0 {
-                direct += nee;
-            } else {
-                indirect += throughput * nee;
-            }
-            // Bounce.
-            if bounce >= 2 {
-                let q = throughput.max_element().min(0.95);
-                if rng.next_f32() >= q {
-                    break;
-                }
-                throughput /= q;
-            }
-            throughput *= albedo;
-            if throughput.max_element() <= 0.0 {
-                break;
-            }
-            let (t, b) = basis(n);
-            let l = cosine_hemisphere(rng.next_f32(), rng.next_f32());
-            d = (t * l.x + b * l.y + n * l.z).normalize();
-            o = x;
+    /// One bounce of `path` at `hit`: emission seen directly, next-event estimation, then
+    /// (unless Russian roulette ends it) the next direction. Whether the path goes on.
+    fn step(&self, path: &mut Path, bounce: u32, hit: &Hit) -> bool {
+        let (o, d) = (path.o, path.d);
+        let tri = &self.bvh.triangles()[hit.triangle as usize];
+        let material = &self.scene.materials[tri.material as usize];
+        let ng = self.bvh.geometric_normal(hit.triangle);
+        let front = ng.dot(d) < 0.0;
+        if bounce == 0 && front {
+            path.direct += material.emission;
         }
-        (direct, indirect)
+        // Two-sided diffuse: shade with the normal facing the incoming ray.
+        let mut n = self.bvh.shading_normal(hit);
+        let ng = if front { ng } else { -ng };
+        if n.dot(ng) < 0.0 {
+            n = -n;
+        }
+        let albedo = material.albedo
+            * material
+                .texture
+                .as_ref()
+                .map_or(Vec3::ONE, |t| t.sample(self.bvh.hit_uv(hit)));
+        let x = o + d * hit.t + ng * self.eps;
+        let nee = self.next_event(x, n, albedo, &mut path.rng);
+        if bounce == 0 {
+            path.direct += nee;
+        } else {
+            path.indirect += path.throughput * nee;
+        }
+        // Bounce.
+        if bounce >= 2 {
+            let q = path.throughput.max_element().min(0.95);
+            if path.rng.next_f32() >= q {
+                return false;
+            }
+            path.throughput /= q;
+        }
+        path.throughput *= albedo;
+        if path.throughput.max_element() <= 0.0 {
+            return false;
+        }
+        let (t, b) = basis(n);
+        let l = cosine_hemisphere(path.rng.next_f32(), path.rng.next_f32());
+        path.d = (t * l.x + b * l.y + n * l.z).normalize();
+        path.o = x;
+        true
     }
 
     /// Reflected radiance at `x` (normal `n`, albedo `albedo`) from one emitter sample and
@@ -202,6 +247,21 @@ impl<'a> ReferenceRenderer<'a> {
     fn next_event(&self, x: Vec3, n: Vec3, albedo: Vec3, rng: &mut Rng) -> Vec3 {
         albedo / std::f32::consts::PI * self.direct.irradiance(x, n, rng)
     }
+}
+
+/// Paths of one row traced together: whole pixels, at least one.
+const PATHS_PER_BATCH: usize = 4096;
+
+/// One camera path in flight.
+struct Path {
+    o: Vec3,
+    d: Vec3,
+    throughput: Vec3,
+    direct: Vec3,
+    indirect: Vec3,
+    rng: Rng,
+    /// Pixel column.
+    x: usize,
 }
 
 /// Renders `spp` samples per pixel in one go.

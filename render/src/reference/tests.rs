@@ -97,6 +97,20 @@ fn images_are_deterministic_and_passes_add_up() {
         assert!((*a - b).abs().max_element() <= 1e-5 * a.max_element().max(1.0));
     }
     assert_eq!(whole, render(&scene, &bvh, s, 6));
+    // Paths go in batches of whole pixels: 128 samples of a 40-pixel row make two batches
+    // of a row, 64 make one; the sums are the same.
+    let s = settings(scene.cameras[0].camera, 40);
+    const { assert!(PATHS_PER_BATCH / 128 < 40 && PATHS_PER_BATCH / 64 >= 40) };
+    let whole = render(&scene, &bvh, s, 128);
+    let r = ReferenceRenderer::new(&scene, &bvh, s);
+    let mut split = ReferenceImages::new(40, 40);
+    r.render_pass(&mut split, 0, 64);
+    r.render_pass(&mut split, 64, 64);
+    let (whole, split) = (whole.full(), split.full());
+    assert!(whole.iter().filter(|p| p.max_element() > 0.0).count() > 40 * 40 / 2);
+    for (a, b) in whole.iter().zip(&split) {
+        assert!((*a - *b).abs().max_element() <= 1e-5 * a.max_element().max(1.0));
+    }
 }
 
 #[test]
