@@ -95,7 +95,6 @@ impl Cli {
     }
 }
 
-/// Prints an error with its causes and exits 1.
 /// A table in the CLI's one style with this header.
 fn table<const N: usize>(header: [&str; N]) -> comfy_table::Table {
     let mut t = comfy_table::Table::new();
@@ -104,6 +103,7 @@ fn table<const N: usize>(header: [&str; N]) -> comfy_table::Table {
     t
 }
 
+/// Prints an error with its causes and exits 1.
 fn report_error(e: anyhow::Error) -> ExitCode {
     eprintln!("error: {e:#}");
     ExitCode::FAILURE
