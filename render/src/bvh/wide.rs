@@ -1,7 +1,7 @@
-//! An 8-wide BVH for one ray at a time: obvhs builds a binary BVH (PLOC, reinsertion, leaf
-//! collapse), which is collapsed here into nodes of eight children whose boxes sit in
-//! structure-of-arrays form (one step tests eight boxes), with the triangles of each leaf in
-//! blocks of four, laid out for the test (vertex, two edges and the normal, precomputed).
+//! An 8-wide BVH, built here top-down with the binned SAH ([`build`]): nodes of eight children
+//! whose boxes sit in structure-of-arrays form (one step tests eight boxes), with the
+//! triangles of each leaf in blocks of four, laid out for the test (vertex, two edges and the
+//! normal, precomputed).
 //! This is Embree's layout for one-ray traversal (BVH8 over "triangle4v" blocks, Wald et al.,
 //! "Embree: a kernel framework for efficient CPU ray tracing", 2014).
 //!
@@ -12,7 +12,8 @@
 // Lane loops index several arrays by the same lane, the form LLVM vectorizes.
 #![allow(clippy::needless_range_loop)]
 
-use obvhs::bvh2::Bvh2;
+mod build;
+
 use obvhs::triangle::Triangle;
 
 /// Children per node.
@@ -21,11 +22,8 @@ const W: usize = 8;
 const LEAF: u32 = 1 << 31;
 const BLOCK_SHIFT: u32 = 28;
 const FIRST_MASK: u32 = (1 << BLOCK_SHIFT) - 1;
-/// Most triangles in a leaf (obvhs' leaf size limit): at most 7 blocks of 4 fit the bits.
-pub(crate) const MAX_LEAF_TRIANGLES: u32 = 8;
 /// An empty child slot.
 const EMPTY: u32 = u32::MAX;
-/// Traversal stack entries held on the stack; deeper trees use a heap stack.
 /// Box far distances are scaled up by this (1 + 2γ₃, Ize's "Robust BVH ray traversal") so
 /// rounding never drops a box the ray touches.
 const FAR_SCALE: f32 = 1.0 + 2.0 * 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
@@ -85,120 +83,30 @@ pub struct WideBvh {
     sah: (f64, f64),
 }
 
-fn half_area(lo: [f32; 3], hi: [f32; 3]) -> f64 {
-    let d = [hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]].map(|x| x.max(0.0) as f64);
-    d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
-}
-
-struct Collapser<'a> {
-    bvh: &'a Bvh2,
-    tris: &'a [Triangle],
-    nodes: Vec<Node>,
-    blocks: Vec<Tri4>,
-    root_area: f64,
-    sah: (f64, f64),
-    depth: usize,
-}
-
-impl Collapser<'_> {
-    fn aabb(&self, i: usize) -> ([f32; 3], [f32; 3]) {
-        let a = self.bvh.nodes[i].aabb;
-        (a.min.to_array(), a.max.to_array())
-    }
-
-    fn leaf(&mut self, i: usize) -> u32 {
-        let n = &self.bvh.nodes[i];
-        let ids = &self.bvh.primitive_indices
-            [n.first_index as usize..(n.first_index + n.prim_count) as usize];
-        let first = self.blocks.len() as u32;
-        for chunk in ids.chunks(4) {
-            let nan = [f32::NAN; 4];
-            let mut b = Tri4 {
-                v0: [nan; 3],
-                e1: [nan; 3],
-                e2: [nan; 3],
-                n: [nan; 3],
-                id: [u32::MAX; 4],
-            };
-            for (l, &id) in chunk.iter().enumerate() {
-                let t = &self.tris[id as usize];
-                let e1 = t.v0 - t.v1;
-                let e2 = t.v2 - t.v0;
-                let n = e1.cross(e2);
-                for k in 0..3 {
-                    b.v0[k][l] = t.v0[k];
-                    b.e1[k][l] = e1[k];
-                    b.e2[k][l] = e2[k];
-                    b.n[k][l] = n[k];
-                }
-                b.id[l] = id;
-            }
-            self.blocks.push(b);
+/// The block of up to four triangles `ids` (unused lanes NaN).
+fn block(tris: &[Triangle], ids: impl Iterator<Item = u32>) -> Tri4 {
+    let nan = [f32::NAN; 4];
+    let mut b = Tri4 {
+        v0: [nan; 3],
+        e1: [nan; 3],
+        e2: [nan; 3],
+        n: [nan; 3],
+        id: [u32::MAX; 4],
+    };
+    for (l, id) in ids.enumerate() {
+        let t = &tris[id as usize];
+        let e1 = t.v0 - t.v1;
+        let e2 = t.v2 - t.v0;
+        let n = e1.cross(e2);
+        for a in 0..3 {
+            b.v0[a][l] = t.v0[a];
+            b.e1[a][l] = e1[a];
+            b.e2[a][l] = e2[a];
+            b.n[a][l] = n[a];
         }
-        let count = self.blocks.len() as u32 - first;
-        assert!(
-            count < 8 && first <= FIRST_MASK,
-            "leaf too large for its encoding"
-        );
-        let (lo, hi) = self.aabb(i);
-        self.sah.1 += half_area(lo, hi) / self.root_area * count as f64;
-        LEAF | count << BLOCK_SHIFT | first
+        b.id[l] = id;
     }
-
-    /// Emits the wide node for BVH2 inner node `i` and returns its index.
-    fn inner(&mut self, i: usize, depth: usize) -> u32 {
-        self.depth = self.depth.max(depth);
-        let (lo, hi) = self.aabb(i);
-        self.sah.0 += half_area(lo, hi) / self.root_area;
-        let first = self.bvh.nodes[i].first_index as usize;
-        // Children and their areas (-1 for leaves, which are not opened).
-        let mut kids = [0usize; W];
-        let mut area = [0f64; W];
-        let mut n = 0;
-        let add = |k: usize, kids: &mut [usize; W], area: &mut [f64; W], at: usize| {
-            let node = &self.bvh.nodes[k];
-            kids[at] = k;
-            area[at] = if node.prim_count == 0 {
-                half_area(node.aabb.min.to_array(), node.aabb.max.to_array())
-            } else {
-                -1.0
-            };
-        };
-        add(first, &mut kids, &mut area, 0);
-        add(first + 1, &mut kids, &mut area, 1);
-        n += 2;
-        // Open the inner child of largest area until eight children (Embree's BVH8 collapse).
-        while n < W {
-            let j = (0..n)
-                .max_by(|&a, &b| area[a].total_cmp(&area[b]))
-                .unwrap_or(0);
-            if area[j] < 0.0 {
-                break;
-            }
-            let f = self.bvh.nodes[kids[j]].first_index as usize;
-            add(f, &mut kids, &mut area, j);
-            add(f + 1, &mut kids, &mut area, n);
-            n += 1;
-        }
-        let kids = &kids[..n];
-        let index = self.nodes.len();
-        self.nodes.push(Node::empty());
-        for (slot, &k) in kids.iter().enumerate() {
-            let child = if self.bvh.nodes[k].prim_count > 0 {
-                self.leaf(k)
-            } else {
-                self.inner(k, depth + 1)
-            };
-            let (lo, hi) = self.aabb(k);
-            let node = &mut self.nodes[index];
-            node.child[slot] = child;
-            for a in 0..3 {
-                node.b[2 * a][slot] = lo[a];
-                node.b[2 * a + 1][slot] = hi[a];
-            }
-        }
-        index as u32
-    }
+    b
 }
 
 /// One traversal as pulp's operation: `with_simd` is compiled once per instruction set and
@@ -496,46 +404,37 @@ pub struct WideRay {
 }
 
 impl WideBvh {
-    /// Collapses obvhs' `bvh` over `tris` (whose leaves hold at most
-    /// [`MAX_LEAF_TRIANGLES`]).
-    pub fn new(bvh: &Bvh2, tris: &[Triangle]) -> Self {
-        let mut c = Collapser {
-            bvh,
-            tris,
-            nodes: Vec::with_capacity(bvh.nodes.len() / 4 + 1),
-            blocks: Vec::with_capacity(tris.len() / 2 + 1),
-            root_area: 1.0,
-            sah: (0.0, 0.0),
+    /// Builds over `tris` top-down with the binned SAH, eight children per node
+    /// ([`build`]).
+    pub fn build(tris: &[Triangle]) -> Self {
+        let built = build::build(tris).unwrap_or(build::Built {
+            nodes: Vec::new(),
+            blocks: Vec::new(),
             depth: 0,
-        };
-        if !bvh.nodes.is_empty() {
-            let (lo, hi) = c.aabb(0);
-            c.root_area = half_area(lo, hi).max(f64::MIN_POSITIVE);
-            if bvh.nodes[0].prim_count > 0 {
-                // A single leaf: a root with one child.
-                let leaf = c.leaf(0);
-                let mut node = Node::empty();
-                node.child[0] = leaf;
-                for a in 0..3 {
-                    node.b[2 * a][0] = lo[a];
-                    node.b[2 * a + 1][0] = hi[a];
-                }
-                c.nodes.push(node);
-                c.sah.0 = 1.0;
-            } else {
-                c.inner(0, 1);
-            }
-        }
+            sah: (0.0, 0.0),
+        });
+        // The root box: the union of the root's child boxes.
+        let extent = built.nodes.first().map_or(0.0, |n| {
+            let d = [0, 2, 4].map(|a| {
+                let lo = n.b[a].iter().copied().fold(f32::INFINITY, f32::min);
+                let hi = n.b[a + 1].iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                hi - lo
+            });
+            (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+        });
+        let build::Built {
+            nodes,
+            blocks,
+            depth,
+            sah,
+        } = built;
         WideBvh {
-            stack_need: (W - 1) * (c.depth + 1) + 1,
-            nodes: c.nodes,
-            tris: c.blocks,
+            stack_need: (W - 1) * (depth + 1) + 1,
+            nodes,
+            tris: blocks,
             arch: pulp::Arch::new(),
-            extent: match bvh.nodes.first() {
-                Some(n) => (n.aabb.max - n.aabb.min).length(),
-                None => 0.0,
-            },
-            sah: c.sah,
+            extent,
+            sah,
         }
     }
 
