@@ -122,13 +122,10 @@ impl<const N: usize> Bins<N> {
 
     /// Adds `prims`, binned by `binning`.
     fn add(&mut self, binning: &Binning, prims: &[Prim]) {
-        let last = Vec3A::splat((N - 1) as f32);
         for p in prims {
             let (lo, hi) = (Vec3A::from_vec4(p.lo), Vec3A::from_vec4(p.hi));
-            let b = ((lo + hi - binning.lo) * binning.scale)
-                .max(Vec3A::ZERO)
-                .min(last);
-            let b = [b.x as usize, b.y as usize, b.z as usize];
+            let c = lo + hi;
+            let b = [0, 1, 2].map(|a| binning.bin(c[a], a));
             for a in 0..3 {
                 self.bounds[a][b[a]].grow(lo, hi);
                 self.count[a][b[a]] += 1;
@@ -177,18 +174,38 @@ impl<const N: usize> Bins<N> {
 struct Binning {
     lo: Vec3A,
     scale: Vec3A,
+    /// The last bin's index.
+    last: f32,
 }
 
 impl Binning {
     fn new(centres: &Bounds, bins: usize) -> Self {
         let extent = centres.hi - centres.lo;
-        // Slightly fewer than `bins` so the largest centre lands in the last bin.
+        // Slightly fewer than `bins` so the largest centre lands in the last bin. An axis
+        // without extent (or with a subnormal or infinite one) is not split.
         let s = bins as f32 * (1.0 - 1e-5);
-        let scale = Vec3A::select(extent.cmpgt(Vec3A::ZERO), s / extent, Vec3A::ZERO);
+        let scale = Vec3A::from_array([0, 1, 2].map(|a| {
+            let k = s / extent[a];
+            if extent[a] > 0.0 && k.is_finite() {
+                k
+            } else {
+                0.0
+            }
+        }));
         Binning {
             lo: centres.lo,
             scale,
+            last: (bins - 1) as f32,
         }
+    }
+
+    /// The bin of doubled centre coordinate `c` on `axis`: binning and partitioning both
+    /// use this, so no primitive changes side between them.
+    #[inline(always)]
+    fn bin(&self, c: f32, axis: usize) -> usize {
+        ((c - self.lo[axis]) * self.scale[axis])
+            .max(0.0)
+            .min(self.last) as usize
     }
 }
 
@@ -201,18 +218,28 @@ struct Split {
     sah: f32,
 }
 
-/// Ranges below this many primitives bin into [`SMALL_BINS`] bins (the sweep over 32 bins
-/// costs more than binning a few primitives).
+/// Small ranges bin into fewer bins: the sweep over 32 bins costs more than binning a few
+/// primitives, and a few primitives need few candidate planes.
 const SMALL_RANGE: usize = 128;
 const SMALL_BINS: usize = 16;
+const TINY_RANGE: usize = 32;
+const TINY_BINS: usize = 8;
+
+/// The best split of `prims` into `N` bins.
+fn find_split_in<const N: usize>(prims: &[Prim], range: &Range) -> Option<(Split, Binning)> {
+    let binning = Binning::new(&range.centres, N);
+    let mut bins = Bins::<N>::new();
+    bins.add(&binning, prims);
+    bins.best(&binning).map(|s| (s, binning))
+}
 
 /// The best binned split of `prims`, or `None` if every centre is the same.
 fn find_split(prims: &[Prim], range: &Range) -> Option<(Split, Binning)> {
+    if prims.len() < TINY_RANGE {
+        return find_split_in::<TINY_BINS>(prims, range);
+    }
     if prims.len() < SMALL_RANGE {
-        let binning = Binning::new(&range.centres, SMALL_BINS);
-        let mut bins = Bins::<SMALL_BINS>::new();
-        bins.add(&binning, prims);
-        return bins.best(&binning).map(|s| (s, binning));
+        return find_split_in::<SMALL_BINS>(prims, range);
     }
     let binning = Binning::new(&range.centres, BINS);
     let bins = if prims.len() >= 2 * PARALLEL_BINS {
@@ -249,14 +276,13 @@ fn bounds_of(prims: &[Prim]) -> (Bounds, Bounds) {
 }
 
 /// Splits `range` (whose primitives are `prims`) in two: at the best binned split, or in the
-/// middle of the range where every centre is the same.
+/// middle of the range where every centre is the same (or, as a safety net, where the split
+/// left a side empty).
 fn split(prims: &mut [Prim], range: &Range, found: Option<(Split, Binning)>) -> (Range, Range) {
-    let (mid, (lb, lc), (rb, rc)) = match found {
-        Some((s, binning)) => {
-            // Left of the split: a bin below `s.bin`, i.e. the binning coordinate below it
-            // (the same arithmetic as `Binning::bins`, so no primitive changes side).
-            let (a, lo, scale, bin) = (s.axis, binning.lo[s.axis], binning.scale[s.axis], s.bin);
-            let left_of = |p: &Prim| (p.lo[a] + p.hi[a] - lo) * scale < bin as f32;
+    let n = prims.len();
+    let partitioned = found.and_then(|(s, binning)| {
+        {
+            let left_of = |p: &Prim| binning.bin(p.lo[s.axis] + p.hi[s.axis], s.axis) < s.bin;
             // Hoare partition, growing each side's bounds as its primitives are seen.
             let (mut lb, mut lc, mut rb, mut rc) =
                 (Bounds::EMPTY, Bounds::EMPTY, Bounds::EMPTY, Bounds::EMPTY);
@@ -285,14 +311,14 @@ fn split(prims: &mut [Prim], range: &Range, found: Option<(Split, Binning)>) -> 
                 i += 1;
                 j -= 1;
             }
-            (i, (lb, lc), (rb, rc))
+            (i > 0 && i < n).then_some((i, (lb, lc), (rb, rc)))
         }
-        None => {
-            let mid = prims.len() / 2;
-            let (l, r) = prims.split_at(mid);
-            (mid, bounds_of(l), bounds_of(r))
-        }
-    };
+    });
+    let (mid, (lb, lc), (rb, rc)) = partitioned.unwrap_or_else(|| {
+        let mid = n / 2;
+        let (l, r) = prims.split_at(mid);
+        (mid, bounds_of(l), bounds_of(r))
+    });
     let at = range.start + mid;
     (
         Range {
@@ -678,7 +704,7 @@ mod tests {
     }
 
     #[test]
-    fn coincident_triangles_split_in_the_middle_and_non_finite_ones_are_left_out() {
+    fn coincident_and_nearly_coincident_triangles_split_and_non_finite_ones_are_left_out() {
         // 100 copies of one triangle: no binned split separates them.
         let t = Triangle {
             v0: Vec3A::new(0.0, 0.0, 1.0),
@@ -711,6 +737,21 @@ mod tests {
             w.intersect(&ray(Vec3::new(0.8, 0.8, 0.0), Vec3::Z), false)
                 .is_none()
         );
+        // Centres a few subnormals apart: the binning's scale overflows, and binning and
+        // partitioning must still agree on every triangle's side.
+        let shifted: Vec<Triangle> = (0..40)
+            .map(|i| {
+                let x = |k: u32| f32::from_bits(i / 4 + k);
+                Triangle {
+                    v0: Vec3A::new(x(0), 0.0, 1.0),
+                    v1: Vec3A::new(x(2), 0.0, 1.0),
+                    v2: Vec3A::new(x(0), 1.0, 1.0),
+                }
+            })
+            .collect();
+        let mut ids = check(&WideBvh::build(&shifted), &shifted);
+        ids.sort_unstable();
+        assert_eq!(ids, (0..40).collect::<Vec<_>>());
         // Only non-finite triangles: an empty tree.
         let empty = WideBvh::build(&tris[100..]);
         assert_eq!(empty.size(), (0, 0));
