@@ -2,12 +2,13 @@
 //!
 //! Three layouts: obvhs' compressed wide BVH (CWBVH) and binary BVH2, each with obvhs'
 //! traversal, and [`BvhKind::Wide`], the default: eight children per node, built here
-//! top-down with the binned SAH, with its own SIMD traversal ([`WideBvh`]), one ray at a time or, for batches
-//! ([`SceneBvh::closest_hits_into`]), in streams of 64 rays of one direction octant.
-//! `cloudlight bench rays` measures all three against Embree on the same rays
-//! (city:250000, one thread, Mrays/s camera / bounce / random: BVH8 streams 36.8 / 21.1 /
-//! 5.0, BVH8 one ray 9.5 / 10.8 / 5.0, obvhs BVH2 8.0 / 8.8 / 2.0, CWBVH 5.3 / 5.3 / 3.2;
-//! Embree's best 75.2 / 22.1 / 9.5). When objects move the BVH is rebuilt for the new time
+//! top-down with the binned SAH and traversed with its own SIMD code ([`WideBvh`]), one ray
+//! at a time or, for batches ([`SceneBvh::closest_hits_into`]), in streams of 64 rays of one
+//! direction octant. `cloudlight bench rays` measures all three against Embree on the same
+//! rays (city:250000, one thread, Mrays/s camera / bounce / random: BVH8 streams 38.5 / 24.6 /
+//! 5.6, BVH8 one ray 10.4 / 11.0 / 6.1, obvhs BVH2 9.0 / 8.4 / 2.1, CWBVH 5.1 / 5.5 / 2.8;
+//! Embree's best 71.1 / 22.1 / 8.3; builds 0.092 s against Embree MEDIUM's 0.063 s). When
+//! objects move the BVH is rebuilt for the new time
 //! ([`SceneBvh::at`]).
 //!
 //! Traversal runs in a normalized frame where the scene's bounding diagonal is 100 units:

@@ -1,7 +1,6 @@
 //! An 8-wide BVH, built here top-down with the binned SAH ([`build`]): nodes of eight children
 //! whose boxes sit in structure-of-arrays form (one step tests eight boxes), with the
-//! triangles of each leaf in blocks of four, laid out for the test (vertex, two edges and the
-//! normal, precomputed).
+//! triangles of each leaf in blocks of four, laid out for the test (a vertex and two edges).
 //! This is Embree's layout for one-ray traversal (BVH8 over "triangle4v" blocks, Wald et al.,
 //! "Embree: a kernel framework for efficient CPU ray tracing", 2014).
 //!
@@ -47,15 +46,16 @@ impl Node {
     }
 }
 
-/// Four triangles: a vertex, the two edges and the (unnormalized) normal of each, as used by
-/// obvhs' intersection test (madmann91's form of Möller–Trumbore); unused lanes are NaN.
+/// Four triangles: a vertex and the two edges of each, as used by obvhs' intersection test
+/// (madmann91's form of Möller–Trumbore); unused lanes are NaN. The test computes the normal
+/// (e1 × e2) itself: 160 bytes a block instead of 208 with it stored, and incoherent rays,
+/// bound by cache misses, are faster for it (city:250000's random rays +2-4%, 5 alternations).
 #[repr(C, align(16))]
 #[derive(Clone, Copy)]
 struct Tri4 {
     v0: [[f32; 4]; 3],
     e1: [[f32; 4]; 3],
     e2: [[f32; 4]; 3],
-    n: [[f32; 4]; 3],
     id: [u32; 4],
 }
 
@@ -90,19 +90,16 @@ fn block(tris: &[Triangle], ids: impl Iterator<Item = u32>) -> Tri4 {
         v0: [nan; 3],
         e1: [nan; 3],
         e2: [nan; 3],
-        n: [nan; 3],
         id: [u32::MAX; 4],
     };
     for (l, id) in ids.enumerate() {
         let t = &tris[id as usize];
         let e1 = t.v0 - t.v1;
         let e2 = t.v2 - t.v0;
-        let n = e1.cross(e2);
         for a in 0..3 {
             b.v0[a][l] = t.v0[a];
             b.e1[a][l] = e1[a];
             b.e2[a][l] = e2[a];
-            b.n[a][l] = n[a];
         }
         b.id[l] = id;
     }
@@ -279,7 +276,7 @@ impl Frustum {
                 let v0 = [b.v0[0][j], b.v0[1][j], b.v0[2][j]];
                 let e1 = [b.e1[0][j], b.e1[1][j], b.e1[2][j]];
                 let e2 = [b.e2[0][j], b.e2[1][j], b.e2[2][j]];
-                let n = [b.n[0][j], b.n[1][j], b.n[2][j]];
+                let n = cross(e1, e2);
                 for k in 0..STREAM / 8 {
                     let lanes = (active >> (8 * k)) as u8;
                     if lanes == 0 {
@@ -825,6 +822,16 @@ impl Prepared {
     }
 }
 
+/// a × b.
+#[inline(always)]
+fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
 /// The nearest of four triangles hit within `[t_min, t_max)`, if any, with the weights of
 /// its vertices 1 and 2 (obvhs' test: `e1 = v0 - v1`, `e2 = v2 - v0`, `n = e1 × e2`; then
 /// `u = ((d × (v0 - o)) · e2) / (n · d)` weighs v1 and `v` likewise with `e1` weighs v2).
@@ -834,18 +841,22 @@ fn intersect4(b: &Tri4, ray: &WideRay, t_min: f32, t_max: f32) -> Option<WideHit
     let mut t = [f32::INFINITY; 4];
     let mut uv = [[0f32; 2]; 4];
     for l in 0..4 {
+        let n = cross(
+            [b.e1[0][l], b.e1[1][l], b.e1[2][l]],
+            [b.e2[0][l], b.e2[1][l], b.e2[2][l]],
+        );
         let c = [b.v0[0][l] - o[0], b.v0[1][l] - o[1], b.v0[2][l] - o[2]];
         let r = [
             d[1] * c[2] - d[2] * c[1],
             d[2] * c[0] - d[0] * c[2],
             d[0] * c[1] - d[1] * c[0],
         ];
-        let det = b.n[0][l] * d[0] + b.n[1][l] * d[1] + b.n[2][l] * d[2];
+        let det = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
         let inv = 1.0 / det;
         let u = (r[0] * b.e2[0][l] + r[1] * b.e2[1][l] + r[2] * b.e2[2][l]) * inv;
         let v = (r[0] * b.e1[0][l] + r[1] * b.e1[1][l] + r[2] * b.e1[2][l]) * inv;
         let w = 1.0 - u - v;
-        let tt = (b.n[0][l] * c[0] + b.n[1][l] * c[1] + b.n[2][l] * c[2]) * inv;
+        let tt = (n[0] * c[0] + n[1] * c[1] + n[2] * c[2]) * inv;
         let hit = u >= 0.0 && v >= 0.0 && w >= 0.0 && tt >= t_min && tt < t_max;
         t[l] = if hit { tt } else { f32::INFINITY };
         uv[l] = [u, v];

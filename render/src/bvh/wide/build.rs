@@ -7,6 +7,12 @@
 //! four triangles (a block of one costs as much as a block of four), so the tree fills the
 //! blocks the traversal tests. Large ranges bin in parallel and their children are built in
 //! parallel, each into its own arrays that the parent appends.
+//!
+//! It replaced obvhs' PLOC, reinsertion and leaf collapse followed by a collapse to eight
+//! children (obvhs 0.4 runs PLOC on one thread; that tree's SAH cost 7.6 expected node visits
+//! per line against 5.4 here). Measured on city:250000 in alternating runs: random rays
+//! 4.5-5.0 -> 6.1 Mrays/s on one thread, builds 0.12 -> 0.09-0.11 s on one thread and
+//! 0.08-0.09 -> 0.055-0.06 s on two.
 
 use glam::{Vec3A, Vec4};
 use obvhs::triangle::Triangle;
