@@ -404,27 +404,19 @@ impl WideBvh {
     /// Builds over `tris` top-down with the binned SAH, eight children per node
     /// ([`build`]).
     pub fn build(tris: &[Triangle]) -> Self {
-        let built = build::build(tris).unwrap_or(build::Built {
-            nodes: Vec::new(),
-            blocks: Vec::new(),
-            depth: 0,
-            sah: (0.0, 0.0),
-        });
-        // The root box: the union of the root's child boxes.
-        let extent = built.nodes.first().map_or(0.0, |n| {
-            let d = [0, 2, 4].map(|a| {
-                let lo = n.b[a].iter().copied().fold(f32::INFINITY, f32::min);
-                let hi = n.b[a + 1].iter().copied().fold(f32::NEG_INFINITY, f32::max);
-                hi - lo
-            });
-            (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
-        });
         let build::Built {
             nodes,
             blocks,
             depth,
             sah,
-        } = built;
+            extent,
+        } = build::build(tris).unwrap_or(build::Built {
+            nodes: Vec::new(),
+            blocks: Vec::new(),
+            depth: 0,
+            sah: (0.0, 0.0),
+            extent: 0.0,
+        });
         WideBvh {
             stack_need: (W - 1) * (depth + 1) + 1,
             nodes,

@@ -288,12 +288,18 @@ fn find_split(prims: &[Prim], range: &Range) -> Option<(Split, Binning)> {
 fn bounds_of(prims: &[Prim]) -> (Bounds, Bounds) {
     let (mut b, mut c) = (Bounds::EMPTY, Bounds::EMPTY);
     for p in prims {
-        let (lo, hi) = (Vec3A::from_vec4(p.lo), Vec3A::from_vec4(p.hi));
-        b.grow(lo, hi);
-        let m = lo + hi;
-        c.grow(m, m);
+        grow_by(&mut b, &mut c, p);
     }
     (b, c)
+}
+
+/// Grows `bounds` by `p`'s box and `centres` by its (doubled) centre.
+#[inline(always)]
+fn grow_by(bounds: &mut Bounds, centres: &mut Bounds, p: &Prim) {
+    let (lo, hi) = (Vec3A::from_vec4(p.lo), Vec3A::from_vec4(p.hi));
+    bounds.grow(lo, hi);
+    let m = lo + hi;
+    centres.grow(m, m);
 }
 
 /// Splits `range` (whose primitives are `prims`) in two: at the best binned split, or in the
@@ -307,28 +313,22 @@ fn split(prims: &mut [Prim], range: &Range, found: Option<(Split, Binning)>) -> 
             // Hoare partition, growing each side's bounds as its primitives are seen.
             let (mut lb, mut lc, mut rb, mut rc) =
                 (Bounds::EMPTY, Bounds::EMPTY, Bounds::EMPTY, Bounds::EMPTY);
-            let grow = |b: &mut Bounds, c: &mut Bounds, p: &Prim| {
-                let (lo, hi) = (Vec3A::from_vec4(p.lo), Vec3A::from_vec4(p.hi));
-                b.grow(lo, hi);
-                let m = lo + hi;
-                c.grow(m, m);
-            };
             let (mut i, mut j) = (0, prims.len());
             loop {
                 while i < j && left_of(&prims[i]) {
-                    grow(&mut lb, &mut lc, &prims[i]);
+                    grow_by(&mut lb, &mut lc, &prims[i]);
                     i += 1;
                 }
                 while i < j && !left_of(&prims[j - 1]) {
-                    grow(&mut rb, &mut rc, &prims[j - 1]);
+                    grow_by(&mut rb, &mut rc, &prims[j - 1]);
                     j -= 1;
                 }
                 if i >= j {
                     break;
                 }
                 prims.swap(i, j - 1);
-                grow(&mut lb, &mut lc, &prims[i]);
-                grow(&mut rb, &mut rc, &prims[j - 1]);
+                grow_by(&mut lb, &mut lc, &prims[i]);
+                grow_by(&mut rb, &mut rc, &prims[j - 1]);
                 i += 1;
                 j -= 1;
             }
@@ -520,6 +520,8 @@ pub(super) struct Built {
     pub depth: usize,
     /// The SAH terms of [`WideBvh::sah_visits`](super::WideBvh::sah_visits).
     pub sah: (f64, f64),
+    /// Diagonal of the root box.
+    pub extent: f32,
 }
 
 /// The wide BVH's nodes and blocks over `tris` (triangles with a non-finite vertex are left
@@ -612,6 +614,7 @@ pub(super) fn build(tris: &[Triangle]) -> Option<Built> {
         blocks,
         depth: arena.depth,
         sah: arena.sah,
+        extent: (bounds.hi - bounds.lo).length(),
     })
 }
 
