@@ -1,5 +1,6 @@
 //! Photon kernels on the Cornell box at the paper's budget (10k photons, one batch): tracing
-//! a batch, packing it (12 and 20 bytes per photon), unpacking it.
+//! a batch, packing it (12 and 20 bytes per photon), unpacking it; and tracing a batch on
+//! city:250000, where the BVH no longer fits the caches.
 //!
 //! `cargo bench -p cloudlight-render --bench photons`
 
@@ -46,5 +47,27 @@ fn photons(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, photons);
+fn city(c: &mut Criterion) {
+    let scene = cloudlight_scenes::builtin("city:250000").unwrap();
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let settings = PhotonSettings::default();
+    let lights = photon_lights(&scene, 0.0);
+    let plan = BatchPlan::new(&lights, &settings);
+    let tracer = PhotonTracer::new(&scene, &bvh, settings, &plan, 1);
+    let mut generation = 0;
+    c.bench_function(
+        "city:250000: trace one 10k-photon batch of each light",
+        |b| {
+            b.iter(|| {
+                generation += 1;
+                lights
+                    .iter()
+                    .map(|l| tracer.trace_batch(l, 0, 1, generation).len())
+                    .sum::<usize>()
+            })
+        },
+    );
+}
+
+criterion_group!(benches, photons, city);
 criterion_main!(benches);

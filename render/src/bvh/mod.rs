@@ -536,6 +536,16 @@ mod tests {
         // than the turns, with t_max stopping some short.
         let s = cloudlight_scenes::builtin("city:20000").unwrap();
         let bvh = SceneBvh::at(&s, 0.0, BvhKind::Wide);
+        assert!(
+            bvh.wide().unwrap().takes_turns(),
+            "a tree too small to take turns"
+        );
+        let cornell = SceneBvh::at(
+            &cloudlight_scenes::builtin("cornell").unwrap(),
+            0.0,
+            BvhKind::Wide,
+        );
+        assert!(!cornell.wide().unwrap().takes_turns());
         let (lo, hi) = bvh.bounds();
         let mut rng = Rng::new(5, 0);
         let rays: Vec<RayQuery> = (0..300)
