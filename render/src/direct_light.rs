@@ -6,7 +6,7 @@
 use cloudlight_scenes::{LightState, Scene};
 use glam::Vec3;
 
-use crate::bvh::SceneBvh;
+use crate::bvh::{RayQuery, SceneBvh};
 use crate::sampling::{Rng, uniform_triangle};
 
 /// Emissive triangles of a BVH, ready for power-proportional sampling.
@@ -106,7 +106,18 @@ impl<'a> DirectLight<'a> {
     /// Irradiance E at `x` (unit normal `n`, W·m⁻² per channel) from one emitter sample and
     /// every punctual and directional light, with ray-traced shadows (unbiased).
     pub fn irradiance(&self, x: Vec3, n: Vec3, rng: &mut Rng) -> Vec3 {
-        let mut e = Vec3::ZERO;
+        let mut lit = Vec::new();
+        self.samples(x, n, rng, &mut lit);
+        lit.iter()
+            .filter(|s| !self.bvh.occluded(s.ray.0, s.ray.1, s.ray.2))
+            .fold(Vec3::ZERO, |e, s| e + s.e)
+    }
+
+    /// The terms of [`Self::irradiance`] at `x` that light it where their shadow rays are
+    /// clear, appended to `out` in the order they are summed: for callers that cast many
+    /// points' shadow rays together ([`SceneBvh::occluded_into`]). Draws the same random
+    /// numbers as `irradiance`.
+    pub fn samples(&self, x: Vec3, n: Vec3, rng: &mut Rng, out: &mut Vec<LightSample>) {
         let (u0, u1, u2) = (rng.next_f32(), rng.next_f32(), rng.next_f32());
         if let Some((ti, p_tri)) = self.emitters.pick(u0) {
             let t = &self.bvh.triangles()[ti as usize];
@@ -119,30 +130,34 @@ impl<'a> DirectLight<'a> {
             let dist2 = to.length_squared();
             let w = to / dist2.sqrt();
             let (cx, cy) = (n.dot(w), -ny.dot(w));
-            if cx > 0.0 && cy > 0.0 && !self.bvh.occluded(x, w, dist2.sqrt() * (1.0 - 1e-4)) {
+            if cx > 0.0 && cy > 0.0 {
                 let le = self.scene.materials[t.material as usize].emission;
-                e += le * cx * cy / dist2 * area / p_tri;
+                out.push(LightSample {
+                    light: 0,
+                    ray: (x, w, dist2.sqrt() * (1.0 - 1e-4)),
+                    e: le * cx * cy / dist2 * area / p_tri,
+                });
             }
         }
-        for l in &self.lights {
-            match *l {
+        for (k, l) in self.lights.iter().enumerate() {
+            let sample = match *l {
                 LightState::Point {
                     position,
                     intensity,
-                } => e += self.punctual(x, n, position, intensity, None),
+                } => self.punctual(x, n, position, intensity, None),
                 LightState::Spot {
                     position,
                     direction,
                     cos_cone,
                     intensity,
-                } => e += self.punctual(x, n, position, intensity, Some((direction, cos_cone))),
+                } => self.punctual(x, n, position, intensity, Some((direction, cos_cone))),
                 LightState::Surface {
                     position,
                     normal,
                     intensity,
                 } => {
                     let cos_light = (x - position).normalize_or_zero().dot(normal).max(0.0);
-                    e += self.punctual(x, n, position, intensity * cos_light, None);
+                    self.punctual(x, n, position, intensity * cos_light, None)
                 }
                 LightState::Directional {
                     direction,
@@ -150,13 +165,18 @@ impl<'a> DirectLight<'a> {
                 } => {
                     let w = -direction;
                     let c = n.dot(w);
-                    if c > 0.0 && !self.bvh.occluded(x, w, f32::INFINITY) {
-                        e += irradiance * c;
-                    }
+                    (c > 0.0).then(|| LightSample {
+                        light: 0,
+                        ray: (x, w, f32::INFINITY),
+                        e: irradiance * c,
+                    })
                 }
-            }
+            };
+            out.extend(sample.map(|s| LightSample {
+                light: k as u32 + 1,
+                ..s
+            }));
         }
-        e
     }
 
     fn punctual(
@@ -166,17 +186,29 @@ impl<'a> DirectLight<'a> {
         p: Vec3,
         intensity: Vec3,
         cone: Option<(Vec3, f32)>,
-    ) -> Vec3 {
+    ) -> Option<LightSample> {
         let to = p - x;
         let dist2 = to.length_squared();
         let w = to / dist2.sqrt();
         let c = n.dot(w);
         if c <= 0.0 || cone.is_some_and(|(axis, cos_cone)| (-w).dot(axis) < cos_cone) {
-            return Vec3::ZERO;
+            return None;
         }
-        if self.bvh.occluded(x, w, dist2.sqrt() * (1.0 - 1e-4)) {
-            return Vec3::ZERO;
-        }
-        intensity * c / dist2
+        Some(LightSample {
+            light: 0,
+            ray: (x, w, dist2.sqrt() * (1.0 - 1e-4)),
+            e: intensity * c / dist2,
+        })
     }
+}
+
+/// One term of the direct irradiance at a point: what it adds where its shadow ray is clear.
+#[derive(Clone, Copy, Debug)]
+pub struct LightSample {
+    /// Which light: 0 the emitter sample, `1 + i` the scene's light `i`.
+    pub light: u32,
+    /// The shadow ray: origin, unit direction, length.
+    pub ray: RayQuery,
+    /// Irradiance, W·m⁻² per channel.
+    pub e: Vec3,
 }

@@ -19,7 +19,7 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 
 use crate::bvh::{Hit, SceneBvh};
-use crate::direct_light::DirectLight;
+use crate::direct_light::{DirectLight, LightSample};
 use crate::sampling::{Rng, basis, cosine_hemisphere};
 
 /// What to render.
@@ -117,8 +117,9 @@ impl<'a> ReferenceRenderer<'a> {
     ///
     /// A row's paths advance together, one bounce at a time, their rays cast as a batch
     /// ([`SceneBvh::closest_hits_into`]: camera rays of neighbouring pixels in streams,
-    /// bounces sorted by octant): each path keeps its own random sequence, so the result is
-    /// that of tracing the paths one by one.
+    /// bounces sorted by octant), then the shadow rays of every path's next-event estimate
+    /// at that bounce ([`SceneBvh::occluded_into`]): each path keeps its own random
+    /// sequence, so the result is that of tracing the paths one by one.
     pub fn render_pass(&self, images: &mut ReferenceImages, first_sample: u32, count: u32) {
         let s = self.settings;
         let aspect = s.width as f32 / s.height as f32;
@@ -136,6 +137,12 @@ impl<'a> ReferenceRenderer<'a> {
                 let mut queries = Vec::new();
                 let mut hits = Vec::new();
                 let mut alive = Vec::new();
+                let mut lit = Vec::new();
+                let mut vertices = Vec::new();
+                let mut order = Vec::new();
+                let mut shadow = Vec::new();
+                let mut sorted = Vec::new();
+                let mut blocked = Vec::new();
                 for x0 in (0..width).step_by(pixels_per_batch) {
                     let x1 = (x0 + pixels_per_batch).min(width);
                     paths.clear();
@@ -174,16 +181,58 @@ impl<'a> ReferenceRenderer<'a> {
                         hits.resize(queries.len(), None);
                         self.bvh.closest_hits_into(&queries, &mut hits);
                         let mut next = 0;
+                        lit.clear();
+                        vertices.clear();
                         for j in 0..alive.len() {
                             let i = alive[j];
                             if let Some(hit) = hits[j]
-                                && self.step(&mut paths[i], bounce, &hit)
+                                && self.step(
+                                    &mut paths[i],
+                                    i,
+                                    bounce,
+                                    &hit,
+                                    &mut lit,
+                                    &mut vertices,
+                                )
                             {
                                 alive[next] = i;
                                 next += 1;
                             }
                         }
                         alive.truncate(next);
+                        // This bounce's shadow rays, together.
+                        // This bounce's shadow rays, together and light by light: rays to
+                        // one light from neighbouring points share their paths (measured on
+                        // city:250000, `--spp 16`, 640×360: 2.7-2.8 s one at a time,
+                        // 2.3-2.5 s in turns light by light, 2.7-3.4 s in turns point by
+                        // point).
+                        order.clear();
+                        order.extend(0..lit.len());
+                        order.sort_by_key(|&i| lit[i].light);
+                        shadow.clear();
+                        shadow.extend(order.iter().map(|&i: &usize| lit[i].ray));
+                        sorted.clear();
+                        sorted.resize(lit.len(), false);
+                        self.bvh.occluded_into(&shadow, &mut sorted);
+                        blocked.clear();
+                        blocked.resize(lit.len(), false);
+                        for (&i, &b) in order.iter().zip(&sorted) {
+                            blocked[i] = b;
+                        }
+                        for v in &vertices {
+                            let terms = v.samples.clone();
+                            let e = lit[terms.clone()]
+                                .iter()
+                                .zip(&blocked[terms])
+                                .filter(|(_, b)| !**b)
+                                .fold(Vec3::ZERO, |e, (s, _)| e + s.e);
+                            let nee = v.albedo / std::f32::consts::PI * e;
+                            let p = &mut paths[v.path];
+                            match v.throughput {
+                                None => p.direct += nee,
+                                Some(t) => p.indirect += t * nee,
+                            }
+                        }
                     }
                     for p in &paths {
                         direct_row[p.x] += p.direct;
@@ -194,9 +243,19 @@ impl<'a> ReferenceRenderer<'a> {
         images.spp += count;
     }
 
-    /// One bounce of `path` at `hit`: emission seen directly, next-event estimation, then
-    /// (unless Russian roulette ends it) the next direction. Whether the path goes on.
-    fn step(&self, path: &mut Path, bounce: u32, hit: &Hit) -> bool {
+    /// One bounce of path `index` at `hit`: emission seen directly, the terms of the
+    /// next-event estimate (appended to `lit`, their vertex to `vertices`, for the caller to
+    /// cast their shadow rays and add what is lit), then (unless Russian roulette ends it)
+    /// the next direction. Whether the path goes on.
+    fn step(
+        &self,
+        path: &mut Path,
+        index: usize,
+        bounce: u32,
+        hit: &Hit,
+        lit: &mut Vec<LightSample>,
+        vertices: &mut Vec<Vertex>,
+    ) -> bool {
         let (o, d) = (path.o, path.d);
         let tri = &self.bvh.triangles()[hit.triangle as usize];
         let material = &self.scene.materials[tri.material as usize];
@@ -217,12 +276,14 @@ impl<'a> ReferenceRenderer<'a> {
                 .as_ref()
                 .map_or(Vec3::ONE, |t| t.sample(self.bvh.hit_uv(hit)));
         let x = o + d * hit.t + ng * self.eps;
-        let nee = self.next_event(x, n, albedo, &mut path.rng);
-        if bounce == 0 {
-            path.direct += nee;
-        } else {
-            path.indirect += path.throughput * nee;
-        }
+        let first = lit.len();
+        self.direct.samples(x, n, &mut path.rng, lit);
+        vertices.push(Vertex {
+            path: index,
+            samples: first..lit.len(),
+            albedo,
+            throughput: (bounce > 0).then_some(path.throughput),
+        });
         // Bounce.
         if bounce >= 2 {
             let q = path.throughput.max_element().min(0.95);
@@ -241,16 +302,22 @@ impl<'a> ReferenceRenderer<'a> {
         path.o = x;
         true
     }
-
-    /// Reflected radiance at `x` (normal `n`, albedo `albedo`) from one emitter sample and
-    /// every punctual and directional light.
-    fn next_event(&self, x: Vec3, n: Vec3, albedo: Vec3, rng: &mut Rng) -> Vec3 {
-        albedo / std::f32::consts::PI * self.direct.irradiance(x, n, rng)
-    }
 }
 
 /// Paths of one row traced together: whole pixels, at least one.
 const PATHS_PER_BATCH: usize = 4096;
+
+/// A path vertex's next-event estimate, waiting on its shadow rays: reflected radiance
+/// `albedo / π × Σ lit terms`, added to the path's direct light (the first vertex) or,
+/// times the path's throughput there, to its indirect light.
+struct Vertex {
+    path: usize,
+    /// Its terms in the bounce's `lit`.
+    samples: std::ops::Range<usize>,
+    albedo: Vec3,
+    /// The path's throughput at the vertex; `None` at the first.
+    throughput: Option<Vec3>,
+}
 
 /// One camera path in flight.
 struct Path {

@@ -167,3 +167,81 @@ fn a_scene_without_lights_is_black_and_degenerate_triangles_are_harmless() {
     let img = render(&s, &bvh, settings(s.cameras[0].camera, 8), 2);
     assert!(img.full().iter().all(|v| *v == Vec3::ZERO));
 }
+
+/// Paths traced one at a time with one ray at a time (closest hits and shadow rays), each
+/// vertex's next-event estimate resolved at once: the (direct, indirect) sums per pixel that
+/// [`ReferenceRenderer::render_pass`] must reproduce with its batches.
+fn one_path_at_a_time(r: &ReferenceRenderer, spp: u32) -> (Vec<Vec3>, Vec<Vec3>) {
+    let s = r.settings;
+    let aspect = s.width as f32 / s.height as f32;
+    let n = (s.width * s.height) as usize;
+    let (mut direct, mut indirect) = (vec![Vec3::ZERO; n], vec![Vec3::ZERO; n]);
+    for pixel in 0..n {
+        let (x, y) = (pixel % s.width as usize, pixel / s.width as usize);
+        for k in 0..spp {
+            let mut rng = Rng::new(s.seed, pixel as u64 * 1_000_003 + k as u64);
+            let jitter = Vec2::new(rng.next_f32(), rng.next_f32());
+            let ndc = Vec2::new(
+                ((x as f32 + jitter.x) / s.width as f32) * 2.0 - 1.0,
+                1.0 - ((y as f32 + jitter.y) / s.height as f32) * 2.0,
+            );
+            let mut path = Path {
+                o: s.camera.position,
+                d: s.camera.ray_direction(ndc, aspect),
+                throughput: Vec3::ONE,
+                direct: Vec3::ZERO,
+                indirect: Vec3::ZERO,
+                rng,
+                x,
+            };
+            for bounce in 0..s.max_bounces {
+                let Some(hit) = r.bvh.closest_hit(path.o, path.d, f32::INFINITY) else {
+                    break;
+                };
+                let (mut lit, mut vertices) = (Vec::new(), Vec::new());
+                let goes_on = r.step(&mut path, 0, bounce, &hit, &mut lit, &mut vertices);
+                let v = &vertices[0];
+                let e = lit
+                    .iter()
+                    .filter(|l| !r.bvh.occluded(l.ray.0, l.ray.1, l.ray.2))
+                    .fold(Vec3::ZERO, |e, l| e + l.e);
+                let nee = v.albedo / std::f32::consts::PI * e;
+                match v.throughput {
+                    None => path.direct += nee,
+                    Some(t) => path.indirect += t * nee,
+                }
+                if !goes_on {
+                    break;
+                }
+            }
+            direct[pixel] += path.direct;
+            indirect[pixel] += path.indirect;
+        }
+    }
+    (direct, indirect)
+}
+
+#[test]
+fn batched_paths_and_shadow_rays_give_what_one_path_at_a_time_gives() {
+    // A city: a sun and street lamps, so each vertex casts several shadow rays, some
+    // blocked; the batches cast them light by light and must hand each result back to its
+    // own vertex and term.
+    let scene = cloudlight_scenes::builtin("city:2000").unwrap();
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    assert!(scene.lights.len() > 2, "{} lights", scene.lights.len());
+    let mut s = settings(scene.cameras[0].camera, 16);
+    s.max_bounces = 4;
+    let r = ReferenceRenderer::new(&scene, &bvh, s);
+    let mut images = ReferenceImages::new(16, 16);
+    r.render_pass(&mut images, 0, 4);
+    let (direct, indirect) = one_path_at_a_time(&r, 4);
+    assert!(direct.iter().filter(|d| d.max_element() > 0.0).count() > 16 * 16 / 4);
+    let lit = indirect.iter().filter(|d| d.max_element() > 0.0).count();
+    assert!(lit > 16, "{lit} pixels with indirect light");
+    for (i, (a, b)) in images.direct_sum.iter().zip(&direct).enumerate() {
+        assert_eq!(a, b, "direct light of pixel {i}");
+    }
+    for (i, (a, b)) in images.indirect_sum.iter().zip(&indirect).enumerate() {
+        assert_eq!(a, b, "indirect light of pixel {i}");
+    }
+}
