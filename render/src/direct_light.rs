@@ -113,6 +113,33 @@ impl<'a> DirectLight<'a> {
             .fold(Vec3::ZERO, |e, s| e + s.e)
     }
 
+    /// Whether each term's shadow ray is blocked, `lit` being the terms of many points'
+    /// estimates ([`Self::samples`]): the rays are cast together, light by light, since rays
+    /// to one light from neighbouring points share their paths ([`SceneBvh::occluded_into`];
+    /// measured on the reference render of city:250000, `--spp 16`, 640×360: 2.7-2.8 s one at
+    /// a time, 2.3-2.5 s light by light, 2.7-3.4 s point by point).
+    pub fn blocked(&self, lit: &[LightSample]) -> Vec<bool> {
+        let mut order: Vec<usize> = (0..lit.len()).collect();
+        order.sort_by_key(|&i| lit[i].light);
+        let rays: Vec<RayQuery> = order.iter().map(|&i| lit[i].ray).collect();
+        let mut sorted = vec![false; lit.len()];
+        self.bvh.occluded_into(&rays, &mut sorted);
+        let mut blocked = vec![false; lit.len()];
+        for (&i, &b) in order.iter().zip(&sorted) {
+            blocked[i] = b;
+        }
+        blocked
+    }
+
+    /// The sum of the terms `lit` whose shadow rays are clear (`blocked` as from
+    /// [`Self::blocked`]), in order: one point's irradiance.
+    pub fn sum_clear(lit: &[LightSample], blocked: &[bool]) -> Vec3 {
+        lit.iter()
+            .zip(blocked)
+            .filter(|(_, b)| !**b)
+            .fold(Vec3::ZERO, |e, (l, _)| e + l.e)
+    }
+
     /// The terms of [`Self::irradiance`] at `x` that light it where their shadow rays are
     /// clear, appended to `out` in the order they are summed: for callers that cast many
     /// points' shadow rays together ([`SceneBvh::occluded_into`]). Draws the same random

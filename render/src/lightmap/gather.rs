@@ -729,7 +729,7 @@ fn energy(texels: &[Vec3], valid: &[bool]) -> f32 {
 /// Texture-space direct irradiance (W·m⁻²) of every valid texel — or, given `(stale,
 /// kept)`, of the stale texels, the others keeping their `kept` values — the shadow rays
 /// spent and the texels computed.
-fn direct_map(
+pub(super) fn direct_map(
     lm: &Lightmap,
     bvh: &SceneBvh,
     frame: &(Vec<Vec3>, Vec<Vec3>),
@@ -742,28 +742,51 @@ fn direct_map(
     let samples = s.direct_samples.max(1);
     let eps = light.eps().max(lm.texels.texel_m * 1e-3);
     let seed = s.seed ^ update.wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    let e: Vec<Vec3> = (0..lm.texels.valid.len())
+    // Texels in chunks whose shadow rays are cast together ([`DirectLight::blocked`]).
+    const CHUNK: usize = 256;
+    let texels = lm.texels.valid.len();
+    let e: Vec<Vec3> = (0..texels.div_ceil(CHUNK))
         .into_par_iter()
-        .map(|i| {
-            if let Some((stale, kept)) = only
-                && !stale[i]
-            {
-                return kept[i];
+        .flat_map_iter(|c| {
+            let ids = c * CHUNK..((c + 1) * CHUNK).min(texels);
+            // Each computed texel's samples' terms: (texel, ranges of `lit`).
+            let mut lit = Vec::new();
+            let mut spans = Vec::with_capacity(ids.len() * samples as usize);
+            for i in ids.clone() {
+                if let Some((stale, _)) = only
+                    && !stale[i]
+                {
+                    continue;
+                }
+                if !lm.texels.valid[i] || !light.any() {
+                    continue;
+                }
+                let (x, n) = (frame.0[i], frame.1[i]);
+                let mut rng = Rng::new(seed, i as u64);
+                for _ in 0..samples {
+                    let first = lit.len();
+                    light.samples(x + n * eps, n, &mut rng, &mut lit);
+                    spans.push((i, first..lit.len()));
+                }
             }
-            if !lm.texels.valid[i] || !light.any() {
-                return Vec3::ZERO;
+            let blocked = light.blocked(&lit);
+            let mut sums = vec![Vec3::ZERO; ids.len()];
+            for (i, terms) in spans {
+                sums[i - ids.start] += DirectLight::sum_clear(&lit[terms.clone()], &blocked[terms]);
             }
-            let (x, n) = (frame.0[i], frame.1[i]);
-            let mut rng = Rng::new(seed, i as u64);
-            let sum: Vec3 = (0..samples)
-                .map(|_| light.irradiance(x + n * eps, n, &mut rng))
-                .sum();
-            let e = sum / samples as f32;
-            if e.is_finite() {
-                e.max(Vec3::ZERO)
-            } else {
-                Vec3::ZERO
-            }
+            ids.map(move |i| {
+                if let Some((stale, kept)) = only
+                    && !stale[i]
+                {
+                    return kept[i];
+                }
+                let e = sums[i - c * CHUNK] / samples as f32;
+                if e.is_finite() {
+                    e.max(Vec3::ZERO)
+                } else {
+                    Vec3::ZERO
+                }
+            })
         })
         .collect();
     let computed = match only {

@@ -583,3 +583,49 @@ fn the_gather_traces_each_point_s_sample_set_in_coherent_order() {
         "mean step {coherent} against {plain} in index order"
     );
 }
+
+#[test]
+fn direct_light_cast_in_batches_is_what_each_texel_computes_alone() {
+    // The Cornell box with two point lights besides its emitter, so each texel's estimate
+    // has several terms, some shadowed; the batch casts them light by light and must hand
+    // each result back to its own texel, sample and term.
+    let mut scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let (lo, hi) = scene.bounds_at(0.0);
+    for (i, at) in [Vec3::new(0.2, 0.3, 0.2), Vec3::new(0.8, 0.15, 0.7)]
+        .into_iter()
+        .enumerate()
+    {
+        scene.lights.push(cloudlight_scenes::Light {
+            name: format!("lamp{i}"),
+            kind: cloudlight_scenes::LightKind::Point,
+            power_w: Vec3::new(5.0, 4.0, 3.0),
+            motion: Motion::Static(glam::Affine3A::from_translation(lo + (hi - lo) * at)),
+            sun_path: None,
+        });
+    }
+    let lm = Lightmap::bake(&scene, &LightmapSettings::default()).unwrap();
+    let bvh = SceneBvh::at(&scene, 0.0, crate::BvhKind::default());
+    let frame = lm.texels.frame_at(bvh.triangles());
+    let s = GatherSettings::default();
+    let (e, _, texels) = super::gather::direct_map(&lm, &bvh, &frame, 0.0, &s, 3, None);
+    assert_eq!(texels, lm.texels.valid_count());
+    let light = crate::direct_light::DirectLight::new(&scene, &bvh, 0.0);
+    let eps = light.eps().max(lm.texels.texel_m * 1e-3);
+    let seed = s.seed ^ 3u64.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    let mut lit = 0;
+    for (i, got) in e.iter().enumerate() {
+        if !lm.texels.valid[i] {
+            assert_eq!(*got, Vec3::ZERO);
+            continue;
+        }
+        let (x, n) = (frame.0[i], frame.1[i]);
+        let mut rng = crate::sampling::Rng::new(seed, i as u64);
+        let sum: Vec3 = (0..s.direct_samples)
+            .map(|_| light.irradiance(x + n * eps, n, &mut rng))
+            .sum();
+        let alone = (sum / s.direct_samples as f32).max(Vec3::ZERO);
+        assert_eq!(*got, alone, "texel {i}");
+        lit += usize::from(alone.max_element() > 0.0);
+    }
+    assert!(lit > texels / 4, "{lit} of {texels} texels lit");
+}

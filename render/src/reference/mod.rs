@@ -139,10 +139,6 @@ impl<'a> ReferenceRenderer<'a> {
                 let mut alive = Vec::new();
                 let mut lit = Vec::new();
                 let mut vertices = Vec::new();
-                let mut order = Vec::new();
-                let mut shadow = Vec::new();
-                let mut sorted = Vec::new();
-                let mut blocked = Vec::new();
                 for x0 in (0..width).step_by(pixels_per_batch) {
                     let x1 = (x0 + pixels_per_batch).min(width);
                     paths.clear();
@@ -201,31 +197,11 @@ impl<'a> ReferenceRenderer<'a> {
                         }
                         alive.truncate(next);
                         // This bounce's shadow rays, together.
-                        // This bounce's shadow rays, together and light by light: rays to
-                        // one light from neighbouring points share their paths (measured on
-                        // city:250000, `--spp 16`, 640×360: 2.7-2.8 s one at a time,
-                        // 2.3-2.5 s in turns light by light, 2.7-3.4 s in turns point by
-                        // point).
-                        order.clear();
-                        order.extend(0..lit.len());
-                        order.sort_by_key(|&i| lit[i].light);
-                        shadow.clear();
-                        shadow.extend(order.iter().map(|&i: &usize| lit[i].ray));
-                        sorted.clear();
-                        sorted.resize(lit.len(), false);
-                        self.bvh.occluded_into(&shadow, &mut sorted);
-                        blocked.clear();
-                        blocked.resize(lit.len(), false);
-                        for (&i, &b) in order.iter().zip(&sorted) {
-                            blocked[i] = b;
-                        }
+                        // This bounce's shadow rays, together.
+                        let blocked = self.direct.blocked(&lit);
                         for v in &vertices {
                             let terms = v.samples.clone();
-                            let e = lit[terms.clone()]
-                                .iter()
-                                .zip(&blocked[terms])
-                                .filter(|(_, b)| !**b)
-                                .fold(Vec3::ZERO, |e, (s, _)| e + s.e);
+                            let e = DirectLight::sum_clear(&lit[terms.clone()], &blocked[terms]);
                             let nee = v.albedo / std::f32::consts::PI * e;
                             let p = &mut paths[v.path];
                             match v.throughput {
