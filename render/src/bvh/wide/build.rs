@@ -131,7 +131,13 @@ impl<const N: usize> Bins<N> {
         for p in prims {
             let (lo, hi) = (Vec3A::from_vec4(p.lo), Vec3A::from_vec4(p.hi));
             let c = lo + hi;
-            let b = [0, 1, 2].map(|a| binning.bin(c[a], a));
+            // Written out: `[0, 1, 2].map(..)` stayed a call per primitive (perf: a fifth of
+            // the build in `try_map`).
+            let b = [
+                binning.bin(c.x, 0),
+                binning.bin(c.y, 1),
+                binning.bin(c.z, 2),
+            ];
             for a in 0..3 {
                 self.bounds[a][b[a]].grow(lo, hi);
                 self.count[a][b[a]] += 1;
