@@ -267,18 +267,46 @@ pub fn agreement(rays: &[RayQuery], a: &[Option<(f32, u32)>], b: &[Option<(f32, 
     same as f64 / a.len().max(1) as f64
 }
 
-/// Median and range of `passes` timed passes after one warm-up, million rays per second.
-fn measure(caster: &Caster, set: &RaySet, passes: usize, out: &mut Hits) -> (f64, (f64, f64)) {
-    pass(caster, set, out);
-    let mut rates: Vec<f64> = (0..passes.max(1))
-        .map(|_| set.rays.len() as f64 / pass(caster, set, out).as_secs_f64() / 1e6)
-        .collect();
-    rates.sort_by(f64::total_cmp);
-    (rates[rates.len() / 2], (rates[0], rates[rates.len() - 1]))
+/// Median and range of `values`.
+fn median_range(mut values: Vec<f64>) -> (f64, (f64, f64)) {
+    values.sort_by(f64::total_cmp);
+    (
+        values[values.len() / 2],
+        (values[0], values[values.len() - 1]),
+    )
+}
+
+/// Median and range of `passes` timed passes of each caster after one warm-up each, million
+/// rays per second. The passes go round the casters (one of each, then again), so a burst of
+/// load on this shared machine falls on every backend alike and their ratios hold.
+fn measure(
+    casters: &[(Backend, Caster)],
+    set: &RaySet,
+    passes: usize,
+) -> Vec<(f64, (f64, f64), Hits)> {
+    let mut outs: Vec<Hits> = casters.iter().map(|_| vec![None; set.rays.len()]).collect();
+    for ((_, caster), out) in casters.iter().zip(&mut outs) {
+        pass(caster, set, out);
+    }
+    let mut rates = vec![Vec::new(); casters.len()];
+    for _ in 0..passes.max(1) {
+        for (((_, caster), out), rates) in casters.iter().zip(&mut outs).zip(&mut rates) {
+            rates.push(set.rays.len() as f64 / pass(caster, set, out).as_secs_f64() / 1e6);
+        }
+    }
+    rates
+        .into_iter()
+        .zip(outs)
+        .map(|(r, out)| {
+            let (median, range) = median_range(r);
+            (median, range, out)
+        })
+        .collect()
 }
 
 /// Measures every backend on every ray set at every thread count: the median of `passes`
-/// timed passes after a warm-up. `progress` hears of each row as it is measured.
+/// timed passes after a warm-up, the backends taking their passes in turn (builds too: the
+/// median of `passes`). `progress` hears of each row as it is measured.
 pub fn run(
     scene: &Scene,
     threads: &[usize],
@@ -297,20 +325,30 @@ pub fn run(
             (n, pool)
         })
         .collect();
-    let mut builds = Vec::new();
+    // Builds: each backend `passes` times at each thread count, round by round (as the
+    // rays' passes), the median reported; the first round's trees cast the rays.
+    let kinds = [BvhKind::Bvh2, BvhKind::Cwbvh, BvhKind::Wide];
+    let mut build_times = vec![Vec::new(); kinds.len() * pools.len()];
     let mut bvhs = Vec::new();
-    // BVH2 first: it makes the rays and is the reference without Embree.
-    for kind in [BvhKind::Bvh2, BvhKind::Cwbvh, BvhKind::Wide] {
-        for (n, pool) in &pools {
-            let bvh = pool.install(|| SceneBvh::build(triangles.clone(), kind));
-            builds.push(BuildRow {
-                what: Backend::Obvhs(kind).name(),
-                threads: *n,
-                seconds: bvh.build_time().as_secs_f64(),
-            });
-            if *n == threads[0] {
-                bvhs.push((kind, bvh));
+    for round in 0..passes.max(1) {
+        for (k, kind) in kinds.iter().enumerate() {
+            for (p, (n, pool)) in pools.iter().enumerate() {
+                let bvh = pool.install(|| SceneBvh::build(triangles.clone(), *kind));
+                build_times[k * pools.len() + p].push(bvh.build_time().as_secs_f64());
+                if round == 0 && *n == threads[0] {
+                    bvhs.push((*kind, bvh));
+                }
             }
+        }
+    }
+    let mut builds = Vec::new();
+    for (k, kind) in kinds.iter().enumerate() {
+        for (p, (n, _)) in pools.iter().enumerate() {
+            builds.push(BuildRow {
+                what: Backend::Obvhs(*kind).name(),
+                threads: *n,
+                seconds: median_range(build_times[k * pools.len() + p].clone()).0,
+            });
         }
     }
     let sets = ray_sets(scene, &bvhs[0].1);
@@ -328,21 +366,33 @@ pub fn run(
     let mut embree_scenes = Vec::new();
     let mut embree_error = embree_unavailable;
     if let Some(e) = &embree {
-        for (n, pool) in &pools {
-            match pool.install(|| e.scene(&triangles, *n)) {
-                Ok(s) => {
-                    builds.push(BuildRow {
-                        what: "Embree MEDIUM",
-                        threads: *n,
-                        seconds: s.build_time.as_secs_f64(),
-                    });
-                    embree_scenes.push((*n, s));
+        // One thread count's builds after another: Embree's tasking is process-wide, and a
+        // one-thread device built after a two-thread one measured the two-thread time.
+        let mut times = vec![Vec::new(); pools.len()];
+        'counts: for (p, (n, pool)) in pools.iter().enumerate() {
+            for round in 0..passes.max(1) {
+                match pool.install(|| e.scene(&triangles, *n)) {
+                    Ok(s) => {
+                        times[p].push(s.build_time.as_secs_f64());
+                        if round == 0 {
+                            embree_scenes.push((*n, s));
+                        }
+                    }
+                    Err(err) => {
+                        embree_error = Some(err);
+                        embree_scenes.clear();
+                        break 'counts;
+                    }
                 }
-                Err(err) => {
-                    embree_error = Some(err);
-                    embree_scenes.clear();
-                    break;
-                }
+            }
+        }
+        if !embree_scenes.is_empty() {
+            for (p, (n, _)) in pools.iter().enumerate() {
+                builds.push(BuildRow {
+                    what: "Embree MEDIUM",
+                    threads: *n,
+                    seconds: median_range(times[p].clone()).0,
+                });
             }
         }
     }
@@ -382,9 +432,8 @@ pub fn run(
             }
         }
         for (set, reference) in sets.iter().zip(&reference_hits) {
-            for (backend, caster) in &casters {
-                let mut out = vec![None; set.rays.len()];
-                let (mrays_s, range) = pool.install(|| measure(caster, set, passes, &mut out));
+            let measured = pool.install(|| measure(&casters, set, passes));
+            for ((backend, _), (mrays_s, range, out)) in casters.iter().zip(measured) {
                 let row = RayBenchRow {
                     backend: *backend,
                     rays: set.name,

@@ -59,8 +59,10 @@ pub enum BenchCommand {
     Video(video::Args),
     /// Ray casting on a scene: BVH build times and million rays per second on camera rays
     /// (1280x720), a diffuse bounce from each of their hits and 1M random rays in the bounds,
-    /// per backend and thread count (median of --passes after a warm-up), with the agreement
-    /// of every backend's hits with the reference's (Embree one ray at a time when loaded).
+    /// per backend and thread count (median of --passes after a warm-up, the backends taking
+    /// their passes and builds in turn so that load on the machine falls on all alike), with
+    /// the agreement of every backend's hits with the reference's (Embree one ray at a time
+    /// when loaded).
     Rays {
         /// Scene: `cornell`, `cornell-animated`, `city:N` or a .gltf/.glb file.
         #[arg(long, default_value = "city:250000")]

@@ -27,7 +27,7 @@ pub fn run(
         }
     };
     eprintln!(
-        "{}: {} triangles, generated in {:.2} s; {} timed passes per figure after a warm-up",
+        "{}: {} triangles, generated in {:.2} s; {} timed passes (and builds) per figure after a warm-up, backends in turn",
         scene.name,
         scene.triangle_count(),
         t.elapsed().as_secs_f64(),
