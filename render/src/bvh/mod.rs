@@ -556,7 +556,7 @@ mod tests {
             })
             .collect();
         let mut hits = 0;
-        for n in [1, 2, 7, 8, 9, 17, 300] {
+        for n in [1, 2, 7, 8, 9, 15, 16, 17, 33, 300] {
             batch_agrees_with_single(&bvh, &rays[..n]);
             let mut occluded = vec![false; n];
             bvh.occluded_into(&rays[..n], &mut occluded);

@@ -972,8 +972,10 @@ impl WideBvh {
 }
 
 /// Rays one thread traverses at once by [`WideBvh::interleaved`] (measured on city:250000's
-/// random rays, one thread: 4, 8 and 16 turns 8.7-8.9, 8.9-9.2 and 9.1-9.4 Mrays/s).
-const TURNS: usize = 8;
+/// random rays, one thread: 4, 8 and 16 turns 8.7-8.9, 8.9-9.2 and 9.1-9.4 Mrays/s; against
+/// Embree's packets in the same runs, 1 / 2 threads: 8 turns 0.82-0.92 / 0.72-0.77, 16 turns
+/// 0.88-0.89 / 0.77-0.81).
+const TURNS: usize = 16;
 
 /// A tree at most this large (nodes and blocks) stays in a core's L2 cache: its rays go one
 /// at a time even where they share no path (measured: turns made the Cornell box's reference
