@@ -5,26 +5,61 @@
 //! `cargo bench -p cloudlight-render --bench photons`
 
 use cloudlight_render::photon::{
-    BatchPlan, PackFormat, PackedBatch, PhotonSettings, PhotonTracer, pack::BatchHeader,
-    photon_lights,
+    BatchPlan, PackFormat, PackedBatch, PhotonLight, PhotonSettings, PhotonTracer,
+    pack::BatchHeader, photon_lights,
 };
 use cloudlight_render::{BvhKind, SceneBvh};
+use cloudlight_scenes::Scene;
 use criterion::{Criterion, criterion_group, criterion_main};
 
-fn photons(c: &mut Criterion) {
-    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+/// A scene at time 0 with what its photon tracer needs.
+struct Setup {
+    scene: Scene,
+    bvh: SceneBvh,
+    settings: PhotonSettings,
+    lights: Vec<PhotonLight>,
+    plan: BatchPlan,
+}
+
+fn setup(spec: &str) -> Setup {
+    let scene = cloudlight_scenes::builtin(spec).unwrap();
     let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
     let settings = PhotonSettings::default();
     let lights = photon_lights(&scene, 0.0);
     let plan = BatchPlan::new(&lights, &settings);
-    let tracer = PhotonTracer::new(&scene, &bvh, settings, &plan, 1);
+    Setup {
+        scene,
+        bvh,
+        settings,
+        lights,
+        plan,
+    }
+}
+
+/// Benchmarks tracing one batch of each light.
+fn trace(c: &mut Criterion, name: &str, tracer: &PhotonTracer, lights: &[PhotonLight]) {
     let mut generation = 0;
-    c.bench_function("cornell: trace one 10k-photon batch", |b| {
+    c.bench_function(name, |b| {
         b.iter(|| {
             generation += 1;
-            tracer.trace_batch(&lights[0], 0, 1, generation)
+            lights
+                .iter()
+                .map(|l| tracer.trace_batch(l, 0, 1, generation).len())
+                .sum::<usize>()
         })
     });
+}
+
+fn photons(c: &mut Criterion) {
+    let Setup {
+        scene,
+        bvh,
+        settings,
+        lights,
+        plan,
+    } = setup("cornell");
+    let tracer = PhotonTracer::new(&scene, &bvh, settings, &plan, 1);
+    trace(c, "cornell: trace one 10k-photon batch", &tracer, &lights);
     let stored = tracer.trace_batch(&lights[0], 0, 1, 0);
     let header = BatchHeader {
         light: 0,
@@ -48,24 +83,13 @@ fn photons(c: &mut Criterion) {
 }
 
 fn city(c: &mut Criterion) {
-    let scene = cloudlight_scenes::builtin("city:250000").unwrap();
-    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
-    let settings = PhotonSettings::default();
-    let lights = photon_lights(&scene, 0.0);
-    let plan = BatchPlan::new(&lights, &settings);
-    let tracer = PhotonTracer::new(&scene, &bvh, settings, &plan, 1);
-    let mut generation = 0;
-    c.bench_function(
+    let s = setup("city:250000");
+    let tracer = PhotonTracer::new(&s.scene, &s.bvh, s.settings, &s.plan, 1);
+    trace(
+        c,
         "city:250000: trace one 10k-photon batch of each light",
-        |b| {
-            b.iter(|| {
-                generation += 1;
-                lights
-                    .iter()
-                    .map(|l| tracer.trace_batch(l, 0, 1, generation).len())
-                    .sum::<usize>()
-            })
-        },
+        &tracer,
+        &s.lights,
     );
 }
 

@@ -753,6 +753,42 @@ impl WideBvh {
         }
     }
 
+    /// Pushes the children of `node` in `mask` (entry distances `tn`) on `stack` above
+    /// `sp`, asking the cache for each, orders the pushed run so the nearest is on top, and
+    /// pops it: the child to visit next and the new stack height.
+    #[inline(always)]
+    fn push_children(
+        &self,
+        node: &Node,
+        mask: u32,
+        tn: &[f32; W],
+        stack: &mut [u64],
+        mut sp: usize,
+    ) -> (u32, usize) {
+        let base = sp;
+        let mut m = mask;
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            m &= m - 1;
+            self.prefetch(node.child[i]);
+            stack[sp] = u64::from(tn[i].to_bits()) << 32 | u64::from(node.child[i]);
+            sp += 1;
+        }
+        // Insertion sort, farthest first (distances are >= 0: their bits order as the
+        // values).
+        for j in base + 1..sp {
+            let e = stack[j];
+            let mut k = j;
+            while k > base && stack[k - 1] < e {
+                stack[k] = stack[k - 1];
+                k -= 1;
+            }
+            stack[k] = e;
+        }
+        sp -= 1;
+        (stack[sp] as u32, sp)
+    }
+
     /// One ray from the root to its hit: [`Self::step`]'s loop written out (measured on
     /// city:250000, one thread: a loop over `step` cost camera and bounce rays 3-7%).
     #[inline(always)]
@@ -782,30 +818,7 @@ impl WideBvh {
                         continue;
                     }
                     _ => {
-                        // Push every hit child, then order the pushed run so the nearest is
-                        // on top, and take it.
-                        let base = sp;
-                        let mut m = mask;
-                        while m != 0 {
-                            let i = m.trailing_zeros() as usize;
-                            m &= m - 1;
-                            self.prefetch(node.child[i]);
-                            stack[sp] = u64::from(tn[i].to_bits()) << 32 | u64::from(node.child[i]);
-                            sp += 1;
-                        }
-                        // Insertion sort, farthest first (distances are >= 0: their bits
-                        // order as the values).
-                        for j in base + 1..sp {
-                            let e = stack[j];
-                            let mut k = j;
-                            while k > base && stack[k - 1] < e {
-                                stack[k] = stack[k - 1];
-                                k -= 1;
-                            }
-                            stack[k] = e;
-                        }
-                        sp -= 1;
-                        cur = stack[sp] as u32;
+                        (cur, sp) = self.push_children(node, mask, &tn, stack, sp);
                         continue;
                     }
                 }
@@ -855,32 +868,7 @@ impl WideBvh {
                     return true;
                 }
                 _ => {
-                    // Push every hit child, then order the pushed run so the nearest is on
-                    // top, and take it.
-                    let base = w.sp;
-                    let mut sp = w.sp;
-                    let mut m = mask;
-                    while m != 0 {
-                        let i = m.trailing_zeros() as usize;
-                        m &= m - 1;
-                        self.prefetch(node.child[i]);
-                        stack[sp] = u64::from(tn[i].to_bits()) << 32 | u64::from(node.child[i]);
-                        sp += 1;
-                    }
-                    // Insertion sort, farthest first (distances are >= 0: their bits order
-                    // as the values).
-                    for j in base + 1..sp {
-                        let e = stack[j];
-                        let mut k = j;
-                        while k > base && stack[k - 1] < e {
-                            stack[k] = stack[k - 1];
-                            k -= 1;
-                        }
-                        stack[k] = e;
-                    }
-                    sp -= 1;
-                    w.cur = stack[sp] as u32;
-                    w.sp = sp;
+                    (w.cur, w.sp) = self.push_children(node, mask, &tn, stack, w.sp);
                     return true;
                 }
             }

@@ -122,7 +122,6 @@ impl<'a> ReferenceRenderer<'a> {
     /// sequence, so the result is that of tracing the paths one by one.
     pub fn render_pass(&self, images: &mut ReferenceImages, first_sample: u32, count: u32) {
         let s = self.settings;
-        let aspect = s.width as f32 / s.height as f32;
         let width = s.width as usize;
         // Paths of one row in flight at once, a pixel's samples in order.
         let per_pixel = count.max(1) as usize;
@@ -143,23 +142,8 @@ impl<'a> ReferenceRenderer<'a> {
                     let x1 = (x0 + pixels_per_batch).min(width);
                     paths.clear();
                     for x in x0..x1 {
-                        let pixel = (y * width + x) as u64;
                         for k in first_sample..first_sample + count {
-                            let mut rng = Rng::new(s.seed, pixel * 1_000_003 + k as u64);
-                            let jitter = Vec2::new(rng.next_f32(), rng.next_f32());
-                            let ndc = Vec2::new(
-                                ((x as f32 + jitter.x) / s.width as f32) * 2.0 - 1.0,
-                                1.0 - ((y as f32 + jitter.y) / s.height as f32) * 2.0,
-                            );
-                            paths.push(Path {
-                                o: s.camera.position,
-                                d: s.camera.ray_direction(ndc, aspect),
-                                throughput: Vec3::ONE,
-                                direct: Vec3::ZERO,
-                                indirect: Vec3::ZERO,
-                                rng,
-                                x,
-                            });
+                            paths.push(self.camera_path(x, y, k));
                         }
                     }
                     alive.clear();
@@ -217,6 +201,29 @@ impl<'a> ReferenceRenderer<'a> {
                 }
             });
         images.spp += count;
+    }
+
+    /// Sample `k` of pixel (`x`, `y`): its camera ray, jittered in the pixel, and its random
+    /// sequence.
+    fn camera_path(&self, x: usize, y: usize, k: u32) -> Path {
+        let s = &self.settings;
+        let pixel = (y * s.width as usize + x) as u64;
+        let mut rng = Rng::new(s.seed, pixel * 1_000_003 + k as u64);
+        let jitter = Vec2::new(rng.next_f32(), rng.next_f32());
+        let ndc = Vec2::new(
+            ((x as f32 + jitter.x) / s.width as f32) * 2.0 - 1.0,
+            1.0 - ((y as f32 + jitter.y) / s.height as f32) * 2.0,
+        );
+        Path {
+            o: s.camera.position,
+            d: s.camera
+                .ray_direction(ndc, s.width as f32 / s.height as f32),
+            throughput: Vec3::ONE,
+            direct: Vec3::ZERO,
+            indirect: Vec3::ZERO,
+            rng,
+            x,
+        }
     }
 
     /// One bounce of path `index` at `hit`: emission seen directly, the terms of the

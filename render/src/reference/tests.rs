@@ -173,27 +173,12 @@ fn a_scene_without_lights_is_black_and_degenerate_triangles_are_harmless() {
 /// [`ReferenceRenderer::render_pass`] must reproduce with its batches.
 fn one_path_at_a_time(r: &ReferenceRenderer, spp: u32) -> (Vec<Vec3>, Vec<Vec3>) {
     let s = r.settings;
-    let aspect = s.width as f32 / s.height as f32;
     let n = (s.width * s.height) as usize;
     let (mut direct, mut indirect) = (vec![Vec3::ZERO; n], vec![Vec3::ZERO; n]);
     for pixel in 0..n {
         let (x, y) = (pixel % s.width as usize, pixel / s.width as usize);
         for k in 0..spp {
-            let mut rng = Rng::new(s.seed, pixel as u64 * 1_000_003 + k as u64);
-            let jitter = Vec2::new(rng.next_f32(), rng.next_f32());
-            let ndc = Vec2::new(
-                ((x as f32 + jitter.x) / s.width as f32) * 2.0 - 1.0,
-                1.0 - ((y as f32 + jitter.y) / s.height as f32) * 2.0,
-            );
-            let mut path = Path {
-                o: s.camera.position,
-                d: s.camera.ray_direction(ndc, aspect),
-                throughput: Vec3::ONE,
-                direct: Vec3::ZERO,
-                indirect: Vec3::ZERO,
-                rng,
-                x,
-            };
+            let mut path = r.camera_path(x, y, k);
             for bounce in 0..s.max_bounces {
                 let Some(hit) = r.bvh.closest_hit(path.o, path.d, f32::INFINITY) else {
                     break;
