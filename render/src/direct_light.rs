@@ -108,9 +108,11 @@ impl<'a> DirectLight<'a> {
     pub fn irradiance(&self, x: Vec3, n: Vec3, rng: &mut Rng) -> Vec3 {
         let mut lit = Vec::new();
         self.samples(x, n, rng, &mut lit);
-        lit.iter()
-            .filter(|s| !self.bvh.occluded(s.ray.0, s.ray.1, s.ray.2))
-            .fold(Vec3::ZERO, |e, s| e + s.e)
+        let blocked: Vec<bool> = lit
+            .iter()
+            .map(|s| self.bvh.occluded(s.ray.0, s.ray.1, s.ray.2))
+            .collect();
+        Self::sum_clear(&lit, &blocked)
     }
 
     /// Whether each term's shadow ray is blocked, `lit` being the terms of many points'
@@ -192,16 +194,13 @@ impl<'a> DirectLight<'a> {
                 } => {
                     let w = -direction;
                     let c = n.dot(w);
-                    (c > 0.0).then(|| LightSample {
-                        light: 0,
-                        ray: (x, w, f32::INFINITY),
-                        e: irradiance * c,
-                    })
+                    (c > 0.0).then(|| ((x, w, f32::INFINITY), irradiance * c))
                 }
             };
-            out.extend(sample.map(|s| LightSample {
+            out.extend(sample.map(|(ray, e)| LightSample {
                 light: k as u32 + 1,
-                ..s
+                ray,
+                e,
             }));
         }
     }
@@ -213,7 +212,7 @@ impl<'a> DirectLight<'a> {
         p: Vec3,
         intensity: Vec3,
         cone: Option<(Vec3, f32)>,
-    ) -> Option<LightSample> {
+    ) -> Option<(RayQuery, Vec3)> {
         let to = p - x;
         let dist2 = to.length_squared();
         let w = to / dist2.sqrt();
@@ -221,11 +220,7 @@ impl<'a> DirectLight<'a> {
         if c <= 0.0 || cone.is_some_and(|(axis, cos_cone)| (-w).dot(axis) < cos_cone) {
             return None;
         }
-        Some(LightSample {
-            light: 0,
-            ray: (x, w, dist2.sqrt() * (1.0 - 1e-4)),
-            e: intensity * c / dist2,
-        })
+        Some(((x, w, dist2.sqrt() * (1.0 - 1e-4)), intensity * c / dist2))
     }
 }
 

@@ -753,12 +753,7 @@ pub(super) fn direct_map(
             let mut lit = Vec::new();
             let mut spans = Vec::with_capacity(ids.len() * samples as usize);
             for i in ids.clone() {
-                if let Some((stale, _)) = only
-                    && !stale[i]
-                {
-                    continue;
-                }
-                if !lm.texels.valid[i] || !light.any() {
+                if only.is_some_and(|(stale, _)| !stale[i]) || !lm.texels.valid[i] || !light.any() {
                     continue;
                 }
                 let (x, n) = (frame.0[i], frame.1[i]);

@@ -181,17 +181,11 @@ impl<'a> ReferenceRenderer<'a> {
                         }
                         alive.truncate(next);
                         // This bounce's shadow rays, together.
-                        // This bounce's shadow rays, together.
                         let blocked = self.direct.blocked(&lit);
                         for v in &vertices {
                             let terms = v.samples.clone();
                             let e = DirectLight::sum_clear(&lit[terms.clone()], &blocked[terms]);
-                            let nee = v.albedo / std::f32::consts::PI * e;
-                            let p = &mut paths[v.path];
-                            match v.throughput {
-                                None => p.direct += nee,
-                                Some(t) => p.indirect += t * nee,
-                            }
+                            v.add(&mut paths[v.path], e);
                         }
                     }
                     for p in &paths {
@@ -300,6 +294,18 @@ struct Vertex {
     albedo: Vec3,
     /// The path's throughput at the vertex; `None` at the first.
     throughput: Option<Vec3>,
+}
+
+impl Vertex {
+    /// Adds the estimate to `path`, given `e`, the irradiance of the terms whose shadow rays
+    /// are clear.
+    fn add(&self, path: &mut Path, e: Vec3) {
+        let nee = self.albedo / std::f32::consts::PI * e;
+        match self.throughput {
+            None => path.direct += nee,
+            Some(t) => path.indirect += t * nee,
+        }
+    }
 }
 
 /// One camera path in flight.

@@ -185,16 +185,11 @@ fn one_path_at_a_time(r: &ReferenceRenderer, spp: u32) -> (Vec<Vec3>, Vec<Vec3>)
                 };
                 let (mut lit, mut vertices) = (Vec::new(), Vec::new());
                 let goes_on = r.step(&mut path, 0, bounce, &hit, &mut lit, &mut vertices);
-                let v = &vertices[0];
-                let e = lit
+                let blocked: Vec<bool> = lit
                     .iter()
-                    .filter(|l| !r.bvh.occluded(l.ray.0, l.ray.1, l.ray.2))
-                    .fold(Vec3::ZERO, |e, l| e + l.e);
-                let nee = v.albedo / std::f32::consts::PI * e;
-                match v.throughput {
-                    None => path.direct += nee,
-                    Some(t) => path.indirect += t * nee,
-                }
+                    .map(|l| r.bvh.occluded(l.ray.0, l.ray.1, l.ray.2))
+                    .collect();
+                vertices[0].add(&mut path, DirectLight::sum_clear(&lit, &blocked));
                 if !goes_on {
                     break;
                 }
