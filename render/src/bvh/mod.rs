@@ -304,7 +304,11 @@ impl SceneBvh {
             wide_rays.extend(rays.iter().map(|&(o, d, t)| self.wide_ray(o, d, t)));
             let mut at = 0;
             while at < rays.len() {
-                let end = at + octants[at..].iter().take_while(|&&k| k == octants[at]).count();
+                let end = at
+                    + octants[at..]
+                        .iter()
+                        .take_while(|&&k| k == octants[at])
+                        .count();
                 w.intersect_stream(&wide_rays[at..end], &mut hits[at..end]);
                 at = end;
             }

@@ -778,10 +778,14 @@ impl WideBvh {
     }
 
     /// Pushes the children of `node` in `mask` (entry distances `tn`) on `stack` above
-    /// `sp`, asking the cache for each, orders the pushed run so the nearest is on top, and
-    /// pops it: the child to visit next and the new stack height.
+    /// `sp`, with `PREFETCH` asking the cache for each, orders the pushed run so the nearest
+    /// is on top, and pops it: the child to visit next and the new stack height. Rays taking
+    /// turns do not prefetch what they push: each asks for its next node after every step,
+    /// and asking for every pushed child as well kept the core's line-fill buffers full
+    /// (perf: a tenth of the samples on the prefetches; city:250000's random rays, one
+    /// thread, alternating binaries: 10.30-10.33 -> 10.60-10.63 Mrays/s).
     #[inline(always)]
-    fn push_children(
+    fn push_children<const PREFETCH: bool>(
         &self,
         node: &Node,
         mask: u32,
@@ -794,7 +798,9 @@ impl WideBvh {
         while m != 0 {
             let i = m.trailing_zeros() as usize;
             m &= m - 1;
-            self.prefetch(node.child[i]);
+            if PREFETCH {
+                self.prefetch(node.child[i]);
+            }
             stack[sp] = u64::from(tn[i].to_bits()) << 32 | u64::from(node.child[i]);
             sp += 1;
         }
@@ -843,7 +849,7 @@ impl WideBvh {
                         continue;
                     }
                     _ => {
-                        (cur, sp) = self.push_children(node, mask, &tn, stack, sp);
+                        (cur, sp) = self.push_children::<true>(node, mask, &tn, stack, sp);
                         continue;
                     }
                 }
@@ -899,7 +905,7 @@ impl WideBvh {
                     return true;
                 }
                 _ => {
-                    (w.cur, w.sp) = self.push_children(node, mask, &tn, stack, w.sp);
+                    (w.cur, w.sp) = self.push_children::<false>(node, mask, &tn, stack, w.sp);
                     return true;
                 }
             }
