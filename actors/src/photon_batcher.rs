@@ -57,6 +57,10 @@ pub struct BatcherParams {
     /// A fixed splat radius, meters.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub radius_m: Option<f32>,
+    /// Each photon's radius from the density of photons around it (ignored with
+    /// `radius_m`); false: one radius per iteration.
+    #[serde(default = "default_density_radius")]
+    pub density_radius: bool,
     /// Period of iterations, milliseconds (an iteration that takes longer is followed at
     /// once by the next).
     #[serde(default = "default_interval")]
@@ -82,6 +86,9 @@ fn default_bounces() -> u32 {
 fn default_per_disk() -> f32 {
     PhotonSettings::default().photons_per_disk
 }
+fn default_density_radius() -> bool {
+    PhotonSettings::default().density_radius
+}
 fn default_interval() -> f64 {
     33.0
 }
@@ -101,6 +108,7 @@ impl Default for BatcherParams {
             bounces: default_bounces(),
             photons_per_disk: default_per_disk(),
             radius_m: None,
+            density_radius: default_density_radius(),
             interval_ms: default_interval(),
             retrace: Retrace::default(),
             resend_s: default_resend(),
@@ -446,6 +454,7 @@ impl BatcherParams {
         settings.bounces = self.bounces;
         settings.photons_per_disk = self.photons_per_disk;
         settings.radius_m = self.radius_m;
+        settings.density_radius = self.density_radius;
         let lights = cloudlight_render::photon::photon_lights(scene, 0.0);
         let per_iteration =
             cloudlight_render::photon::BatchPlan::new(&lights, &settings).total_photons();

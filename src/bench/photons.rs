@@ -43,6 +43,11 @@ pub struct PhotonOptions {
     pub format: PackFormat,
     /// The client's accumulation buffer downsampling per axis (1, 2 or 4).
     pub downsample: u32,
+    /// Photons expected in one splat disk (sets the reference radius).
+    pub photons_per_disk: f32,
+    /// Each photon's radius from the density of photons around it (false: the reference
+    /// radius for all, as before issue 34).
+    pub density_radius: bool,
 }
 
 impl Default for PhotonOptions {
@@ -53,6 +58,8 @@ impl Default for PhotonOptions {
             interval_ms: 33.0,
             format: PackFormat::Compact12,
             downsample: PhotonClientParams::default().downsample,
+            photons_per_disk: PhotonSettings::default().photons_per_disk,
+            density_radius: PhotonSettings::default().density_radius,
         }
     }
 }
@@ -71,6 +78,8 @@ impl Photons {
             interval_ms: o.interval_ms,
             retrace: Retrace::Always,
             resend_s: 0.0,
+            photons_per_disk: o.photons_per_disk,
+            density_radius: o.density_radius,
             format: match o.format {
                 PackFormat::Compact12 => "compact12",
                 PackFormat::Wide20 => "wide20",
@@ -229,6 +238,8 @@ impl Technique for Photons {
             height: common.height,
             rate_hz: common.rate_hz,
             seed: common.seed,
+            photons_per_disk: options.photons_per_disk,
+            density_radius: options.density_radius,
         };
         let rows = quality(raster, scene, &o, out)?;
         Ok(
@@ -460,6 +471,10 @@ pub struct QualityOptions {
     pub rate_hz: f64,
     /// Seed of the photon streams.
     pub seed: u64,
+    /// Photons expected in one splat disk.
+    pub photons_per_disk: f32,
+    /// Per-photon density radii.
+    pub density_radius: bool,
 }
 
 /// One point of the trade: a budget in one packing.
@@ -512,11 +527,15 @@ impl QualityView {
         format: PackFormat,
         o: &QualityOptions,
     ) -> anyhow::Result<(QualityPoint, Vec<Vec3>)> {
-        let settings = PhotonSettings::for_budget(
-            &self.scene,
-            photons,
-            o.batch_size.min(photons as u32).max(1),
-        );
+        let settings = PhotonSettings {
+            photons_per_disk: o.photons_per_disk,
+            density_radius: o.density_radius,
+            ..PhotonSettings::for_budget(
+                &self.scene,
+                photons,
+                o.batch_size.min(photons as u32).max(1),
+            )
+        };
         let it = trace_iteration(&self.scene, &self.bvh, 0.0, settings, o.seed, format);
         let frame = photon_frame(
             raster,

@@ -149,8 +149,11 @@ impl PhotonStream {
         let lights = photon_lights_in(scene, t_s, bvh.bounds());
         let plan = BatchPlan::new(&lights, &self.settings);
         let radius = PhotonTracer::new(scene, bvh, self.settings, &plan, self.seed).radius();
+        // A radius the user fixed is every photon's; else it is the reference of the
+        // photons' density radii.
         let settings = PhotonSettings {
             radius_m: Some(radius),
+            density_radius: self.settings.density_radius && self.settings.radius_m.is_none(),
             ..self.settings
         };
         let live: HashSet<u32> = lights.iter().map(|l| l.id).collect();

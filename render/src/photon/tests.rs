@@ -120,6 +120,63 @@ fn each_light_emits_whole_batches_and_batches_are_deterministic() {
 }
 
 #[test]
+fn density_radii_are_smaller_in_a_dense_corner_than_on_open_walls() {
+    // A closed unit box with its lamp near one corner: photons crowd into that corner (its
+    // three walls face each other a few centimetres away) and thin out on the far walls.
+    // The corner's disks must be the smaller; the Cornell box's radii stay in their range.
+    let mut scene = closed_box(0.7, 1.0);
+    scene.lights[0].motion = Motion::Static(glam::Affine3A::from_translation(Vec3::splat(0.12)));
+    let settings = PhotonSettings::for_budget(&scene, 40_000, 10_000);
+    let (photons, _) = iteration(&scene, settings, 5);
+    let mean = |f: &dyn Fn(Vec3) -> bool| -> (f32, usize) {
+        let r: Vec<f32> = photons
+            .iter()
+            .filter(|p| f(p.position))
+            .map(|p| p.radius)
+            .collect();
+        (r.iter().sum::<f32>() / r.len().max(1) as f32, r.len())
+    };
+    let (corner, n_corner) = mean(&|x| x.max_element() < 0.15);
+    // The middles of the three far walls.
+    let (open, n_open) = mean(&|x| {
+        x.max_element() > 0.99
+            && x.to_array()
+                .iter()
+                .filter(|c| (**c - 0.5).abs() < 0.25)
+                .count()
+                == 2
+    });
+    eprintln!("corner {corner} m ({n_corner}), far walls {open} m ({n_open})");
+    assert!(n_corner > 200 && n_open > 200, "{n_corner} {n_open}");
+    assert!(
+        corner < 0.6 * open,
+        "the lamp's corner {corner} m vs the far walls {open} m"
+    );
+
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let settings = PhotonSettings::for_budget(&scene, 40_000, 10_000);
+    let (photons, plan) = iteration(&scene, settings, 5);
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let reference = PhotonTracer::new(&scene, &bvh, settings, &plan, 5).radius();
+    let (lo_r, hi_r) = DENSITY_RADIUS_RANGE;
+    let (smallest, largest) = photons.iter().fold((f32::MAX, 0.0f32), |(a, b), p| {
+        (a.min(p.radius), b.max(p.radius))
+    });
+    assert!(smallest >= reference * lo_r * 0.999 && largest <= reference * hi_r * 1.001);
+    assert!(
+        smallest < 0.7 * largest,
+        "the radii adapt: {smallest} to {largest} m"
+    );
+    // Without density radii every photon has the reference radius.
+    let uniform = PhotonSettings {
+        density_radius: false,
+        ..settings
+    };
+    let (photons, _) = iteration(&scene, uniform, 5);
+    assert!(photons.iter().all(|p| p.radius == reference));
+}
+
+#[test]
 fn the_cornell_box_defaults_match_the_paper_budget() {
     let scene = cloudlight_scenes::builtin("cornell").unwrap();
     let (photons, plan) = iteration(&scene, PhotonSettings::default(), 1);

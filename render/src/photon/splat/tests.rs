@@ -108,8 +108,9 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
 fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
     // Cornell box, indirect only, 64²: relMSE against the path tracer's indirect image must
     // fall as photons per iteration grow (bias and noise both shrink with the radius), and
-    // the energy must match. Measured on the scale-invariant metric (128², 4096 spp):
-    // 0.149 / 0.129 / 0.122 / 0.079 for 2.5k / 10k / 40k / 160k photons.
+    // the energy must match. Measured by `bench quality` (128², 1024 spp), 2.5k / 10k / 40k /
+    // 160k photons: 0.107 / 0.079 / 0.056 / 0.043 with one radius per iteration and 40
+    // photons per disk; 0.072 / 0.046 / 0.031 / 0.023 with density radii (160 per disk).
     use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
     on_every_backend(|raster| {
         let scene = cloudlight_scenes::builtin("cornell").unwrap();
@@ -159,7 +160,9 @@ fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
                 "{photons} photons: {} stored, radius {:.4} m, relMSE {:.4} (absolute ε: {absolute:.5}), energy {:.3}",
                 it.stored, it.radius, e.relmse, e.energy_ratio
             );
-            assert!((e.energy_ratio - 1.0).abs() < 0.1, "{photons}: {e:?}");
+            // Disks that reach past a wall's edge lose the light they would put there: the
+            // density radii (twice the old uniform radius on open walls) lose up to 11%.
+            assert!((e.energy_ratio - 1.0).abs() < 0.12, "{photons}: {e:?}");
             errors.push((e.relmse, absolute));
         }
         for pair in errors.windows(2) {
@@ -168,8 +171,8 @@ fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
                 "relMSE must fall with the budget: {errors:?}"
             );
         }
-        assert!(errors[3].1 < 0.01, "{errors:?}");
-        assert!(errors[3].0 < 0.12, "{errors:?}");
+        assert!(errors[3].1 < 0.004, "{errors:?}");
+        assert!(errors[3].0 < 0.04, "{errors:?}");
     });
 }
 
