@@ -324,12 +324,12 @@ impl PhotonBatcher {
         Ok(())
     }
 
-    fn count(&mut self, traced: &TracedBatch, batch_size: u32) {
+    fn count(&mut self, traced: &TracedBatch) {
         let f = &mut self.figures;
         f.trace.record(traced.trace_time);
         f.pack.record(traced.pack_time);
         f.batches_traced += 1;
-        f.photons_emitted += batch_size as u64;
+        f.photons_emitted += traced.batch.header.emitted as u64;
     }
 
     /// One iteration of the kernel: plan, trace each batch on a blocking thread and send it
@@ -357,7 +357,7 @@ impl PhotonBatcher {
                 PhotonStream::trace(&scene, &bvh, &plan_c, &plan_c.jobs[k], seed, format)
             })
             .await?;
-            self.count(&traced, plan.settings.batch_size);
+            self.count(&traced);
             stored += traced.stored as u64;
             self.send(ctx, t, PhotonMsg::Batch(traced.batch.clone()))
                 .await?;

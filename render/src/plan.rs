@@ -26,9 +26,9 @@ pub struct PlanSettings {
 
 impl Default for PlanSettings {
     fn default() -> Self {
-        // Cornell box: 1.42 W summed over channels → 10k photons; 2.0 m² → 128² texels; 50 bases.
+        // Cornell box: 1.415 W summed over channels → 10k photons; 2.0 m² → 128² texels; 50 bases.
         PlanSettings {
-            photons_per_watt: 7_050.0,
+            photons_per_watt: 7_066.0,
             batch_size: 10_000,
             octree_levels: 9,
             texels_per_m2: 8_200.0,
@@ -85,7 +85,7 @@ pub fn plan(scene: &Scene, s: &PlanSettings) -> ScenePlan {
         .map(|t| 0.5 * (t.v[1] - t.v[0]).cross(t.v[2] - t.v[0]).length() as f64)
         .sum();
     // Photon budget: the photon tracer's own lights and batch plan.
-    let photon_lights = crate::photon::photon_lights_in(scene, 0.0, (lo, hi));
+    let photon_lights = crate::photon::photon_lights_in(scene, 0.0, &tris);
     let batch_plan = crate::photon::BatchPlan::new(
         &photon_lights,
         &crate::photon::PhotonSettings {
@@ -101,7 +101,7 @@ pub fn plan(scene: &Scene, s: &PlanSettings) -> ScenePlan {
             LightPlan {
                 name: l.name.clone(),
                 power_w: l.watts(),
-                photons: batches * batch_plan.batch_size as u64,
+                photons: batch_plan.photons_of(l.id),
                 batches,
             }
         })

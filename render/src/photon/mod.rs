@@ -33,8 +33,10 @@ use rayon::prelude::*;
 
 use crate::bvh::SceneBvh;
 use crate::sampling::{Rng, basis, cosine_hemisphere, uniform_sphere, uniform_triangle};
+use footprint::{Footprint, FootprintCache};
 
 pub mod density;
+pub mod footprint;
 pub mod pack;
 pub mod splat;
 pub mod store;
@@ -78,9 +80,9 @@ pub const DENSITY_RADIUS_RANGE: (f32, f32) = (0.15, 1.0);
 
 impl Default for PhotonSettings {
     fn default() -> Self {
-        // The paper's Cornell box: 10k photons in one batch (1.42 W summed over channels).
+        // The paper's Cornell box: 10k photons in one batch (1.415 W summed over channels).
         PhotonSettings {
-            photons_per_watt: 7_050.0,
+            photons_per_watt: 7_066.0,
             batch_size: 10_000,
             bounces: 6,
             photons_per_disk: 160.0,
@@ -118,15 +120,8 @@ pub enum Emitter {
         /// Cosine of the cone half-angle.
         cos_cone: f32,
     },
-    /// Parallel light over a disk that covers the scene.
-    Directional {
-        /// Unit direction of travel.
-        direction: Vec3,
-        /// Disk centre, upstream of the scene.
-        origin: Vec3,
-        /// Disk radius, meters.
-        radius: f32,
-    },
+    /// Parallel light over the scene's footprint as the light sees it.
+    Directional(std::sync::Arc<Footprint>),
     /// An emissive object: Lambertian emission from its triangles' front sides, chosen by
     /// area.
     Surface {
@@ -158,21 +153,47 @@ impl PhotonLight {
     }
 }
 
-/// The scene's lights at `t_s` as photon emitters (lights that emit nothing are left out).
+/// The scene's lights at `t_s` as photon emitters (lights that emit nothing, or reach no
+/// geometry, are left out).
 pub fn photon_lights(scene: &Scene, t_s: f64) -> Vec<PhotonLight> {
-    photon_lights_in(scene, t_s, scene.bounds_at(t_s))
+    photon_lights_in(scene, t_s, &scene.triangles_at(t_s))
 }
 
-/// [`photon_lights`] when the scene's bounds at `t_s` are known (e.g. from its BVH).
-pub fn photon_lights_in(scene: &Scene, t_s: f64, (lo, hi): (Vec3, Vec3)) -> Vec<PhotonLight> {
-    let (center, half_diag) = if lo.is_finite() && hi.is_finite() {
-        ((lo + hi) * 0.5, ((hi - lo).length() * 0.5).max(1e-6))
+/// [`photon_lights`] when the scene's triangles at `t_s` are at hand (e.g. its BVH's).
+pub fn photon_lights_in(scene: &Scene, t_s: f64, triangles: &[WorldTriangle]) -> Vec<PhotonLight> {
+    photon_lights_cached(scene, t_s, triangles, &mut FootprintCache::default())
+}
+
+/// [`photon_lights_in`], directional lights' footprints kept in `cache` while the scene's
+/// geometry does not move.
+pub fn photon_lights_cached(
+    scene: &Scene,
+    t_s: f64,
+    triangles: &[WorldTriangle],
+    cache: &mut FootprintCache,
+) -> Vec<PhotonLight> {
+    let static_geometry = !scene.has_moving_geometry();
+    let (mut lo, mut hi) = (Vec3::INFINITY, Vec3::NEG_INFINITY);
+    for t in triangles
+        .iter()
+        .filter(|t| t.v.iter().all(|p| p.is_finite()))
+    {
+        for p in t.v {
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+    }
+    let half_diag = if lo.is_finite() && hi.is_finite() {
+        ((hi - lo).length() * 0.5).max(1e-6)
     } else {
-        (Vec3::ZERO, 1.0)
+        1.0
     };
     let mut out = Vec::new();
     for (i, light) in scene.lights.iter().enumerate() {
-        let (power_w, emitter) = emitter_of(light.at(t_s), center, half_diag);
+        let footprint = |d: Vec3| cache.get(d, triangles, static_geometry);
+        let Some((power_w, emitter)) = emitter_of(light.at(t_s), half_diag, footprint) else {
+            continue;
+        };
         if power_w.max_element() > 0.0 && power_w.is_finite() {
             out.push(PhotonLight {
                 id: i as u32,
@@ -201,9 +222,14 @@ pub fn photon_lights_in(scene: &Scene, t_s: f64, (lo, hi): (Vec3, Vec3)) -> Vec<
 }
 
 /// The emitted power (per channel, watts) and the emission geometry of a light's state, in
-/// a scene of centre `center` and half-diagonal `half_diag` (m).
-fn emitter_of(state: LightState, center: Vec3, half_diag: f32) -> (Vec3, Emitter) {
-    match state {
+/// a scene of half-diagonal `half_diag` (m) whose footprint along a direction `footprint`
+/// gives; `None` for a directional light with no geometry to reach.
+fn emitter_of(
+    state: LightState,
+    half_diag: f32,
+    footprint: impl FnOnce(Vec3) -> Option<std::sync::Arc<Footprint>>,
+) -> Option<(Vec3, Emitter)> {
+    Some(match state {
         LightState::Point {
             position,
             intensity,
@@ -243,17 +269,13 @@ fn emitter_of(state: LightState, center: Vec3, half_diag: f32) -> (Vec3, Emitter
             direction,
             irradiance,
         } => {
-            let radius = half_diag * 1.01;
+            let footprint = footprint(direction)?;
             (
-                irradiance * std::f32::consts::PI * radius * radius,
-                Emitter::Directional {
-                    direction,
-                    origin: center - direction * radius * 1.5,
-                    radius,
-                },
+                irradiance * footprint.area_m2(),
+                Emitter::Directional(footprint),
             )
         }
-    }
+    })
 }
 
 fn tiny_triangle(position: Vec3, normal: Vec3, size: f32) -> [Vec3; 3] {
@@ -289,30 +311,47 @@ fn surface_light(
     })
 }
 
-/// How many batches each light emits per iteration.
+/// One light's share of an iteration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LightBatches {
+    /// Light id.
+    pub id: u32,
+    /// Batches.
+    pub batches: u32,
+    /// Photons emitted per batch.
+    pub photons: u32,
+}
+
+/// How many batches of how many photons each light emits per iteration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BatchPlan {
-    /// Photons per batch.
+    /// Photons per batch at most.
     pub batch_size: u32,
-    /// (light id, batches), in light order.
-    pub batches: Vec<(u32, u32)>,
+    /// The lights with photons to emit, in light order.
+    pub batches: Vec<LightBatches>,
 }
 
 impl BatchPlan {
-    /// Batches per light: photons_per_watt × watts / batch size, rounded, at least one.
+    /// Each light's budget follows its power: photons_per_watt × watts (rounded), in as few
+    /// batches of at most `batch_size` as hold it, split evenly. A light whose share rounds
+    /// to no photon gets no batch (its light is below what the budget resolves); one whose
+    /// share is below a batch gets one smaller batch instead of a whole one.
     pub fn new(lights: &[PhotonLight], settings: &PhotonSettings) -> Self {
         let batch_size = settings.batch_size.clamp(1, MAX_BATCH_SIZE);
         let batches = lights
             .iter()
-            .map(|l| {
-                let photons = l.watts() * settings.photons_per_watt.max(0.0);
-                let n = (photons / batch_size as f64).round();
-                let n = if n.is_finite() {
-                    n.clamp(1.0, 1e6)
-                } else {
-                    1.0
-                };
-                (l.id, n as u32)
+            .filter_map(|l| {
+                let photons = (l.watts() * settings.photons_per_watt.max(0.0)).round();
+                if photons.is_nan() || photons < 1.0 {
+                    return None;
+                }
+                let photons = photons.min(1e6 * batch_size as f64);
+                let batches = (photons / batch_size as f64).ceil().max(1.0);
+                Some(LightBatches {
+                    id: l.id,
+                    batches: batches as u32,
+                    photons: ((photons / batches).round() as u32).clamp(1, batch_size),
+                })
             })
             .collect();
         BatchPlan {
@@ -321,22 +360,37 @@ impl BatchPlan {
         }
     }
 
+    fn of(&self, id: u32) -> Option<&LightBatches> {
+        self.batches.iter().find(|b| b.id == id)
+    }
+
     /// Batches of light `id` (0 if it has none).
     pub fn batches_of(&self, id: u32) -> u32 {
-        self.batches
-            .iter()
-            .find(|(l, _)| *l == id)
-            .map_or(0, |(_, n)| *n)
+        self.of(id).map_or(0, |b| b.batches)
+    }
+
+    /// Photons per batch of light `id` (0 if it has none).
+    pub fn photons_per_batch(&self, id: u32) -> u32 {
+        self.of(id).map_or(0, |b| b.photons)
+    }
+
+    /// Photons light `id` emits in one iteration.
+    pub fn photons_of(&self, id: u32) -> u64 {
+        self.of(id)
+            .map_or(0, |b| b.batches as u64 * b.photons as u64)
     }
 
     /// Batches in one iteration.
     pub fn total_batches(&self) -> u64 {
-        self.batches.iter().map(|(_, n)| *n as u64).sum()
+        self.batches.iter().map(|b| b.batches as u64).sum()
     }
 
     /// Photons emitted in one iteration.
     pub fn total_photons(&self) -> u64 {
-        self.total_batches() * self.batch_size as u64
+        self.batches
+            .iter()
+            .map(|b| b.batches as u64 * b.photons as u64)
+            .sum()
     }
 }
 
@@ -361,6 +415,7 @@ pub struct PhotonTracer<'a> {
     seed: u64,
     eps: f32,
     radius: f32,
+    plan: BatchPlan,
 }
 
 impl<'a> PhotonTracer<'a> {
@@ -396,6 +451,7 @@ impl<'a> PhotonTracer<'a> {
             seed,
             eps: extent * 1e-5,
             radius,
+            plan: plan.clone(),
         }
     }
 
@@ -404,8 +460,8 @@ impl<'a> PhotonTracer<'a> {
         self.radius
     }
 
-    /// Traces batch `slot` of `light` (of `slots` batches) for its `generation`: emits
-    /// `batch_size` photons and returns those stored.
+    /// Traces batch `slot` of `light` (of `slots` batches) for its `generation`: emits the
+    /// plan's photons per batch of that light and returns those stored.
     pub fn trace_batch(
         &self,
         light: &PhotonLight,
@@ -413,7 +469,10 @@ impl<'a> PhotonTracer<'a> {
         slots: u32,
         generation: u64,
     ) -> Vec<Photon> {
-        let n = self.settings.batch_size.clamp(1, MAX_BATCH_SIZE);
+        let n = self.plan.photons_per_batch(light.id);
+        if n == 0 {
+            return Vec::new();
+        }
         let emitted_total = n as f32 * slots.max(1) as f32;
         let power = light.power_w / emitted_total;
         let stream =
@@ -513,15 +572,10 @@ fn emit(emitter: &Emitter, rng: &mut Rng, eps: f32) -> Option<(Vec3, Vec3)> {
                 t * (r * phi.cos()) + b * (r * phi.sin()) + *axis * z,
             ))
         }
-        Emitter::Directional {
-            direction,
-            origin,
-            radius,
-        } => {
-            let (t, b) = basis(*direction);
-            let p = crate::sampling::concentric_disk(rng.next_f32(), rng.next_f32()) * *radius;
-            Some((*origin + t * p.x + b * p.y, *direction))
-        }
+        Emitter::Directional(footprint) => Some((
+            footprint.sample(rng.next_f32(), rng.next_f32(), rng.next_f32()),
+            footprint.direction,
+        )),
         Emitter::Surface { triangles, cdf } => {
             let total = *cdf.last()?;
             let x = rng.next_f32() * total;

@@ -23,7 +23,7 @@ use cloudlight_scenes::Scene;
 use super::pack::BatchHeader;
 use super::{
     BatchPlan, Manifest, ManifestLight, PackFormat, PackedBatch, Photon, PhotonLight,
-    PhotonSettings, PhotonTracer, photon_lights_in,
+    PhotonSettings, PhotonTracer, footprint::FootprintCache, photon_lights_cached,
 };
 use crate::bvh::SceneBvh;
 
@@ -108,6 +108,7 @@ pub struct PhotonStream {
     seed: u64,
     sets: BTreeMap<u32, LightSet>,
     iteration: u64,
+    footprints: FootprintCache,
 }
 
 impl PhotonStream {
@@ -120,6 +121,7 @@ impl PhotonStream {
             seed,
             sets: BTreeMap::new(),
             iteration: 0,
+            footprints: FootprintCache::default(),
         }
     }
 
@@ -146,7 +148,7 @@ impl PhotonStream {
     /// Phase 1: plans an iteration at scene time `t_s` (BVH `bvh` at that time) and drops
     /// the sets of lights that no longer emit.
     pub fn plan(&mut self, scene: &Scene, bvh: &SceneBvh, t_s: f64) -> IterationPlan {
-        let lights = photon_lights_in(scene, t_s, bvh.bounds());
+        let lights = photon_lights_cached(scene, t_s, bvh.triangles(), &mut self.footprints);
         let plan = BatchPlan::new(&lights, &self.settings);
         let radius = PhotonTracer::new(scene, bvh, self.settings, &plan, self.seed).radius();
         // A radius the user fixed is every photon's; else it is the reference of the
@@ -210,7 +212,7 @@ impl PhotonStream {
                 slots: job.slots,
                 generation: job.generation,
                 scene_time_s: plan.t_s,
-                emitted: plan.settings.batch_size,
+                emitted: plan.plan.photons_per_batch(light.id),
             },
             &photons,
             format,

@@ -67,7 +67,14 @@ fn stored_power_is_the_emitted_power_times_the_bounce_albedo() {
         ..Default::default()
     };
     let (photons, plan) = iteration(&scene, settings, 3);
-    assert_eq!(plan.batches, vec![(0, 4)]);
+    assert_eq!(
+        plan.batches,
+        vec![LightBatches {
+            id: 0,
+            batches: 4,
+            photons: 50_000
+        }]
+    );
     let expect: f32 = (1..=bounces).map(|k| watts * a.powi(k as i32)).sum();
     let got = total_power(&photons);
     for c in got.to_array() {
@@ -93,23 +100,42 @@ fn stored_power_is_the_emitted_power_times_the_bounce_albedo() {
 }
 
 #[test]
-fn each_light_emits_whole_batches_and_batches_are_deterministic() {
+fn each_light_budget_follows_its_power_and_batches_are_deterministic() {
     let scene = cloudlight_scenes::builtin("city:2000").unwrap();
-    let lights = photon_lights(&scene, 0.0);
+    let mut lights = photon_lights(&scene, 0.0);
     assert!(lights.len() >= 5, "{} lights", lights.len());
+    // A light with a negligible share: no batch at all, rather than a whole one.
+    let mut faint = lights[1].clone();
+    faint.id = 999;
+    faint.power_w *= 1e-9;
+    lights.push(faint);
     let settings = PhotonSettings {
         photons_per_watt: 0.05,
         batch_size: 1000,
         ..Default::default()
     };
     let plan = BatchPlan::new(&lights, &settings);
-    assert_eq!(plan.batches.len(), lights.len());
-    for (l, (id, n)) in lights.iter().zip(&plan.batches) {
-        assert_eq!(l.id, *id);
-        assert!(*n >= 1);
-        let want = (l.watts() * 0.05 / 1000.0).round().max(1.0) as u32;
-        assert_eq!(*n, want, "{}", l.name);
+    assert_eq!(plan.batches.len(), lights.len() - 1);
+    assert_eq!(plan.batches_of(999), 0);
+    for (l, b) in lights.iter().zip(&plan.batches) {
+        assert_eq!(l.id, b.id);
+        let want = (l.watts() * 0.05).round() as u64;
+        assert!(
+            b.batches >= 1 && b.photons >= 1 && b.photons <= 1000,
+            "{b:?}"
+        );
+        assert_eq!(b.batches as u64, want.div_ceil(1000), "{}", l.name);
+        // Split evenly: the light's photons within half a photon per batch.
+        let got = plan.photons_of(l.id);
+        assert!(
+            got.abs_diff(want) <= b.batches as u64,
+            "{}: {got} vs {want}",
+            l.name
+        );
     }
+    // The street lamps' few watts buy a proportionate batch, far below a whole one.
+    let lamp = lights.iter().find(|l| l.name.starts_with("lamp")).unwrap();
+    assert!(plan.photons_per_batch(lamp.id) < 100, "{plan:?}");
     let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
     let tracer = PhotonTracer::new(&scene, &bvh, settings, &plan, 11);
     let a = tracer.trace_batch(&lights[0], 0, 2, 5);
@@ -117,6 +143,11 @@ fn each_light_emits_whole_batches_and_batches_are_deterministic() {
     let c = tracer.trace_batch(&lights[0], 1, 2, 5);
     assert_eq!(a, b);
     assert_ne!(a, c);
+    assert!(
+        tracer
+            .trace_batch(&lights[lights.len() - 1], 0, 1, 5)
+            .is_empty()
+    );
 }
 
 #[test]
@@ -176,12 +207,94 @@ fn density_radii_are_smaller_in_a_dense_corner_than_on_open_walls() {
     assert!(photons.iter().all(|p| p.radius == reference));
 }
 
+/// A 1 m cube at the origin and a 1 cm one 30 m away (bounds of ~50 m), lit by a sun
+/// travelling along `direction` with 1000 W/m² per channel.
+fn small_scene_in_large_bounds(direction: Vec3) -> Scene {
+    let mut near = Mesh::default();
+    near.push_box(Vec3::ZERO, Vec3::ONE);
+    let mut far = Mesh::default();
+    far.push_box(Vec3::splat(30.0), Vec3::splat(30.01));
+    let object = |name: &str, mesh: Mesh| Object {
+        name: name.into(),
+        mesh,
+        material: 0,
+        motion: Motion::identity(),
+    };
+    Scene {
+        name: "small scene, large bounds".into(),
+        materials: vec![Material::diffuse("grey", Vec3::splat(0.5))],
+        objects: vec![object("cube", near), object("speck", far)],
+        lights: vec![Light {
+            name: "sun".into(),
+            kind: LightKind::Directional {
+                irradiance_w_m2: Vec3::splat(1000.0),
+            },
+            power_w: Vec3::ZERO,
+            motion: Motion::identity(),
+            sun_path: Some(cloudlight_scenes::SunPath::fixed(direction)),
+        }],
+        cameras: Vec::new(),
+    }
+}
+
+#[test]
+fn a_sun_spends_its_photons_on_geometry_and_its_power_on_what_it_lights() {
+    for direction in [
+        Vec3::NEG_Y,
+        Vec3::new(0.4, -1.0, 0.7),
+        Vec3::new(-1.0, -0.2, 0.1),
+    ] {
+        let direction = direction.normalize();
+        let scene = small_scene_in_large_bounds(direction);
+        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+        let lights = photon_lights(&scene, 0.0);
+        assert_eq!(lights.len(), 1);
+        let Emitter::Directional(footprint) = &lights[0].emitter else {
+            panic!("{:?}", lights[0].emitter);
+        };
+        // Emitted photons that hit something, and the power they carry.
+        let n = 20_000;
+        let mut rng = Rng::new(9, 1);
+        let per_photon = lights[0].power_w.x / n as f32;
+        let mut hits = 0;
+        for _ in 0..n {
+            let (o, d) = emit(&lights[0].emitter, &mut rng, 1e-4).unwrap();
+            assert!((d - direction).length() < 1e-5);
+            hits += bvh.closest_hit(o, d, f32::INFINITY).is_some() as u32;
+        }
+        let share = hits as f32 / n as f32;
+        eprintln!("{direction}: {share} of the photons hit geometry");
+        assert!(
+            share >= 0.9,
+            "{direction}: {share} of the photons hit geometry"
+        );
+        // The power reaching the scene is the irradiance times the cubes' shadow area
+        // (|dx| + |dy| + |dz| m² for a unit cube), whatever the grid.
+        let shadow = 1000.0 * direction.abs().element_sum() * (1.0 + 1e-4);
+        let got = hits as f32 * per_photon;
+        assert!(
+            (got / shadow - 1.0).abs() < 0.02,
+            "{direction}: {got} W vs {shadow} W"
+        );
+        assert!(footprint.area_m2() < 2.0 * direction.abs().element_sum());
+    }
+    // A sun over no geometry emits nothing.
+    let mut empty = small_scene_in_large_bounds(Vec3::NEG_Y);
+    empty.objects.clear();
+    assert!(photon_lights(&empty, 0.0).is_empty());
+}
+
 #[test]
 fn the_cornell_box_defaults_match_the_paper_budget() {
     let scene = cloudlight_scenes::builtin("cornell").unwrap();
     let (photons, plan) = iteration(&scene, PhotonSettings::default(), 1);
     assert_eq!(plan.batches.len(), 1);
-    assert_eq!(plan.total_photons(), 10_000);
+    // Each light's budget is its watts' share, to the photon: 10k to within 0.1%.
+    assert!(
+        plan.total_photons().abs_diff(10_000) <= 10,
+        "{}",
+        plan.total_photons()
+    );
     // The paper stores 3.4k of 10k; with more bounces we keep more, but the count must be
     // of that order and the power below the emitted power.
     assert!(
