@@ -737,3 +737,43 @@ fn the_gbuffer_carries_light_map_uvs_where_the_geometry_has_them() {
         assert!(covered.iter().all(|&i| plain.lightmap_uv_at(i).is_none()));
     });
 }
+
+#[test]
+fn a_textured_triangle_is_drawn_with_its_texture_mean() {
+    // A 2×2 checkerboard of black and white texels under an albedo of 0.8: a triangle over
+    // the whole texture, or over many repeats of it, averages 0.4; one inside a white
+    // texel is 0.8; an untextured material keeps its albedo.
+    use cloudlight_scenes::{Material, Texture, WorldTriangle};
+    let checker = Texture {
+        width: 2,
+        height: 2,
+        texels: vec![Vec3::ZERO, Vec3::ONE, Vec3::ONE, Vec3::ZERO],
+    };
+    let material = Material {
+        texture: Some(checker),
+        ..Material::diffuse("checker", Vec3::splat(0.8))
+    };
+    let triangle = |uv: [Vec2; 3]| WorldTriangle {
+        v: [Vec3::ZERO, Vec3::X, Vec3::Z],
+        n: [Vec3::Y; 3],
+        uv,
+        lightmap_uv: [Vec2::ZERO; 3],
+        material: 0,
+    };
+    let whole = triangle([Vec2::ZERO, Vec2::new(2.0, 0.0), Vec2::new(0.0, 2.0)]);
+    let tiled = triangle([Vec2::ZERO, Vec2::new(40.0, 0.0), Vec2::new(0.0, 40.0)]);
+    let white = triangle([
+        Vec2::new(0.55, 0.05),
+        Vec2::new(0.9, 0.05),
+        Vec2::new(0.55, 0.4),
+    ]);
+    for (t, want, tol) in [(whole, 0.4, 0.1), (tiled, 0.4, 0.15), (white, 0.8, 1e-6)] {
+        let got = frame::triangle_albedo(&material, &t);
+        assert!(
+            (got - Vec3::splat(want)).abs().max_element() <= tol,
+            "{got} vs {want}"
+        );
+    }
+    let plain = Material::diffuse("plain", Vec3::new(0.1, 0.2, 0.3));
+    assert_eq!(frame::triangle_albedo(&plain, &whole), plain.albedo);
+}
