@@ -183,8 +183,15 @@ impl Technique for Photons {
     ) -> anyhow::Result<ClientBench> {
         eprintln!("{}: tracing {} photons...", scene.name, o.photons);
         let bvh = SceneBvh::at(scene, 0.0, BvhKind::default());
-        let settings =
-            PhotonSettings::for_budget(scene, o.photons, o.batch_size.min(o.photons.max(1) as u32));
+        let settings = PhotonSettings {
+            photons_per_disk: o.photons_per_disk,
+            density_radius: o.density_radius,
+            ..PhotonSettings::for_budget(
+                scene,
+                o.photons,
+                o.batch_size.min(o.photons.max(1) as u32),
+            )
+        };
         let photons = trace_iteration(scene, &bvh, 0.0, settings, 1, o.format).unpacked();
         let splat = SplatSettings {
             downsample: o.downsample,
