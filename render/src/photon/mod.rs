@@ -24,8 +24,10 @@
 //! r = √(k·A / (π·N)) — more photons, smaller disks, less blur (the budget trades bias and
 //! noise together). Each photon's own radius then follows where photons actually landed
 //! ([`density`]): the distance holding `photons_per_disk` of its light's photons, within
-//! [`DENSITY_RADIUS_RANGE`] of the reference. Streams are counter-based per (seed, light, slot, generation, photon),
-//! so a batch is the same bytes on any thread count and any node.
+//! [`DENSITY_RADIUS_RANGE`] of the reference. A light's budget is its share of the watts
+//! ([`BatchPlan`]); a sun's watts are those falling on its [`footprint`]. Streams are
+//! counter-based per (seed, light, slot, generation, photon), so a batch is the same bytes
+//! on any thread count and any node.
 
 use cloudlight_scenes::{LightState, Scene, WorldTriangle};
 use glam::Vec3;
