@@ -531,7 +531,7 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
     ok(&out);
     let report = read_json(quality.join("quality.json"));
     for row in report["rows"].as_array().unwrap() {
-        for packing in ["twelve", "twenty", "twenty_same_bytes"] {
+        for packing in ["eight", "twelve", "twenty"] {
             let p = &row[packing];
             for value in [
                 &p["errors"]["relmse"],

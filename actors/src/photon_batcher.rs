@@ -72,7 +72,8 @@ pub struct BatcherParams {
     /// (0: never).
     #[serde(default = "default_resend")]
     pub resend_s: f64,
-    /// `compact12` (default) or `wide20`.
+    /// `compact8` (default: ~6–7 bytes per photon, coded against neighbours), `compact12` or
+    /// `wide20`.
     #[serde(default = "default_format")]
     pub format: String,
 }
@@ -96,7 +97,7 @@ fn default_resend() -> f64 {
     1.0
 }
 fn default_format() -> String {
-    "compact12".into()
+    PackFormat::Compact8.name().into()
 }
 
 impl Default for BatcherParams {
@@ -144,8 +145,8 @@ pub struct BatcherReport {
     pub radius_m: f32,
     /// Bytes of packed photons held.
     pub footprint_bytes: usize,
-    /// Bytes per photon of the packing.
-    pub bytes_per_photon: usize,
+    /// Bytes of data per photon held (Compact8's varies with the batch).
+    pub bytes_per_photon: f64,
     /// Photon bytes handed downstream.
     pub bytes_sent: u64,
     /// `bytes_sent` over the run so far, megabits per second.
@@ -274,7 +275,7 @@ impl PhotonBatcher {
             photons_stored: f.photons_stored_last,
             radius_m: f.radius_m,
             footprint_bytes: footprint,
-            bytes_per_photon: self.format.bytes_per_photon(),
+            bytes_per_photon: stream.bytes_per_photon(),
             bytes_sent: f.bytes_sent,
             mbps_sent,
             resends: f.resends,
@@ -474,7 +475,8 @@ impl cloudlight_runtime::CheckParams for BatcherParams {
         use cloudlight_runtime::check_range;
         if PackFormat::parse(&self.format).is_none() {
             return Err(format!(
-                "`format` must be `compact12` or `wide20`, not `{}`",
+                "`format` must be {}, not `{}`",
+                PackFormat::NAMES,
                 self.format
             ));
         }

@@ -69,7 +69,11 @@ fn photons(c: &mut Criterion) {
         scene_time_s: 0.0,
         emitted: settings.batch_size,
     };
-    for format in [PackFormat::Compact12, PackFormat::Wide20] {
+    for format in [
+        PackFormat::Compact8,
+        PackFormat::Compact12,
+        PackFormat::Wide20,
+    ] {
         c.bench_function(
             &format!("cornell: pack {} photons, {format:?}", stored.len()),
             |b| b.iter(|| PackedBatch::pack(header, &stored, format)),

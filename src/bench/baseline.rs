@@ -290,7 +290,7 @@ pub fn markdown(columns: &[BaselineColumn]) -> String {
         t.row(vec![
             p.scene.clone(),
             "photons: client splats".into(),
-            format!("photons ({} B each)", p.bytes_per_photon),
+            format!("photons ({:.1} B each)", p.bytes_per_photon),
             "—".into(),
             format!("{:.1} ms / iteration", p.iteration_interval_ms),
             format!("{:.1}", p.server_to_client_mbps),

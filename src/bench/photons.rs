@@ -56,7 +56,7 @@ impl Default for PhotonOptions {
             photons: 10_000,
             batch_size: 10_000,
             interval_ms: 33.0,
-            format: PackFormat::Compact12,
+            format: PackFormat::Compact8,
             downsample: PhotonClientParams::default().downsample,
             photons_per_disk: PhotonSettings::default().photons_per_disk,
             density_radius: PhotonSettings::default().density_radius,
@@ -80,11 +80,7 @@ impl Photons {
             resend_s: 0.0,
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
-            format: match o.format {
-                PackFormat::Compact12 => "compact12",
-                PackFormat::Wide20 => "wide20",
-            }
-            .into(),
+            format: o.format.name().into(),
             ..BatcherParams::default()
         };
         Ok(toml::Table::try_from(params)?)
@@ -296,8 +292,8 @@ pub struct PhotonColumn {
     pub client_indirect_ms: f64,
     /// Its frame size.
     pub client_resolution: String,
-    /// Bytes per photon.
-    pub bytes_per_photon: usize,
+    /// Bytes of data per photon held by the batcher.
+    pub bytes_per_photon: f64,
     /// Age of the indirect light at the client, p50, ms.
     pub age_ms_p50: f64,
     /// Age, p99, ms.
@@ -405,7 +401,12 @@ pub fn table2_markdown(columns: &[PhotonColumn]) -> String {
         Row {
             label: "Photon packing (paper: compaction)",
             paper: Some(5),
-            cell: |c| format!("{:.2} ms ({} B/photon)", c.packing_ms, c.bytes_per_photon),
+            cell: |c| {
+                format!(
+                    "{:.2} ms ({:.1} B/photon)",
+                    c.packing_ms, c.bytes_per_photon
+                )
+            },
         },
         Row {
             label: "Send: encode + hand-off (paper: GPU to CPU to NIC)",
@@ -487,7 +488,7 @@ pub struct QualityOptions {
 /// One point of the trade: a budget in one packing.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct QualityPoint {
-    /// `12 B`, `20 B`, or `20 B, same bytes` (20-byte photons at 12/20 of the budget).
+    /// `8 B`, `12 B` or `20 B`.
     pub packing: String,
     /// Photons emitted per update.
     pub photons: u64,
@@ -501,23 +502,25 @@ pub struct QualityPoint {
     pub trace_ms: f64,
     /// Photon bytes per update, kB.
     pub kbytes: f64,
+    /// Bytes of data per stored photon (Compact8's varies with the batch).
+    pub bytes_per_photon: f64,
     /// Megabits per second at the update rate.
     pub mbps: f64,
     /// Errors of the client's indirect light against the reference.
     pub errors: ImageErrors,
 }
 
-/// One budget in the three packings.
+/// One budget in the three packings (the same photons: each packing's own error and bytes).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct QualityRow {
     /// Photons per update.
     pub photons: u64,
+    /// Compact8: ~8 bytes or fewer, coded against neighbours (the default).
+    pub eight: QualityPoint,
     /// 12-byte photons.
     pub twelve: QualityPoint,
-    /// 20-byte photons, same budget (the packing's own error).
+    /// 20-byte photons (the paper's size).
     pub twenty: QualityPoint,
-    /// 20-byte photons at 12/20 of the budget (what the same bandwidth buys).
-    pub twenty_same_bytes: QualityPoint,
 }
 
 pub use super::QualityView;
@@ -574,30 +577,29 @@ impl QualityView {
             update_ms,
             trace_ms: it.trace_time.as_secs_f64() * 1000.0,
             kbytes: bytes / 1e3,
+            bytes_per_photon: bytes / it.stored.max(1) as f64,
             mbps: bytes * 8.0 * rate / 1e6,
             errors,
         };
         Ok((point, frame.indirect))
     }
 
-    /// One budget in the three packings; the 12-byte client image too.
+    /// One budget in the three packings; the 8-byte (default) client image too.
     pub fn row(
         &self,
         raster: &Raster,
         photons: u64,
         o: &QualityOptions,
     ) -> anyhow::Result<(QualityRow, Vec<Vec3>)> {
-        let (twelve, image) = self.point(raster, "12 B", photons, PackFormat::Compact12, o)?;
+        let (eight, image) = self.point(raster, "8 B", photons, PackFormat::Compact8, o)?;
+        let (twelve, _) = self.point(raster, "12 B", photons, PackFormat::Compact12, o)?;
         let (twenty, _) = self.point(raster, "20 B", photons, PackFormat::Wide20, o)?;
-        let same = (photons * 12 / 20).max(1);
-        let (twenty_same_bytes, _) =
-            self.point(raster, "20 B, same bytes", same, PackFormat::Wide20, o)?;
         Ok((
             QualityRow {
                 photons,
+                eight,
                 twelve,
                 twenty,
-                twenty_same_bytes,
             },
             image,
         ))
@@ -610,27 +612,29 @@ pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
         "photons",
         "stored",
         "radius cm",
-        "update ms",
-        "KB/update (12 B)",
-        &format!("Mbps @ {rate_hz} Hz (12 B)"),
+        "update ms (8 B)",
+        "B/photon (8 B)",
+        "KB/update (8 B)",
+        &format!("Mbps @ {rate_hz} Hz: 8 B / 12 B"),
+        "relMSE (8 B)",
         "relMSE (12 B)",
         "relMSE (20 B)",
-        "relMSE (20 B, same bytes)",
-        "HDR-FLIP (12 B)",
+        "HDR-FLIP (8 B)",
         "energy ours / reference",
     ]);
     for r in rows {
-        let p = &r.twelve;
+        let p = &r.eight;
         t.row(vec![
             r.photons.to_string(),
             p.stored.to_string(),
             format!("{:.2}", p.radius_m * 100.0),
             format!("{:.1}", p.update_ms),
+            format!("{:.2}", p.bytes_per_photon),
             format!("{:.1}", p.kbytes),
-            format!("{:.1}", p.mbps),
+            format!("{:.1} / {:.1}", p.mbps, r.twelve.mbps),
             format!("{:.4}", p.errors.relmse),
+            format!("{:.4}", r.twelve.errors.relmse),
             format!("{:.4}", r.twenty.errors.relmse),
-            format!("{:.4}", r.twenty_same_bytes.errors.relmse),
             format!("{:.3}", p.errors.flip),
             format!("{:.3}", p.errors.energy_ratio),
         ]);
@@ -658,7 +662,7 @@ pub fn quality(
         let (row, image) = view.row(raster, budget, o)?;
         eprintln!(
             "{budget} photons: relMSE {:.4}, FLIP {:.3}, energy {:.3}",
-            row.twelve.errors.relmse, row.twelve.errors.flip, row.twelve.errors.energy_ratio
+            row.eight.errors.relmse, row.eight.errors.flip, row.eight.errors.energy_ratio
         );
         exr(format!("indirect_{budget}.exr"), &image)?;
         rows.push(row);
@@ -696,9 +700,9 @@ fn quality_plot(
     let series = |x: fn(&QualityPoint) -> f64| -> Vec<Series> {
         type Pick = fn(&QualityRow) -> &QualityPoint;
         let pick: [(&str, Pick); 3] = [
+            ("8-byte photons (Morton gaps)", |r| &r.eight),
             ("12-byte photons", |r| &r.twelve),
             ("20-byte photons", |r| &r.twenty),
-            ("20-byte photons, same bytes", |r| &r.twenty_same_bytes),
         ];
         pick.iter()
             .map(|(label, f)| Series {

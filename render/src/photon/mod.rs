@@ -37,6 +37,7 @@ use crate::bvh::SceneBvh;
 use crate::sampling::{Rng, basis, cosine_hemisphere, uniform_sphere, uniform_triangle};
 use footprint::{Footprint, FootprintCache};
 
+pub mod compact8;
 pub mod density;
 pub mod footprint;
 pub mod pack;

@@ -1,12 +1,16 @@
 //! Bit-packed photon batches: what crosses the network in the photon technique.
 //!
 //! The paper packs direction, power, position, radius and normalisation into 20 bytes per
-//! photon without publishing the layout. Two layouts here, both little-endian:
+//! photon without publishing the layout. Three layouts here, all little-endian:
 //!
 //! | format | position | power | direction | radius | bytes |
 //! |---|---|---|---|---|---|
 //! | [`PackFormat::Wide20`] | 3 × f32 | RGB, 9-bit mantissas + 5-bit shared exponent | octahedral 2 × 12 bit | 8-bit log | 20 |
 //! | [`PackFormat::Compact12`] | 3 × 16 bit in the batch's bounds | RGB, 7-bit mantissas + 5-bit shared exponent | octahedral 2 × 8 bit | 6-bit log | 12 |
+//! | [`PackFormat::Compact8`] | Morton order, Exp-Golomb gaps on a grid of 1/16 the smallest radius | RGB, 6-bit dithered mantissas + 4-bit shared exponent | octahedral 2 × 5 bit | 5-bit log | ~7–8 (varies) |
+//!
+//! Compact8 is a bit stream whose photons come out in Morton order, not the order packed
+//! ([`super::compact8`] has its layout and bounds).
 //!
 //! Power is relative to the batch's largest channel (`power_scale`), radius is log-quantised
 //! between the batch's smallest and largest radius (one value when they agree: exact). The
@@ -27,7 +31,7 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Photon;
+use super::{Photon, compact8};
 
 /// A photon layout.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -36,23 +40,41 @@ pub enum PackFormat {
     Compact12,
     /// 20 bytes per photon (the paper's size).
     Wide20,
+    /// About 8 bytes per photon or fewer: Morton-sorted, positions coded as gaps
+    /// ([`super::compact8`]); the size varies with the batch.
+    Compact8,
 }
 
 impl PackFormat {
-    /// Bytes per photon.
+    /// Bytes per photon: exact for the fixed layouts, the nominal size of Compact8 (a
+    /// batch's own figure is [`PackedBatch::bytes_per_photon`]).
     pub fn bytes_per_photon(self) -> usize {
         match self {
             PackFormat::Compact12 => 12,
             PackFormat::Wide20 => 20,
+            PackFormat::Compact8 => 8,
         }
     }
 
-    /// Parses `compact12` / `wide20`.
+    /// Every name [`Self::parse`] accepts, for error messages.
+    pub const NAMES: &'static str = "`compact8`, `compact12` or `wide20`";
+
+    /// Parses `compact8` / `compact12` / `wide20` (or `8` / `12` / `20`).
     pub fn parse(s: &str) -> Option<Self> {
         match s {
+            "compact8" | "8" => Some(PackFormat::Compact8),
             "compact12" | "12" => Some(PackFormat::Compact12),
             "wide20" | "20" => Some(PackFormat::Wide20),
             _ => None,
+        }
+    }
+
+    /// The name [`Self::parse`] reads.
+    pub fn name(self) -> &'static str {
+        match self {
+            PackFormat::Compact8 => "compact8",
+            PackFormat::Compact12 => "compact12",
+            PackFormat::Wide20 => "wide20",
         }
     }
 }
@@ -121,6 +143,9 @@ pub enum PackError {
     /// A decoded photon is not finite.
     #[error("batch decodes to non-finite photon {0}")]
     NonFinite(u32),
+    /// A coded stream is malformed.
+    #[error("batch data malformed: {0}")]
+    Stream(&'static str),
 }
 
 impl PackedBatch {
@@ -161,8 +186,14 @@ impl PackedBatch {
             radius_range: [r_lo, r_hi],
             count: finite.len() as u32,
             checksum: 0,
-            data: vec![0; finite.len() * format.bytes_per_photon()],
+            data: Vec::new(),
         };
+        if format == PackFormat::Compact8 {
+            b.data = compact8::encode(&Quantizer::of(&b).frame(), &finite);
+            b.checksum = b.compute_checksum();
+            return b;
+        }
+        b.data = vec![0; finite.len() * format.bytes_per_photon()];
         let q = Quantizer::of(&b);
         // Photons pack independently: in parallel, 1024 at a time.
         let per = format.bytes_per_photon();
@@ -178,9 +209,25 @@ impl PackedBatch {
         b
     }
 
-    /// Bytes per photon on the wire for this batch (its data only).
+    /// Bytes of photon data.
     pub fn data_bytes(&self) -> usize {
         self.data.len()
+    }
+
+    /// Bytes of data per photon (the format's size when the batch is empty).
+    pub fn bytes_per_photon(&self) -> f64 {
+        if self.count == 0 {
+            self.format.bytes_per_photon() as f64
+        } else {
+            self.data.len() as f64 / self.count as f64
+        }
+    }
+
+    /// Recomputes the checksum after the fields were changed (what a sender of forged
+    /// batches would do; tests use it to reach the decoder with garbage).
+    #[cfg(test)]
+    pub(crate) fn seal(&mut self) {
+        self.checksum = self.compute_checksum();
     }
 
     fn compute_checksum(&self) -> u32 {
@@ -207,7 +254,12 @@ impl PackedBatch {
     /// Checks the header, lengths and checksum without decoding.
     pub fn validate(&self) -> Result<(), PackError> {
         let per = self.format.bytes_per_photon();
-        if self.data.len() != self.count as usize * per {
+        let fits = match self.format {
+            // Header bits, then at most ~23 bytes a photon (the widest gap and every field).
+            PackFormat::Compact8 => self.data.len() <= 2 + 24 * self.count as usize,
+            _ => self.data.len() == self.count as usize * per,
+        };
+        if !fits {
             return Err(PackError::Length {
                 got: self.data.len(),
                 count: self.count,
@@ -242,9 +294,12 @@ impl PackedBatch {
         self.validate()?;
         let q = Quantizer::of(self);
         let per = self.format.bytes_per_photon();
+        let decoded: Vec<Photon> = match self.format {
+            PackFormat::Compact8 => compact8::decode(&q.frame(), &self.data, self.count)?,
+            _ => self.data.chunks_exact(per).map(|c| q.decode(c)).collect(),
+        };
         let mut out = Vec::with_capacity(self.count as usize);
-        for (i, chunk) in self.data.chunks_exact(per).enumerate() {
-            let p = q.decode(chunk);
+        for (i, p) in decoded.into_iter().enumerate() {
             if !(p.position.is_finite()
                 && p.power.is_finite()
                 && p.direction.is_finite()
@@ -285,6 +340,16 @@ impl Quantizer {
         }
     }
 
+    fn frame(&self) -> compact8::Frame {
+        compact8::Frame {
+            origin: self.origin,
+            extent: self.extent,
+            power_scale: self.power_scale,
+            r_lo: self.r_lo,
+            log_ratio: self.log_ratio,
+        }
+    }
+
     fn radius_code(&self, r: f32, bits: u32) -> u64 {
         if self.log_ratio <= 0.0 {
             return 0;
@@ -320,6 +385,7 @@ impl Quantizer {
                     | (self.radius_code(p.radius, 6) as u128) << 90;
                 out.copy_from_slice(&bits.to_le_bytes()[..12]);
             }
+            PackFormat::Compact8 => unreachable!("Compact8 is a stream, coded whole"),
             PackFormat::Wide20 => {
                 for (k, c) in p.position.to_array().iter().enumerate() {
                     out[4 * k..4 * k + 4].copy_from_slice(&c.to_le_bytes());
@@ -349,11 +415,12 @@ impl Quantizer {
                 Photon {
                     position: self.origin + rel * self.extent,
                     direction: oct_dequantize(f(48, 8), f(56, 8), 8),
-                    power: from_shared_exponent(f(64, 5), [f(69, 7), f(76, 7), f(83, 7)], 7)
+                    power: from_shared_exponent(exp5(f(64, 5)), [f(69, 7), f(76, 7), f(83, 7)], 7)
                         * self.power_scale,
                     radius: self.radius(f(90, 6), 6),
                 }
             }
+            PackFormat::Compact8 => unreachable!("Compact8 is a stream, decoded whole"),
             PackFormat::Wide20 => {
                 let float = |i: usize| f32::from_le_bytes([c[i], c[i + 1], c[i + 2], c[i + 3]]);
                 let mut word = [0u8; 8];
@@ -363,7 +430,7 @@ impl Quantizer {
                 Photon {
                     position: Vec3::new(float(0), float(4), float(8)),
                     direction: oct_dequantize(f(32, 12), f(44, 12), 12),
-                    power: from_shared_exponent(f(0, 5), [f(5, 9), f(14, 9), f(23, 9)], 9)
+                    power: from_shared_exponent(exp5(f(0, 5)), [f(5, 9), f(14, 9), f(23, 9)], 9)
                         * self.power_scale,
                     radius: self.radius(f(56, 8), 8),
                 }
@@ -373,7 +440,7 @@ impl Quantizer {
 }
 
 /// Octahedral map of a unit vector to [−1, 1]², quantised to `bits` per axis.
-fn oct_quantize(d: Vec3, bits: u32) -> (u64, u64) {
+pub(super) fn oct_quantize(d: Vec3, bits: u32) -> (u64, u64) {
     let d = d.normalize_or(Vec3::Z);
     let n = d / (d.x.abs() + d.y.abs() + d.z.abs());
     let sign = |v: f32| if v >= 0.0 { 1.0 } else { -1.0 };
@@ -387,7 +454,7 @@ fn oct_quantize(d: Vec3, bits: u32) -> (u64, u64) {
     (q(e.x), q(e.y))
 }
 
-fn oct_dequantize(u: u64, v: u64, bits: u32) -> Vec3 {
+pub(super) fn oct_dequantize(u: u64, v: u64, bits: u32) -> Vec3 {
     let max = ((1u64 << bits) - 1) as f32;
     let e = Vec2::new(u as f32 / max * 2.0 - 1.0, v as f32 / max * 2.0 - 1.0);
     let mut n = Vec3::new(e.x, e.y, 1.0 - e.x.abs() - e.y.abs());
@@ -416,8 +483,14 @@ fn shared_exponent(c: Vec3, bits: u32) -> (u64, [u64; 3]) {
     ((e + 31) as u64, [q(c.x), q(c.y), q(c.z)])
 }
 
-fn from_shared_exponent(e: u64, m: [u64; 3], bits: u32) -> Vec3 {
-    let scale = pow2(e as i32 - 31);
+/// A 5-bit exponent code as the exponent.
+fn exp5(code: u64) -> i32 {
+    code as i32 - 31
+}
+
+/// Mantissas `m` of `bits` bits times 2^e.
+pub(super) fn from_shared_exponent(e: i32, m: [u64; 3], bits: u32) -> Vec3 {
+    let scale = pow2(e);
     let max = ((1u64 << bits) - 1) as f32;
     Vec3::new(m[0] as f32, m[1] as f32, m[2] as f32) * (scale / max)
 }

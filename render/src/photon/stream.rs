@@ -289,6 +289,20 @@ impl PhotonStream {
             .sum()
     }
 
+    /// Bytes of photon data per photon held (the format's size when none is held).
+    pub fn bytes_per_photon(&self) -> f64 {
+        let held: u64 = self
+            .sets
+            .values()
+            .flat_map(|s| s.batches.values())
+            .map(|b| u64::from(b.count))
+            .sum();
+        if held == 0 {
+            return self.format.bytes_per_photon() as f64;
+        }
+        self.footprint_bytes() as f64 / held as f64
+    }
+
     /// Batches held.
     pub fn batch_count(&self) -> usize {
         self.sets.values().map(|s| s.batches.len()).sum()

@@ -1,0 +1,280 @@
+//! [`PackFormat::Compact8`](super::PackFormat::Compact8): photons coded against their
+//! neighbours, at most ~8 bytes each.
+//!
+//! The batch's photons are sorted along a Morton curve over a cubic grid whose step is
+//! [`STEPS_PER_RADIUS`]-th of the batch's smallest radius (so positions are as fine as the
+//! splat needs, no finer), and each photon's Morton code is sent as the gap from the
+//! previous one in an Exp-Golomb code whose order the batch chooses (photons lie on
+//! surfaces, close to each other, so a 10k-photon batch's gaps take ~20–25 bits where its
+//! three coordinates would take 36–48). The rest of a photon is fixed-width:
+//!
+//! | field | bits | error |
+//! |---|---|---|
+//! | position | Exp-Golomb gap of a Morton code, `3 × b` bits per code | step / 2 per axis |
+//! | power | 4-bit shared exponent + 3 × 6-bit mantissas, dithered | < one step: channel max / 31, unbiased |
+//! | direction | octahedral 2 × 5 bit | 5° (the splat only tests its side of a surface) |
+//! | radius | 5-bit log in the batch's range (none when all radii agree) | ln(hi/lo)/31/2 |
+//!
+//! Power mantissas are rounded with a golden-ratio dither per photon, so a batch of photons
+//! of equal power (a light's first bounce off one wall) keeps its total instead of all
+//! rounding the same way. The stream starts with `b − 1` (4 bits) and the Exp-Golomb order
+//! (6 bits); it is read with bounds on every field and must end within its last byte, so
+//! malformed data is an error, never a panic.
+
+use std::io;
+
+use bitstream_io::{BitRead, BitReader, BitWrite, BitWriter, LittleEndian};
+use glam::{UVec3, Vec3};
+use rayon::prelude::*;
+
+use super::Photon;
+use super::pack::{PackError, from_shared_exponent, oct_dequantize, oct_quantize};
+use crate::voxel::morton;
+
+/// Grid steps per smallest radius: the position step is at most 1/16 of any photon's radius.
+pub const STEPS_PER_RADIUS: f32 = 16.0;
+/// Largest bits per axis (finer than this is Compact12's precision).
+const MAX_AXIS_BITS: u32 = 16;
+const POWER_EXP_BITS: u32 = 4;
+const POWER_BITS: u32 = 6;
+const DIRECTION_BITS: u32 = 5;
+const RADIUS_BITS: u32 = 5;
+const FIXED_DIRECTION_SHIFT: u32 = POWER_EXP_BITS + 3 * POWER_BITS;
+/// Bits of a photon's fixed-width word without its radius.
+const FIXED_BITS: u32 = FIXED_DIRECTION_SHIFT + 2 * DIRECTION_BITS;
+
+/// The batch-wide values a Compact8 stream is coded against (from the batch's header).
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    /// Low corner of the photons' bounds.
+    pub origin: Vec3,
+    /// Size of the bounds.
+    pub extent: Vec3,
+    /// Largest power channel.
+    pub power_scale: f32,
+    /// Smallest radius.
+    pub r_lo: f32,
+    /// ln(largest / smallest radius); 0 when all radii agree.
+    pub log_ratio: f32,
+}
+
+impl Frame {
+    /// Bits per axis of the position grid.
+    fn axis_bits(&self) -> u32 {
+        let size = self.extent.max_element();
+        if size.is_nan() || size <= 0.0 {
+            return 1;
+        }
+        let cells = (size / (self.r_lo / STEPS_PER_RADIUS)).max(1.0) + 1.0;
+        (cells.log2().ceil() as u32).clamp(1, MAX_AXIS_BITS)
+    }
+
+    /// The radius of (fractional) radius code `c`.
+    fn radius_of(&self, c: f32) -> f32 {
+        let max = ((1u32 << RADIUS_BITS) - 1) as f32;
+        self.r_lo * (self.log_ratio * c / max).exp()
+    }
+
+    /// The grid step for `bits` per axis.
+    fn step(&self, bits: u32) -> f32 {
+        self.extent.max_element().max(0.0) / ((1u32 << bits) - 1) as f32
+    }
+}
+
+/// Encodes `photons` (finite, radius > 0, inside `frame`) into a bit stream.
+pub fn encode(frame: &Frame, photons: &[&Photon]) -> Vec<u8> {
+    if photons.is_empty() {
+        return Vec::new();
+    }
+    let bits = frame.axis_bits();
+    let step = frame.step(bits);
+    let max = ((1u32 << bits) - 1) as f32;
+    let cell = |p: Vec3| -> UVec3 {
+        let q = if step > 0.0 {
+            ((p - frame.origin) / step).clamp(Vec3::ZERO, Vec3::splat(max)) + Vec3::splat(0.5)
+        } else {
+            Vec3::ZERO
+        };
+        q.as_uvec3()
+    };
+    let mut coded: Vec<(u64, &Photon)> = photons
+        .par_iter()
+        .with_min_len(8192)
+        .map(|p| (morton::encode(cell(p.position)), *p))
+        .collect();
+    coded.par_sort_unstable_by_key(|(code, _)| *code);
+    let gaps: Vec<u64> = coded
+        .iter()
+        .scan(0u64, |prev, (code, _)| {
+            let gap = code - *prev;
+            *prev = *code;
+            Some(gap)
+        })
+        .collect();
+    let order = best_order(&gaps, 3 * bits);
+    // Radius code c stands for r_lo·(hi/lo)^(c/31); bound c sits halfway (in log) to c + 1.
+    let radius_bounds: Vec<f32> = (0..(1u32 << RADIUS_BITS) - 1)
+        .map(|c| frame.radius_of(c as f32 + 0.5))
+        .collect();
+
+    let mut w = BitWriter::endian(Vec::with_capacity(photons.len() * 8 + 2), LittleEndian);
+    let written: io::Result<()> = (|| {
+        w.write_var(4, bits - 1)?;
+        w.write_var(6, order)?;
+        for (i, ((_, p), gap)) in coded.iter().zip(&gaps).enumerate() {
+            write_exp_golomb(&mut w, *gap, order)?;
+            // The fixed-width fields as one word: exponent, mantissas, direction, radius.
+            let power = p.power.max(Vec3::ZERO) / frame.power_scale;
+            let (e, [r, g, b]) = dithered_shared_exponent(power, i as u64);
+            let (u, v) = oct_quantize(p.direction, DIRECTION_BITS);
+            let mut word = u64::from(e)
+                | r << POWER_EXP_BITS
+                | g << (POWER_EXP_BITS + POWER_BITS)
+                | b << (POWER_EXP_BITS + 2 * POWER_BITS)
+                | u << FIXED_DIRECTION_SHIFT
+                | v << (FIXED_DIRECTION_SHIFT + DIRECTION_BITS);
+            let mut width = FIXED_BITS;
+            if frame.log_ratio > 0.0 {
+                let code = radius_bounds.partition_point(|b| *b < p.radius);
+                word |= (code as u64) << FIXED_BITS;
+                width += RADIUS_BITS;
+            }
+            w.write_var(width, word)?;
+        }
+        w.byte_align()
+    })();
+    written.expect("writing to a Vec cannot fail");
+    w.into_writer()
+}
+
+/// Decodes `count` photons; the stream must hold exactly them (up to its last byte).
+pub fn decode(frame: &Frame, data: &[u8], count: u32) -> Result<Vec<Photon>, PackError> {
+    if count == 0 {
+        return if data.is_empty() {
+            Ok(Vec::new())
+        } else {
+            Err(PackError::Stream("data after the last photon"))
+        };
+    }
+    let malformed = |_: io::Error| PackError::Stream("data ends before the last photon");
+    let mut r = BitReader::endian(data, LittleEndian);
+    let bits = r.read_var::<u32>(4).map_err(malformed)? + 1;
+    let order = r.read_var::<u32>(6).map_err(malformed)?;
+    let code_bits = 3 * bits;
+    if order > code_bits {
+        return Err(PackError::Stream("gap code order exceeds the code width"));
+    }
+    let step = frame.step(bits);
+    let max_code = (1u64 << code_bits) - 1;
+    let radii: Vec<f32> = (0..1u32 << RADIUS_BITS)
+        .map(|c| frame.radius_of(c as f32))
+        .collect();
+    let mut code = 0u64;
+    let mut out = Vec::with_capacity(count as usize);
+    for _ in 0..count {
+        let gap = read_exp_golomb(&mut r, order, code_bits)?;
+        code = code
+            .checked_add(gap)
+            .filter(|c| *c <= max_code)
+            .ok_or(PackError::Stream("position outside the batch's grid"))?;
+        let width = FIXED_BITS
+            + if frame.log_ratio > 0.0 {
+                RADIUS_BITS
+            } else {
+                0
+            };
+        let word = r.read_var::<u64>(width).map_err(malformed)?;
+        let field = |shift: u32, bits: u32| (word >> shift) & ((1u64 << bits) - 1);
+        let e = field(0, POWER_EXP_BITS);
+        let m = [0, 1, 2].map(|k| field(POWER_EXP_BITS + k * POWER_BITS, POWER_BITS));
+        let u = field(FIXED_DIRECTION_SHIFT, DIRECTION_BITS);
+        let v = field(FIXED_DIRECTION_SHIFT + DIRECTION_BITS, DIRECTION_BITS);
+        let radius = radii[field(FIXED_BITS, RADIUS_BITS) as usize];
+        let exp = e as i32 - ((1 << POWER_EXP_BITS) - 1);
+        out.push(Photon {
+            position: frame.origin + morton::decode(code).as_vec3() * step,
+            direction: oct_dequantize(u, v, DIRECTION_BITS),
+            power: from_shared_exponent(exp, m, POWER_BITS) * frame.power_scale,
+            radius,
+        });
+    }
+    r.byte_align();
+    if !r.into_reader().is_empty() {
+        return Err(PackError::Stream("data after the last photon"));
+    }
+    Ok(out)
+}
+
+/// The Exp-Golomb order that codes `gaps` in the fewest bits: near log2 of their mean
+/// (the best order of a geometric distribution), the exact cost of five orders compared.
+fn best_order(gaps: &[u64], max_order: u32) -> u32 {
+    // Bits of gap g at order k: 2·⌊log2((g >> k) + 1)⌋ + 1 + k.
+    let cost = |k: u32| -> u64 {
+        gaps.iter()
+            .map(|g| u64::from(2 * ((g >> k) + 1).ilog2() + 1 + k))
+            .sum()
+    };
+    let mean = gaps.iter().map(|g| *g as f64).sum::<f64>() / gaps.len().max(1) as f64;
+    let guess = mean.max(1.0).log2() as u32;
+    (guess.saturating_sub(2)..=(guess + 2).min(max_order))
+        .min_by_key(|k| cost(*k))
+        .unwrap_or(0)
+}
+
+fn write_exp_golomb(w: &mut impl BitWrite, gap: u64, order: u32) -> io::Result<()> {
+    let high = (gap >> order) + 1;
+    let n = high.ilog2();
+    w.write_unary::<1>(n)?;
+    if n > 0 {
+        w.write_var(n, high - (1 << n))?;
+    }
+    if order > 0 {
+        w.write_var(order, gap & ((1u64 << order) - 1))?;
+    }
+    Ok(())
+}
+
+fn read_exp_golomb(r: &mut impl BitRead, order: u32, code_bits: u32) -> Result<u64, PackError> {
+    let malformed = |_: io::Error| PackError::Stream("data ends before the last photon");
+    let n = r.read_unary::<1>().map_err(malformed)?;
+    if n + order > code_bits {
+        return Err(PackError::Stream("position gap wider than the grid"));
+    }
+    let high = if n > 0 {
+        (1u64 << n) + r.read_var::<u64>(n).map_err(malformed)?
+    } else {
+        1
+    };
+    let low = if order > 0 {
+        r.read_var::<u64>(order).map_err(malformed)?
+    } else {
+        0
+    };
+    Ok(((high - 1) << order) | low)
+}
+
+/// RGB in [0, 1] as a 4-bit shared exponent and 6-bit mantissas, each rounded up with
+/// probability equal to its fraction (a golden-ratio sequence over photons stands in for
+/// the random numbers), so that rounding adds noise but no bias.
+fn dithered_shared_exponent(c: Vec3, i: u64) -> (u32, [u64; 3]) {
+    let c = c.clamp(Vec3::ZERO, Vec3::ONE);
+    let m = c.max_element();
+    let lowest = -((1i32 << POWER_EXP_BITS) - 1);
+    if m <= 0.0 {
+        return (0, [0; 3]);
+    }
+    // ⌈log2 m⌉ from the float's bits (libm's log2 and floor cost more than the rest).
+    let bits = m.to_bits();
+    let e =
+        (((bits >> 23) & 0xff) as i32 - 127 + i32::from(bits & 0x7f_ffff != 0)).clamp(lowest, 0);
+    let max = ((1u64 << POWER_BITS) - 1) as f32;
+    let scale = f32::from_bits(((127 - e) as u32) << 23) * max;
+    let mut out = [0u64; 3];
+    for (k, v) in c.to_array().into_iter().enumerate() {
+        // A Weyl sequence of the golden ratio in 24-bit fixed point.
+        let n = i * 3 + k as u64;
+        let u = (n.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40) as f32 / (1u32 << 24) as f32;
+        out[k] = ((v * scale + u) as u64).min(max as u64);
+    }
+    ((e - lowest) as u32, out)
+}
