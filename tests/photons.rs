@@ -183,6 +183,7 @@ impl Stage for GarbageBatcher {
             slot: 0,
             slots: 1,
             generation: self.sent as u64,
+            pass: 0,
             scene_time_s: 0.0,
             emitted: 8,
         };

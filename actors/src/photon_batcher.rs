@@ -61,6 +61,12 @@ pub struct BatcherParams {
     /// `radius_m`); false: one radius per iteration.
     #[serde(default = "default_density_radius")]
     pub density_radius: bool,
+    /// Refinement passes of a light that stands still (progressive photon mapping): one
+    /// more set of fresh photons per iteration until a light holds this many; clients draw
+    /// them together with shrinking radii. 1: a still light is traced once. Ignored with
+    /// `retrace = "always"`.
+    #[serde(default = "default_passes")]
+    pub passes: u32,
     /// Period of iterations, milliseconds (an iteration that takes longer is followed at
     /// once by the next).
     #[serde(default = "default_interval")]
@@ -90,6 +96,9 @@ fn default_per_disk() -> f32 {
 fn default_density_radius() -> bool {
     PhotonSettings::default().density_radius
 }
+fn default_passes() -> u32 {
+    PhotonSettings::default().passes
+}
 fn default_interval() -> f64 {
     33.0
 }
@@ -110,6 +119,7 @@ impl Default for BatcherParams {
             photons_per_disk: default_per_disk(),
             radius_m: None,
             density_radius: default_density_radius(),
+            passes: default_passes(),
             interval_ms: default_interval(),
             retrace: Retrace::default(),
             resend_s: default_resend(),
@@ -348,7 +358,7 @@ impl PhotonBatcher {
         self.figures.radius_m = plan.radius_m();
         let (seed, format) = (ctx.seed(), self.format);
         let mut stored = 0u64;
-        let mut done: BTreeMap<usize, BTreeMap<u32, PackedBatch>> = BTreeMap::new();
+        let mut done: BTreeMap<(usize, u32), BTreeMap<u32, PackedBatch>> = BTreeMap::new();
         for (k, job) in plan.jobs.iter().enumerate() {
             if ctx.is_stopping() {
                 return Ok(());
@@ -362,13 +372,14 @@ impl PhotonBatcher {
             stored += traced.stored as u64;
             self.send(ctx, t, PhotonMsg::Batch(traced.batch.clone()))
                 .await?;
-            let set = done.entry(job.light).or_default();
+            let set = done.entry((job.light, job.pass)).or_default();
             set.insert(job.slot, traced.batch);
             if set.len() as u32 == job.slots {
-                let batches = done.remove(&job.light).unwrap_or_default();
+                let batches = done.remove(&(job.light, job.pass)).unwrap_or_default();
                 lock(&self.stream).commit(
                     plan.lights[job.light].clone(),
                     job.generation,
+                    job.pass,
                     batches,
                     Instant::now(),
                 );
@@ -456,6 +467,7 @@ impl BatcherParams {
         settings.photons_per_disk = self.photons_per_disk;
         settings.radius_m = self.radius_m;
         settings.density_radius = self.density_radius;
+        settings.passes = self.passes;
         let lights = cloudlight_render::photon::photon_lights(scene, 0.0);
         let per_iteration =
             cloudlight_render::photon::BatchPlan::new(&lights, &settings).total_photons();
@@ -494,6 +506,7 @@ impl cloudlight_runtime::CheckParams for BatcherParams {
             "photons",
         )?;
         check_range("bounces", self.bounces as f64, 0.0, 64.0, "bounces")?;
+        check_range("passes", self.passes as f64, 1.0, 1024.0, "passes")?;
         check_range(
             "photons_per_disk",
             self.photons_per_disk as f64,

@@ -142,7 +142,7 @@ impl ClientTechnique for PhotonClient {
             return None;
         }
         self.uploaded_version = Some(version);
-        Some(Arc::new(self.set.photons().copied().collect()))
+        Some(Arc::new(self.set.photons().collect()))
     }
 
     fn apply(

@@ -66,6 +66,7 @@ fn photons(c: &mut Criterion) {
         slot: 0,
         slots: 1,
         generation: 0,
+        pass: 0,
         scene_time_s: 0.0,
         emitted: settings.batch_size,
     };

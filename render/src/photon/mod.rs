@@ -6,9 +6,9 @@
 //! Phases of one iteration:
 //! 1. **Lights** ([`photon_lights`]): every punctual light, the sun, and every emissive
 //!    object (one light per object) at the scene time, with its power summed over channels.
-//! 2. **Budget** ([`BatchPlan::new`]): photons per watt × power → a whole number of batches
-//!    per light (at least one for a light that emits anything); each photon carries
-//!    Φ_light / (batches × batch size).
+//! 2. **Budget** ([`BatchPlan::new`]): photons per watt × power → the light's photons, in
+//!    as few batches as hold them (none for a light whose share rounds to no photon); each
+//!    photon carries Φ_light / (batches × photons per batch).
 //! 3. **Trace** ([`PhotonTracer::trace_batch`]): emit from the light, follow diffuse bounces
 //!    (cosine sampling, Russian roulette with survival = max albedo, so power stays
 //!    unbiased) and store a photon at every hit *after the first* — first hits are direct
@@ -45,7 +45,7 @@ pub mod splat;
 pub mod store;
 pub mod stream;
 
-pub use pack::{PackError, PackFormat, PackedBatch};
+pub use pack::{BatchHeader, PackError, PackFormat, PackedBatch};
 pub use store::{Inserted, Manifest, ManifestLight, PhotonSet};
 pub use stream::{
     BatchJob, Iteration, IterationPlan, LightSet, PhotonStream, Retrace, TracedBatch,
@@ -73,6 +73,27 @@ pub struct PhotonSettings {
     /// Each photon's radius from the density of stored photons around it ([`density`]);
     /// false: every photon of an iteration gets its reference radius.
     pub density_radius: bool,
+    /// Passes of a light that stands still (progressive photon mapping): after the first
+    /// set, one more set of fresh photons per iteration until it holds this many, the
+    /// client drawing all of them with radii shrinking by [`progressive_radius_scale`].
+    /// 1 (the default): a still light is traced once. Each doubling of the passes costs
+    /// the client's splat ~1.6× (disks hold P^α times the photons).
+    pub passes: u32,
+}
+
+/// Radius reduction of progressive photon mapping (Knaus & Zwicker 2011): each pass keeps
+/// the fraction α of the photons per disk that the previous passes gathered, so bias and
+/// variance both vanish as passes grow.
+pub const PROGRESSIVE_ALPHA: f32 = 2.0 / 3.0;
+
+/// The factor on every radius when a light's photons are `passes` passes drawn together:
+/// r_P² = r_1² · Π_{k=1}^{P−1} (k + α) / (k + 1) (≈ P^(α−1): with P times the photons, a
+/// disk holds P^α times as many). Powers are divided by P.
+pub fn progressive_radius_scale(passes: u32) -> f32 {
+    let area: f64 = (1..passes.max(1))
+        .map(|k| (k as f64 + PROGRESSIVE_ALPHA as f64) / (k as f64 + 1.0))
+        .product();
+    area.sqrt() as f32
 }
 
 /// Density radii lie within these multiples of the iteration's reference radius: the
@@ -91,6 +112,7 @@ impl Default for PhotonSettings {
             photons_per_disk: 160.0,
             radius_m: None,
             density_radius: true,
+            passes: 1,
         }
     }
 }
@@ -472,14 +494,29 @@ impl<'a> PhotonTracer<'a> {
         slots: u32,
         generation: u64,
     ) -> Vec<Photon> {
+        self.trace_pass(light, slot, slots, generation, 0)
+    }
+
+    /// [`Self::trace_batch`] for refinement pass `pass` of the generation: other random
+    /// numbers (pass 0 is `trace_batch`'s), the same budget and radii.
+    pub fn trace_pass(
+        &self,
+        light: &PhotonLight,
+        slot: u32,
+        slots: u32,
+        generation: u64,
+        pass: u32,
+    ) -> Vec<Photon> {
         let n = self.plan.photons_per_batch(light.id);
         if n == 0 {
             return Vec::new();
         }
         let emitted_total = n as f32 * slots.max(1) as f32;
         let power = light.power_w / emitted_total;
-        let stream =
-            (light.id as u64) << 44 ^ (slot as u64) << 24 ^ generation.wrapping_mul(0x9E37);
+        let stream = (light.id as u64) << 44
+            ^ (slot as u64) << 24
+            ^ generation.wrapping_mul(0x9E37)
+            ^ u64::from(pass).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
         const CHUNK: u32 = 1024;
         let chunks: Vec<Vec<Photon>> = (0..n.div_ceil(CHUNK))
             .into_par_iter()

@@ -91,6 +91,9 @@ pub struct BatchHeader {
     pub slots: u32,
     /// Generation of the light's batch set (increases when the light is re-traced).
     pub generation: u64,
+    /// Refinement pass within the generation: 0 first, then one more set of fresh photons
+    /// per iteration while the light stands still ([`super::progressive_radius_scale`]).
+    pub pass: u32,
     /// Scene time the batch was traced for, seconds.
     pub scene_time_s: f64,
     /// Photons emitted for the batch (the stored ones are fewer or more).
@@ -237,6 +240,7 @@ impl PackedBatch {
         h.update(&id.slot.to_le_bytes());
         h.update(&id.slots.to_le_bytes());
         h.update(&id.generation.to_le_bytes());
+        h.update(&id.pass.to_le_bytes());
         h.update(&id.scene_time_s.to_le_bytes());
         h.update(&id.emitted.to_le_bytes());
         h.update(&[self.format as u8]);

@@ -1,18 +1,24 @@
-//! The client's photons: the newest batch per (light, slot), and how current they are.
+//! The client's photons: the newest batch per (light, pass, slot), and how current they are.
 //!
 //! The batcher sends batches as they complete and, after each iteration, a [`Manifest`]:
-//! the generation and batch count of every light as of a scene time. A [`PhotonSet`]
-//! replaces a slot's batch with a newer generation (ignoring older ones that arrive late),
-//! drops slots and lights the manifest no longer lists, and knows the newest scene time
-//! whose manifest it holds completely: the light it shows is *valid as of* that time, so
-//! `now − valid_as_of` is the age of the indirect light on screen.
+//! the generation, batch count and refinement passes of every light as of a scene time. A
+//! [`PhotonSet`] keeps the batches of each light's newest generation (ignoring older ones
+//! that arrive late; a new generation drops that light's passes, and only that light's),
+//! drops passes, slots and lights the manifest no longer lists, and knows the newest scene
+//! time whose manifest it holds completely: the light it shows is *valid as of* that time,
+//! so `now − valid_as_of` is the age of the indirect light on screen.
+//!
+//! **Progressive photon mapping**: while a light stands still the batcher sends one more
+//! pass of fresh photons per iteration. [`PhotonSet::photons`] draws a light's complete
+//! passes together, each photon's power divided by their number P and its radius scaled
+//! by [`progressive_radius_scale`]`(P)`, so the light's estimate converges as passes come.
 
 use std::collections::BTreeMap;
 use std::sync::OnceLock;
 
 use serde::{Deserialize, Serialize};
 
-use super::{PackError, PackedBatch, Photon};
+use super::{PackError, PackedBatch, Photon, progressive_radius_scale};
 
 /// One light's entry in a manifest.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -21,8 +27,15 @@ pub struct ManifestLight {
     pub light: u32,
     /// Generation of its current batch set.
     pub generation: u64,
-    /// Batches in the set.
+    /// Batches in each pass.
     pub slots: u32,
+    /// Refinement passes held by the batcher (1: the first only).
+    #[serde(default = "one")]
+    pub passes: u32,
+}
+
+fn one() -> u32 {
+    1
 }
 
 /// The complete photon set as of one scene time.
@@ -89,7 +102,8 @@ pub struct SetStats {
 /// The client's set of photon batches.
 #[derive(Default)]
 pub struct PhotonSet {
-    held: BTreeMap<(u32, u32), Held>,
+    /// By (light, pass, slot).
+    held: BTreeMap<(u32, u32, u32), Held>,
     manifest: Option<Manifest>,
     valid_as_of: Option<f64>,
     stats: SetStats,
@@ -115,26 +129,33 @@ impl PhotonSet {
                 .find(|l| l.light == batch.header.light)
                 .map(|l| l.generation)
         });
-        let key = (batch.header.light, batch.header.slot);
-        let held_gen = self.held.get(&key).map(|h| h.generation);
-        if listed.is_some_and(|g| g > batch.header.generation)
-            || held_gen.is_some_and(|g| g > batch.header.generation)
-        {
+        let h = &batch.header;
+        let light_gen = self
+            .held
+            .range((h.light, 0, 0)..=(h.light, u32::MAX, u32::MAX))
+            .map(|(_, held)| held.generation)
+            .max();
+        if listed.is_some_and(|g| g > h.generation) || light_gen.is_some_and(|g| g > h.generation) {
             self.stats.stale += 1;
             return Inserted::Stale;
         }
+        let key = (h.light, h.pass, h.slot);
+        let held_gen = self.held.get(&key).map(|h| h.generation);
         self.held.insert(
             key,
             Held {
-                generation: batch.header.generation,
-                scene_time_s: batch.header.scene_time_s,
+                generation: h.generation,
+                scene_time_s: h.scene_time_s,
                 batch: batch.clone(),
                 photons: OnceLock::new(),
             },
         );
-        // The light now has `slots` batches: forget slots beyond them.
-        self.held
-            .retain(|&(l, s), _| l != batch.header.light || s < batch.header.slots);
+        // The light's refinement passes of older generations go (its first pass is
+        // replaced slot by slot, so a moving light never goes dark); its passes now have
+        // `slots` batches: forget slots beyond them.
+        self.held.retain(|&(l, p, s), held| {
+            l != h.light || (s < h.slots && (p == 0 || held.generation == h.generation))
+        });
         self.stats.accepted += 1;
         self.version += 1;
         self.refresh_validity();
@@ -157,8 +178,12 @@ impl PhotonSet {
             return;
         }
         let before = self.held.len();
-        self.held
-            .retain(|&(l, s), _| manifest.lights.iter().any(|m| m.light == l && s < m.slots));
+        self.held.retain(|&(l, p, s), _| {
+            manifest
+                .lights
+                .iter()
+                .any(|m| m.light == l && s < m.slots && p < m.passes.max(1))
+        });
         if self.held.len() != before {
             self.version += 1;
         }
@@ -172,10 +197,12 @@ impl PhotonSet {
             return;
         };
         let complete = m.lights.iter().all(|l| {
-            (0..l.slots).all(|s| {
-                self.held
-                    .get(&(l.light, s))
-                    .is_some_and(|h| h.generation >= l.generation)
+            (0..l.passes.max(1)).all(|p| {
+                (0..l.slots).all(|s| {
+                    self.held
+                        .get(&(l.light, p, s))
+                        .is_some_and(|h| h.generation >= l.generation)
+                })
             })
         });
         if complete && self.valid_as_of.is_none_or(|t| t < m.scene_time_s) {
@@ -188,9 +215,50 @@ impl PhotonSet {
         self.valid_as_of
     }
 
-    /// Every held photon (decoding batches not decoded yet).
-    pub fn photons(&self) -> impl Iterator<Item = &Photon> {
-        self.held.values().flat_map(|h| h.photons().iter())
+    /// The photons to draw (decoding batches not decoded yet): each light's first pass
+    /// (whatever of it is held, as the newest batch per slot) and its refinement passes
+    /// that are complete, up to the first that is not, with powers divided by the passes'
+    /// number and radii scaled by [`progressive_radius_scale`].
+    pub fn photons(&self) -> impl Iterator<Item = Photon> + '_ {
+        self.drawn().flat_map(|(passes, held)| {
+            let (power, radius) = (1.0 / passes as f32, progressive_radius_scale(passes));
+            held.into_iter().flat_map(move |h| {
+                h.photons().iter().map(move |p| Photon {
+                    power: p.power * power,
+                    radius: p.radius * radius,
+                    ..*p
+                })
+            })
+        })
+    }
+
+    /// Per light: its complete passes and their batches.
+    fn drawn(&self) -> impl Iterator<Item = (u32, Vec<&Held>)> + '_ {
+        let lights: std::collections::BTreeSet<u32> = self.held.keys().map(|k| k.0).collect();
+        lights.into_iter().filter_map(move |light| {
+            let mut passes = Vec::new();
+            for pass in 0.. {
+                let batches: Vec<&Held> = self
+                    .held
+                    .range((light, pass, 0)..=(light, pass, u32::MAX))
+                    .map(|(_, h)| h)
+                    .collect();
+                let slots = batches.first().map_or(0, |h| h.batch.header.slots);
+                if batches.is_empty() || (pass > 0 && batches.len() as u32 != slots) {
+                    break;
+                }
+                passes.push(batches);
+            }
+            let count = passes.len() as u32;
+            (count > 0).then(|| (count, passes.concat()))
+        })
+    }
+
+    /// Complete refinement passes drawn for `light` (0: none complete yet).
+    pub fn passes_of(&self, light: u32) -> u32 {
+        self.drawn()
+            .find(|(_, held)| held.first().is_some_and(|h| h.batch.header.light == light))
+            .map_or(0, |(passes, _)| passes)
     }
 
     /// Photons held.

@@ -4,7 +4,9 @@
 //! Phases of an iteration:
 //! 1. **Plan** ([`PhotonStream::plan`]): the lights at the scene time, photons per light
 //!    ([`BatchPlan`]), this iteration's splat radius, and which batches to trace: every batch
-//!    of a light that is new or changed (or of every light, with [`Retrace::Always`]).
+//!    of a light that is new or changed (or of every light, with [`Retrace::Always`]), and
+//!    one more refinement pass of a light that stands still, until it holds
+//!    [`PhotonSettings::passes`] of them (progressive photon mapping).
 //! 2. **Trace** ([`PhotonStream::trace`]): one batch, traced and packed; independent of the
 //!    stream's state, so a caller may run batches on any thread and send each when done.
 //! 3. **Commit** ([`PhotonStream::commit`]): a light's new batches replace its set; lights
@@ -45,10 +47,17 @@ pub struct LightSet {
     pub light: PhotonLight,
     /// Increases each time the light is traced again.
     pub generation: u64,
-    /// Its batches by slot.
-    pub batches: BTreeMap<u32, PackedBatch>,
+    /// Its batches by slot, one map per refinement pass (the first is pass 0).
+    pub passes: Vec<BTreeMap<u32, PackedBatch>>,
     /// When the set last went out (traced or re-sent).
     pub sent_at: Instant,
+}
+
+impl LightSet {
+    /// Every batch of every pass.
+    pub fn batches(&self) -> impl Iterator<Item = &PackedBatch> {
+        self.passes.iter().flat_map(|p| p.values())
+    }
 }
 
 /// One batch to trace.
@@ -62,6 +71,8 @@ pub struct BatchJob {
     pub slots: u32,
     /// The generation being traced.
     pub generation: u64,
+    /// Its refinement pass.
+    pub pass: u32,
 }
 
 /// What one iteration traces.
@@ -168,17 +179,24 @@ impl PhotonStream {
             let changed = current.is_none_or(|s| {
                 self.retrace == Retrace::Always
                     || s.light != *light
-                    || s.batches.len() as u32 != slots
+                    || s.passes.first().map_or(0, |p| p.len() as u32) != slots
             });
-            if !changed {
-                continue;
-            }
-            let generation = current.map_or(1, |s| s.generation + 1);
+            let (generation, pass) = match current {
+                Some(s) if !changed => {
+                    let held = s.passes.len() as u32;
+                    if held >= self.settings.passes.max(1) {
+                        continue;
+                    }
+                    (s.generation, held)
+                }
+                _ => (current.map_or(1, |s| s.generation + 1), 0),
+            };
             jobs.extend((0..slots).map(|slot| BatchJob {
                 light: index,
                 slot,
                 slots,
                 generation,
+                pass,
             }));
         }
         IterationPlan {
@@ -202,7 +220,8 @@ impl PhotonStream {
         let light = &plan.lights[job.light];
         let tracer = PhotonTracer::new(scene, bvh, plan.settings, &plan.plan, seed);
         let start = Instant::now();
-        let photons: Vec<Photon> = tracer.trace_batch(light, job.slot, job.slots, job.generation);
+        let photons: Vec<Photon> =
+            tracer.trace_pass(light, job.slot, job.slots, job.generation, job.pass);
         let trace_time = start.elapsed();
         let start = Instant::now();
         let batch = PackedBatch::pack(
@@ -211,6 +230,7 @@ impl PhotonStream {
                 slot: job.slot,
                 slots: job.slots,
                 generation: job.generation,
+                pass: job.pass,
                 scene_time_s: plan.t_s,
                 emitted: plan.plan.photons_per_batch(light.id),
             },
@@ -230,21 +250,31 @@ impl PhotonStream {
         self.seed
     }
 
-    /// Phase 3: `light`'s batches of `generation` are all traced; they replace its set
-    /// (sent at `now`).
+    /// Phase 3: `light`'s batches of `generation`, pass `pass`, are all traced (sent at
+    /// `now`): pass 0 replaces its set, a later pass of the same generation joins it.
     pub fn commit(
         &mut self,
         light: PhotonLight,
         generation: u64,
+        pass: u32,
         batches: BTreeMap<u32, PackedBatch>,
         now: Instant,
     ) {
+        if pass > 0
+            && let Some(set) = self.sets.get_mut(&light.id)
+            && set.generation == generation
+            && set.passes.len() as u32 == pass
+        {
+            set.passes.push(batches);
+            set.sent_at = now;
+            return;
+        }
         self.sets.insert(
             light.id,
             LightSet {
                 light,
                 generation,
-                batches,
+                passes: vec![batches],
                 sent_at: now,
             },
         );
@@ -261,7 +291,8 @@ impl PhotonStream {
                 .map(|s| ManifestLight {
                     light: s.light.id,
                     generation: s.generation,
-                    slots: s.batches.len() as u32,
+                    slots: s.passes.first().map_or(0, |p| p.len() as u32),
+                    passes: s.passes.len() as u32,
                 })
                 .collect(),
         }
@@ -275,7 +306,7 @@ impl PhotonStream {
             .filter(|s| now.saturating_duration_since(s.sent_at) >= period)
             .flat_map(|s| {
                 s.sent_at = now;
-                s.batches.values().cloned().collect::<Vec<_>>()
+                s.batches().cloned().collect::<Vec<_>>()
             })
             .collect()
     }
@@ -284,7 +315,7 @@ impl PhotonStream {
     pub fn footprint_bytes(&self) -> usize {
         self.sets
             .values()
-            .flat_map(|s| s.batches.values())
+            .flat_map(LightSet::batches)
             .map(|b| b.data.len())
             .sum()
     }
@@ -294,7 +325,7 @@ impl PhotonStream {
         let held: u64 = self
             .sets
             .values()
-            .flat_map(|s| s.batches.values())
+            .flat_map(LightSet::batches)
             .map(|b| u64::from(b.count))
             .sum();
         if held == 0 {
@@ -305,7 +336,7 @@ impl PhotonStream {
 
     /// Batches held.
     pub fn batch_count(&self) -> usize {
-        self.sets.values().map(|s| s.batches.len()).sum()
+        self.sets.values().flat_map(LightSet::batches).count()
     }
 
     /// One whole iteration on this thread: plan, trace every job, commit.
@@ -313,26 +344,22 @@ impl PhotonStream {
         let plan = self.plan(scene, bvh, t_s);
         let mut batches = Vec::with_capacity(plan.jobs.len());
         let (mut trace_time, mut pack_time, mut stored) = (Duration::ZERO, Duration::ZERO, 0);
-        let mut per_light: BTreeMap<usize, BTreeMap<u32, PackedBatch>> = BTreeMap::new();
+        let mut per_light: BTreeMap<(usize, u64, u32), BTreeMap<u32, PackedBatch>> =
+            BTreeMap::new();
         for job in &plan.jobs {
             let traced = Self::trace(scene, bvh, &plan, job, self.seed, self.format);
             trace_time += traced.trace_time;
             pack_time += traced.pack_time;
             stored += traced.stored;
             per_light
-                .entry(job.light)
+                .entry((job.light, job.generation, job.pass))
                 .or_default()
                 .insert(job.slot, traced.batch.clone());
             batches.push(traced.batch);
         }
         let now = Instant::now();
-        for (index, set) in per_light {
-            let generation = plan
-                .jobs
-                .iter()
-                .find(|j| j.light == index)
-                .map_or(1, |j| j.generation);
-            self.commit(plan.lights[index].clone(), generation, set, now);
+        for ((index, generation, pass), set) in per_light {
+            self.commit(plan.lights[index].clone(), generation, pass, set, now);
         }
         Iteration {
             radius: plan.radius_m(),

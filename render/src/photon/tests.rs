@@ -331,6 +331,7 @@ fn header() -> BatchHeader {
         slot: 1,
         slots: 4,
         generation: 9,
+        pass: 0,
         scene_time_s: 1.25,
         emitted: 1000,
     }
@@ -584,18 +585,113 @@ fn extremes_are_finite() {
 }
 
 fn batch(light: u32, slot: u32, slots: u32, generation: u64, t: f64) -> PackedBatch {
+    pass_batch(light, slot, slots, generation, 0, t)
+}
+
+fn pass_batch(
+    light: u32,
+    slot: u32,
+    slots: u32,
+    generation: u64,
+    pass: u32,
+    t: f64,
+) -> PackedBatch {
     PackedBatch::pack(
         BatchHeader {
             light,
             slot,
             slots,
             generation,
+            pass,
             scene_time_s: t,
             emitted: 10,
         },
-        &random_photons(10, generation * 100 + slot as u64),
+        &random_photons(10, generation * 100 + pass as u64 * 10 + slot as u64),
         PackFormat::Compact12,
     )
+}
+
+#[test]
+fn a_set_draws_a_still_lights_passes_together_and_a_change_resets_only_that_light() {
+    let mut set = PhotonSet::new();
+    let power = |set: &PhotonSet, light: u32| -> f32 {
+        // Photons are drawn light by light (10 per batch, 2 batches per pass).
+        let all: Vec<Photon> = set.photons().collect();
+        let mut out = 0.0;
+        let mut k = 0;
+        for (l, count) in [(1u32, set.passes_of(1) * 20), (2u32, set.passes_of(2) * 20)] {
+            let slice = &all[k..k + count as usize];
+            if l == light {
+                out = slice.iter().map(|p| p.power.x).sum();
+            }
+            k += count as usize;
+        }
+        out
+    };
+    // Two lights, two slots each; light 1 gets passes 0..3, light 2 passes 0..1.
+    for pass in 0..4 {
+        for slot in 0..2 {
+            set.insert(&pass_batch(1, slot, 2, 1, pass, 0.0));
+        }
+    }
+    for pass in 0..2 {
+        for slot in 0..2 {
+            set.insert(&pass_batch(2, slot, 2, 1, pass, 0.0));
+        }
+    }
+    assert_eq!((set.passes_of(1), set.passes_of(2)), (4, 2));
+    // Each pass carries its light's whole power: drawn together, the power is one pass's
+    // on average, and radii shrink by the progressive scale.
+    let mean_pass: f32 = (0..4)
+        .flat_map(|pass| (0..2).map(move |s| (pass, s)))
+        .flat_map(|(pass, s)| pass_batch(1, s, 2, 1, pass, 0.0).unpack().unwrap())
+        .map(|p| p.power.x)
+        .sum::<f32>()
+        / 4.0;
+    let drawn = power(&set, 1);
+    assert!(
+        (drawn / mean_pass - 1.0).abs() < 1e-4,
+        "{drawn} vs {mean_pass}"
+    );
+    let radius_first = pass_batch(1, 0, 2, 1, 0, 0.0).unpack().unwrap()[0].radius;
+    let radius_drawn = set.photons().next().unwrap().radius;
+    assert!(
+        (radius_drawn / radius_first - progressive_radius_scale(4)).abs() < 1e-4,
+        "{radius_drawn} vs {radius_first}"
+    );
+    assert!(progressive_radius_scale(4) < 0.85 && progressive_radius_scale(1) == 1.0);
+    // An incomplete pass is not drawn until its last slot arrives.
+    set.insert(&pass_batch(2, 0, 2, 1, 2, 0.0));
+    assert_eq!(set.passes_of(2), 2);
+    set.insert(&pass_batch(2, 1, 2, 1, 2, 0.0));
+    assert_eq!(set.passes_of(2), 3);
+    // Light 1 moves (generation 2): its refinement passes go at once, its first pass is
+    // replaced slot by slot (never dark); light 2 keeps its three passes.
+    set.insert(&pass_batch(1, 0, 2, 2, 0, 1.0));
+    assert_eq!((set.passes_of(1), set.passes_of(2)), (1, 3));
+    assert_eq!(set.photons().count(), 20 + 3 * 20);
+    // A late pass of the old generation is stale.
+    assert_eq!(set.insert(&pass_batch(1, 0, 2, 1, 3, 0.0)), Inserted::Stale);
+    // A manifest listing fewer passes drops the rest.
+    set.apply_manifest(Manifest {
+        iteration: 9,
+        scene_time_s: 1.0,
+        lights: vec![
+            ManifestLight {
+                light: 1,
+                generation: 2,
+                slots: 2,
+                passes: 1,
+            },
+            ManifestLight {
+                light: 2,
+                generation: 1,
+                slots: 2,
+                passes: 2,
+            },
+        ],
+    });
+    assert_eq!(set.passes_of(2), 2);
 }
 
 fn manifest(iteration: u64, t: f64, lights: &[(u32, u64, u32)]) -> Manifest {
@@ -608,6 +704,7 @@ fn manifest(iteration: u64, t: f64, lights: &[(u32, u64, u32)]) -> Manifest {
                 light,
                 generation,
                 slots,
+                passes: 1,
             })
             .collect(),
     }
@@ -664,17 +761,35 @@ fn a_stream_traces_again_only_the_lights_that_changed() {
     };
     scene.lights.push(lamp(0.2));
     let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
-    let settings = PhotonSettings::for_budget(&scene, 4000, 1000);
+    let settings = PhotonSettings {
+        passes: 3,
+        ..PhotonSettings::for_budget(&scene, 4000, 1000)
+    };
     let mut stream = PhotonStream::new(settings, PackFormat::Compact12, Retrace::Changed, 3);
     let first = stream.iterate(&scene, &bvh, 0.0);
     assert_eq!(first.batches.len() as u64, first.plan.total_batches());
     assert_eq!(stream.sets().len(), 2);
     assert!(stream.sets().values().all(|s| s.generation == 1));
-    // Nothing changed: nothing traced, the sets stay.
+    // Nothing changed: a refinement pass of every light per iteration (fresh photons, same
+    // generation and budget), until each holds `passes`; then nothing is traced.
+    for pass in 1..3u32 {
+        let refined = stream.iterate(&scene, &bvh, 0.5);
+        assert_eq!(refined.batches.len(), first.batches.len());
+        assert!(
+            refined
+                .batches
+                .iter()
+                .all(|b| b.header.pass == pass && b.header.generation == 1)
+        );
+        assert_ne!(
+            refined.batches[0].data, first.batches[0].data,
+            "fresh photons"
+        );
+    }
     let idle = stream.iterate(&scene, &bvh, 0.5);
     assert!(idle.batches.is_empty());
-    assert_eq!(stream.batch_count() as u64, first.plan.total_batches());
-    // The lamp moves: only its batches, at generation 2.
+    assert_eq!(stream.batch_count() as u64, 3 * first.plan.total_batches());
+    // The lamp moves: only its batches, at generation 2, pass 0; the other keeps its passes.
     scene.lights[0] = lamp(0.35);
     let moved = stream.iterate(&scene, &bvh, 1.0);
     let lamp_id = 0;
@@ -683,12 +798,18 @@ fn a_stream_traces_again_only_the_lights_that_changed() {
         moved
             .batches
             .iter()
-            .all(|b| b.header.light == lamp_id && b.header.generation == 2)
+            .all(|b| b.header.light == lamp_id && b.header.generation == 2 && b.header.pass == 0)
     );
-    let generations: Vec<u64> = stream.sets().values().map(|s| s.generation).collect();
-    assert_eq!(generations, vec![2, 1]);
+    let generations: Vec<(u64, usize)> = stream
+        .sets()
+        .values()
+        .map(|s| (s.generation, s.passes.len()))
+        .collect();
+    assert_eq!(generations, vec![(2, 1), (1, 3)]);
     let manifest = stream.manifest(1.0);
     assert_eq!(manifest.lights.len(), 2);
+    let passes: Vec<u32> = manifest.lights.iter().map(|l| l.passes).collect();
+    assert_eq!(passes, vec![1, 3]);
     // Re-sending: nothing is due before the period, everything after it, then not again.
     let now = std::time::Instant::now();
     assert!(
