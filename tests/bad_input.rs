@@ -41,13 +41,13 @@ address = "127.0.0.1:0"
 name = "batcher"
 kind = "photon_batcher"
 node = @node_ref@
-params = { photons = @photons@, batch_size = @batch_size@, bounces = @bounces@, photons_per_disk = @photons_per_disk@, radius_m = @radius_m@, interval_ms = @interval_ms@, resend_s = @resend_s@ }
+params = { photons = @photons@, batch_size = @batch_size@, bounces = @bounces@, photons_per_disk = @photons_per_disk@, radius_m = @radius_m@, interval_ms = @interval_ms@, resend_s = @resend_s@, passes = @passes@, format = @format@ }
 [[stage]]
 name = "viewer"
 kind = "photon_reconstructor"
 node = "client"
 replicas = @replicas@
-params = { width = @width@, height = @height@, fps = @fps@, camera = @camera@, write_every = @write_every@, light_samples = @light_samples@, shadow_size = @shadow_size@, downsample = @downsample@ }
+params = { width = @width@, height = @height@, fps = @fps@, camera = @camera@, write_every = @write_every@, light_samples = @light_samples@, shadow_size = @shadow_size@, downsample = @downsample@, levels = @levels@, min_texels = @min_texels@ }
 [[stage]]
 name = "probe"
 kind = "probe_source"
@@ -100,6 +100,8 @@ const KEYS: &[(&str, &str)] = &[
     ("radius_m", "0.1"),
     ("interval_ms", "33.0"),
     ("resend_s", "1.0"),
+    ("passes", "4"),
+    ("format", "\"compact8\""),
     ("replicas", "2"),
     ("width", "64"),
     ("height", "48"),
@@ -109,6 +111,8 @@ const KEYS: &[(&str, &str)] = &[
     ("light_samples", "2"),
     ("shadow_size", "256"),
     ("downsample", "2"),
+    ("levels", "4"),
+    ("min_texels", "2.0"),
     ("rate_hz", "10.0"),
     ("payload_bytes", "100"),
     ("work_ms", "1.0"),

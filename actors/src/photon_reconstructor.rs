@@ -11,7 +11,7 @@
 
 use std::sync::Arc;
 
-use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings};
+use cloudlight_render::photon::splat::{MAX_LEVELS, PhotonSplatPass, SplatSettings};
 use cloudlight_render::photon::{Inserted, Photon, PhotonSet};
 use cloudlight_render::raster::{Raster, RasterError};
 use cloudlight_runtime::{StageSetup, Stamped};
@@ -29,30 +29,53 @@ pub struct PhotonClientParams {
     /// Accumulation buffer downsampling per axis (1, 2 or 4).
     #[serde(default = "default_downsample")]
     pub downsample: u32,
+    /// Accumulation levels, each half the resolution of the one before (1 to 4): a photon
+    /// is splatted at the coarsest where its disk spans a few texels.
+    #[serde(default = "default_levels")]
+    pub levels: u32,
+    /// Least radius, in texels of its level, of a photon's disk (0.5 to 64): larger is
+    /// smoother and slower.
+    #[serde(default = "default_min_texels")]
+    pub min_texels: f32,
 }
 
 fn default_downsample() -> u32 {
     2
 }
 
+fn default_levels() -> u32 {
+    SplatSettings::default().levels
+}
+
+fn default_min_texels() -> f32 {
+    SplatSettings::default().min_texels
+}
+
 impl Default for PhotonClientParams {
     fn default() -> Self {
         PhotonClientParams {
             downsample: default_downsample(),
+            levels: default_levels(),
+            min_texels: default_min_texels(),
         }
     }
 }
 
 impl cloudlight_runtime::CheckParams for PhotonClientParams {
     fn check(&self) -> Result<(), String> {
-        if [1, 2, 4].contains(&self.downsample) {
-            Ok(())
-        } else {
-            Err(format!(
+        if ![1, 2, 4].contains(&self.downsample) {
+            return Err(format!(
                 "`downsample` = {} must be 1, 2 or 4",
                 self.downsample
-            ))
+            ));
         }
+        if !(1..=MAX_LEVELS).contains(&self.levels) {
+            return Err(format!(
+                "`levels` = {} must be 1 to {MAX_LEVELS}",
+                self.levels
+            ));
+        }
+        cloudlight_runtime::check_range("min_texels", self.min_texels as f64, 0.5, 64.0, "texels")
     }
 }
 
@@ -131,6 +154,8 @@ impl ClientTechnique for PhotonClient {
             raster,
             SplatSettings {
                 downsample: params.downsample,
+                levels: params.levels,
+                min_texels: params.min_texels,
                 ..Default::default()
             },
         )

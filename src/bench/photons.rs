@@ -48,6 +48,11 @@ pub struct PhotonOptions {
     /// Each photon's radius from the density of photons around it (false: the reference
     /// radius for all, as before issue 34).
     pub density_radius: bool,
+    /// The client's accumulation levels (1: every photon at `downsample`; see
+    /// [`SplatSettings::levels`]).
+    pub levels: u32,
+    /// Least radius in texels of a photon's disk at its level ([`SplatSettings::min_texels`]).
+    pub min_texels: f32,
 }
 
 impl Default for PhotonOptions {
@@ -60,6 +65,8 @@ impl Default for PhotonOptions {
             downsample: PhotonClientParams::default().downsample,
             photons_per_disk: PhotonSettings::default().photons_per_disk,
             density_radius: PhotonSettings::default().density_radius,
+            levels: SplatSettings::default().levels,
+            min_texels: SplatSettings::default().min_texels,
         }
     }
 }
@@ -93,6 +100,8 @@ impl Photons {
             client: frame,
             technique: PhotonClientParams {
                 downsample: o.downsample,
+                levels: o.levels,
+                min_texels: o.min_texels,
             },
         };
         Ok(params.to_table()?)
@@ -191,6 +200,8 @@ impl Technique for Photons {
         let photons = trace_iteration(scene, &bvh, 0.0, settings, 1, o.format).unpacked();
         let splat = SplatSettings {
             downsample: o.downsample,
+            levels: o.levels,
+            min_texels: o.min_texels,
             ..SplatSettings::default()
         };
         let mut bench = client_frame_with(raster, scene, &photons, splat, frame)?;
@@ -220,7 +231,7 @@ impl Technique for Photons {
         for (key, values) in sweep {
             if key != "photons" {
                 anyhow::bail!(
-                    "the photon quality sweep varies `photons` only (each budget in 12- and 20-byte packings), not `{key}`"
+                    "the photon quality sweep varies `photons` only (each budget in 8-, 12- and 20-byte packings), not `{key}`"
                 );
             }
             for v in values {
@@ -243,6 +254,8 @@ impl Technique for Photons {
             seed: common.seed,
             photons_per_disk: options.photons_per_disk,
             density_radius: options.density_radius,
+            levels: options.levels,
+            min_texels: options.min_texels,
         };
         let rows = quality(raster, scene, &o, out)?;
         Ok(
@@ -483,6 +496,10 @@ pub struct QualityOptions {
     pub photons_per_disk: f32,
     /// Per-photon density radii.
     pub density_radius: bool,
+    /// The client's accumulation levels.
+    pub levels: u32,
+    /// Least radius in texels of a photon's disk at its level.
+    pub min_texels: f32,
 }
 
 /// One point of the trade: a budget in one packing.
@@ -560,7 +577,11 @@ impl QualityView {
                 ..Default::default()
             },
             &it.unpacked(),
-            SplatSettings::default(),
+            SplatSettings {
+                levels: o.levels,
+                min_texels: o.min_texels,
+                ..SplatSettings::default()
+            },
         )?;
         let mask: Vec<bool> = (0..frame.indirect.len())
             .map(|i| frame.gbuffer.covered(i))

@@ -4,9 +4,11 @@
 // (Rgba32Float or Rgba16Float, irradiance × `scale.x` so that f16 stays in range); the
 // upsample writes indirect radiance as f32 bits.
 //
-// Splat: one screen-space quad per photon covering the projection of its sphere; each covered
-// pixel of the low-resolution accumulation buffer reads the full-resolution G-buffer at its
-// centre, keeps the photon only if the surface point lies within the photon's disk (flattened
+// Splat: one screen-space quad per photon covering the projection of its sphere, drawn into
+// one of up to four accumulation levels (each half the resolution of the one before): the
+// coarsest where the projected radius still spans `levels.y` texels (vertices 6l..6l+6 draw
+// level l; a photon of another level is culled). Each covered pixel of the level reads the
+// full-resolution G-buffer at its centre, keeps the photon only if the surface point lies within the photon's disk (flattened
 // along the surface normal) and faces the photon's arrival, and adds
 // Φ · κ(s) / N_κ(r) (cone kernel κ = 1 − s/r, N = π r² / 3): irradiance, W/m².
 
@@ -21,13 +23,18 @@ struct SplatParams {
     settings: vec4<f32>,
     // x: accumulation scale (accumulated = irradiance × x).
     scale: vec4<f32>,
+    // x: levels, y: least projected radius in texels of a photon's level.
+    levels: vec4<f32>,
 };
 
 @group(0) @binding(0) var<uniform> params: SplatParams;
 @group(0) @binding(1) var gpos: texture_2d<u32>;
 @group(0) @binding(2) var gnrm: texture_2d<u32>;
 @group(0) @binding(3) var galb: texture_2d<u32>;
-@group(0) @binding(4) var accum: texture_2d<f32>;
+@group(0) @binding(4) var accum0: texture_2d<f32>;
+@group(0) @binding(5) var accum1: texture_2d<f32>;
+@group(0) @binding(6) var accum2: texture_2d<f32>;
+@group(0) @binding(7) var accum3: texture_2d<f32>;
 
 struct PhotonIn {
     @location(0) position_radius: vec4<f32>,
@@ -40,6 +47,8 @@ struct SplatOut {
     @location(0) @interpolate(flat) position_radius: vec4<f32>,
     @location(1) @interpolate(flat) power: vec4<f32>,
     @location(2) @interpolate(flat) direction: vec4<f32>,
+    // x: the level's downsample factor.
+    @location(3) @interpolate(flat) level: vec4<f32>,
 };
 
 // The slopes x/depth of the two planes through the eye tangent to a sphere at (x, depth)
@@ -70,17 +79,27 @@ fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
         lo = vec2<f32>(bx.x, by.x);
         hi = vec2<f32>(bx.y, by.y);
     }
-    // Grow by one low-resolution pixel so that partly covered pixels are kept.
-    let pad = 2.0 / params.sizes.zw;
+    // The level: the coarsest whose texels the projected radius spans `levels.y` times
+    // (the smaller half-extent, in full-resolution pixels, over the level's factor).
+    let extent_px = (hi - lo) * 0.25 * params.sizes.xy;
+    let radius_px = min(extent_px.x, extent_px.y);
+    let ds = params.settings.x;
+    let fits = max(radius_px / (ds * params.levels.y), 1.0);
+    let level = u32(clamp(floor(log2(fits)), 0.0, params.levels.x - 1.0));
+    let level_ds = ds * f32(1u << level);
+    out.level = vec4<f32>(level_ds, 0.0, 0.0, 0.0);
+    // Grow by one pixel of the level so that partly covered pixels are kept.
+    let level_size = ceil(params.sizes.xy / level_ds);
+    let pad = 2.0 / level_size;
     lo = clamp(lo - pad, vec2<f32>(-1.0), vec2<f32>(1.0));
     hi = clamp(hi + pad, vec2<f32>(-1.0), vec2<f32>(1.0));
     // Two triangles: (0,0) (1,0) (0,1) (0,1) (1,0) (1,1).
     let corners = array<vec2<f32>, 6>(
         vec2<f32>(0.0, 0.0), vec2<f32>(1.0, 0.0), vec2<f32>(0.0, 1.0),
         vec2<f32>(0.0, 1.0), vec2<f32>(1.0, 0.0), vec2<f32>(1.0, 1.0));
-    let t = corners[vi];
+    let t = corners[vi % 6u];
     out.clip = vec4<f32>(mix(lo, hi, t), 0.5, 1.0);
-    if (hi.x <= lo.x || hi.y <= lo.y || r <= 0.0) {
+    if (hi.x <= lo.x || hi.y <= lo.y || r <= 0.0 || level != vi / 6u) {
         out.clip = vec4<f32>(2.0, 2.0, 2.0, 1.0);
     }
     return out;
@@ -100,16 +119,15 @@ fn albedo_at(px: vec2<i32>) -> vec3<f32> {
     return vec3<f32>(unpack2x16float(v.x), unpack2x16float(v.y).x);
 }
 
-// The full-resolution texel that stands for low-resolution pixel `lp`.
-fn full_texel(lp: vec2<i32>) -> vec2<i32> {
-    let ds = i32(params.settings.x);
+// The full-resolution texel that stands for pixel `lp` of a level `ds` times smaller.
+fn full_texel(lp: vec2<i32>, ds: i32) -> vec2<i32> {
     let full = vec2<i32>(params.sizes.xy) - vec2<i32>(1);
     return min(lp * ds + vec2<i32>(ds / 2), full);
 }
 
 @fragment
 fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
-    let px = full_texel(vec2<i32>(in.clip.xy));
+    let px = full_texel(vec2<i32>(in.clip.xy), i32(in.level.x));
     let g = position_at(px);
     if (g.w < 0.5) {
         discard;
@@ -136,22 +154,23 @@ fn vs_full(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
     return vec4<f32>(uv * 2.0 - 1.0, 0.0, 1.0);
 }
 
-// Joint-bilateral upsample of the accumulated irradiance to full resolution, times ρ/π:
-// indirect radiance. Taps: the four nearest low-resolution pixels, weighted bilinearly ×
-// exp(−|plane distance| / σ) × max(0, n·n')^p; the nearest tap in plane distance is the
-// fallback when every weight vanishes.
-@fragment
-fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
-    let px = vec2<i32>(frag.xy);
-    let g = position_at(px);
-    if (g.w < 0.5) {
-        return vec4<u32>(0u);
+fn accum_at(level: u32, t: vec2<i32>) -> vec3<f32> {
+    switch level {
+        case 0u: { return textureLoad(accum0, t, 0).rgb; }
+        case 1u: { return textureLoad(accum1, t, 0).rgb; }
+        case 2u: { return textureLoad(accum2, t, 0).rgb; }
+        default: { return textureLoad(accum3, t, 0).rgb; }
     }
-    let n = normal_at(px);
-    let albedo = albedo_at(px);
-    let ds = params.settings.x;
-    let low = vec2<i32>(params.sizes.zw) - vec2<i32>(1);
-    let lp = (frag.xy) / ds - vec2<f32>(0.5);
+}
+
+// Joint-bilateral upsample of one level's accumulated irradiance at full-resolution pixel
+// `frag` (position `g`, normal `n`). Taps: the four nearest pixels of the level, weighted
+// bilinearly × exp(−|plane distance| / σ) × max(0, n·n')^p; the nearest tap in plane
+// distance is the fallback when every weight vanishes.
+fn upsample_level(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    let ds = params.settings.x * f32(1u << level);
+    let low = vec2<i32>(ceil(params.sizes.xy / ds)) - vec2<i32>(1);
+    let lp = frag / ds - vec2<f32>(0.5);
     let base = vec2<i32>(floor(lp));
     let f = lp - floor(lp);
     var sum = vec3<f32>(0.0);
@@ -161,13 +180,14 @@ fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     for (var k = 0u; k < 4u; k = k + 1u) {
         let o = vec2<i32>(i32(k & 1u), i32(k >> 1u));
         let t = clamp(base + o, vec2<i32>(0), low);
-        let tg = position_at(full_texel(t));
+        let full = full_texel(t, i32(ds));
+        let tg = position_at(full);
         if (tg.w < 0.5) {
             continue;
         }
-        let tn = normal_at(full_texel(t));
-        let e = textureLoad(accum, t, 0).rgb;
-        let plane = abs(dot(tg.xyz - g.xyz, n));
+        let tn = normal_at(full);
+        let e = accum_at(level, t);
+        let plane = abs(dot(tg.xyz - g, n));
         let bw = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1);
         let w = bw * exp(-plane / params.settings.z) * pow(max(dot(n, tn), 0.0), params.settings.w);
         sum += w * e;
@@ -178,9 +198,25 @@ fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
             best = e;
         }
     }
-    var irradiance = best;
     if (wsum > 1e-4) {
-        irradiance = sum / wsum;
+        return sum / wsum;
+    }
+    return best;
+}
+
+// The levels' irradiance summed, times ρ/π: indirect radiance.
+@fragment
+fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
+    let px = vec2<i32>(frag.xy);
+    let g = position_at(px);
+    if (g.w < 0.5) {
+        return vec4<u32>(0u);
+    }
+    let n = normal_at(px);
+    let albedo = albedo_at(px);
+    var irradiance = vec3<f32>(0.0);
+    for (var level = 0u; level < u32(params.levels.x); level = level + 1u) {
+        irradiance += upsample_level(level, frag.xy, g.xyz, n);
     }
     return bitcast<vec4<u32>>(vec4<f32>(albedo / 3.14159265 * irradiance / params.scale.x, 1.0));
 }

@@ -35,7 +35,9 @@ fn uniform_field(e0: f32, h: f32) -> Vec<crate::photon::Photon> {
 fn splatting_a_uniform_field_gives_its_irradiance() {
     // Photons on a jittered grid over a floor carry a uniform irradiance E0; the splat must
     // return ρ/π·E0 (a kernel/normalisation mismatch — πr² with a cone — is a 3× error).
-    // Photons leaving the surface (travelling up) add nothing.
+    // Photons leaving the surface (travelling up) add nothing. At 192² a disk's radius is
+    // ~12 px: with levels, photons go to the buffer 4× smaller than the frame (3 texels),
+    // which must give the same irradiance.
     on_every_backend(|raster| {
         let mut mesh = cloudlight_scenes::Mesh::default();
         let (a, b) = (Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, 2.0));
@@ -65,8 +67,8 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
         };
         let (e0, h) = (2.0f32, 0.02f32);
         let photons = uniform_field(e0, h);
-        let (w, hgt) = (64u32, 64u32);
-        for downsample in [1, 2] {
+        let (w, hgt) = (192u32, 192u32);
+        for (downsample, levels) in [(1, 1), (2, 1), (2, 4), (1, 4)] {
             let frame = super::photon_frame(
                 raster,
                 &scene,
@@ -79,24 +81,25 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
                 &photons,
                 SplatSettings {
                     downsample,
+                    levels,
                     ..Default::default()
                 },
             )
             .unwrap();
             let expect = Vec3::new(e0, e0 * 0.5, e0 * 0.25) * 0.5 / std::f32::consts::PI;
-            let inner: Vec<Vec3> = (8..56)
-                .flat_map(|y| (8..56).map(move |x| (y, x)))
+            let inner: Vec<Vec3> = (24..168)
+                .flat_map(|y| (24..168).map(move |x| (y, x)))
                 .map(|(y, x)| frame.indirect[(y * w + x) as usize])
                 .collect();
             let mean = inner.iter().copied().sum::<Vec3>() / inner.len() as f32;
             assert!(
                 ((mean / expect) - Vec3::ONE).abs().max_element() < 0.03,
-                "downsample {downsample}: mean {mean} vs {expect}"
+                "downsample {downsample}, levels {levels}: mean {mean} vs {expect}"
             );
             for v in &inner {
                 assert!(
                     ((*v / expect) - Vec3::ONE).abs().max_element() < 0.15,
-                    "downsample {downsample}: pixel {v} vs {expect}"
+                    "downsample {downsample}, levels {levels}: pixel {v} vs {expect}"
                 );
             }
             assert!(frame.direct.iter().all(|d| *d == Vec3::ZERO));
