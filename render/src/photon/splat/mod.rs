@@ -6,7 +6,11 @@
 //! at the scale of a disk, so each photon goes to the coarsest of [`SplatSettings::levels`]
 //! buffers (each half the resolution of the one before) where its disk still spans
 //! [`SplatSettings::min_texels`] texels of radius: a disk costs about the same wherever it
-//! lies and however large it is. The upsample sums the levels, each bilaterally. The photons are uploaded once per set
+//! lies and however large it is. Each level first gets a *guide* (each texel's surface point
+//! and normal, read from the G-buffer once a frame, so a splat reads one small texel); the
+//! levels are then folded, coarsest first, into the next finer one by a bilateral upsample
+//! at that level's resolution, and only the finest is upsampled to the frame. Passes in a
+//! frame: guides, splats (one per level), folds, upsample. The photons are uploaded once per set
 //! ([`PhotonSplatPass::set_photons`]), not once per frame. The pass owns its pipelines
 //! ([`SplatPipelines`], built once per device); the shared raster knows nothing of photons.
 
@@ -30,11 +34,14 @@ struct SplatPhoton {
     direction: [f32; 4],
 }
 
-/// The splat pipeline (instanced quads, additive into the accumulation buffer) and the
-/// upsample pipeline, sharing one layout.
+/// The guide pipeline (each level's surface from the G-buffer), the splat pipeline
+/// (instanced quads, additive into a level), the collapse pipeline (a level folded into the
+/// next finer one, additive) and the upsample pipeline, sharing one layout.
 struct SplatPipelines {
     layout: wgpu::BindGroupLayout,
+    guide: wgpu::RenderPipeline,
     splat: wgpu::RenderPipeline,
+    collapse: wgpu::RenderPipeline,
     upsample: wgpu::RenderPipeline,
 }
 
@@ -55,9 +62,8 @@ impl SplatPipelines {
                 texture_entry(2, FRAGMENT, UINT, D2),
                 texture_entry(3, FRAGMENT, UINT, D2),
                 texture_entry(4, FRAGMENT, ACCUM, D2),
-                texture_entry(5, FRAGMENT, ACCUM, D2),
-                texture_entry(6, FRAGMENT, ACCUM, D2),
-                texture_entry(7, FRAGMENT, ACCUM, D2),
+                texture_entry(5, FRAGMENT, UINT, D2),
+                texture_entry(6, FRAGMENT, UINT, D2),
             ],
         );
         let pipeline_layout = pipeline_layout(device, "splat", &layout);
@@ -80,6 +86,7 @@ impl SplatPipelines {
                 })],
             },
             primitive: wgpu::PrimitiveState {
+                topology: wgpu::PrimitiveTopology::TriangleStrip,
                 cull_mode: None,
                 ..Default::default()
             },
@@ -109,9 +116,47 @@ impl SplatPipelines {
             ("vs_full", "fs_upsample"),
             formats.exact4,
         );
+        let guide = fullscreen_pipeline(
+            device,
+            "splat guide",
+            &pipeline_layout,
+            &shader,
+            ("vs_full", "fs_guide"),
+            formats.exact4,
+        );
+        let collapse = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("splat collapse"),
+            layout: Some(&pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some("vs_full"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: Default::default(),
+            depth_stencil: None,
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some("fs_collapse"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: formats.accum,
+                    blend: Some(wgpu::BlendState {
+                        color: additive,
+                        alpha: additive,
+                    }),
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
         SplatPipelines {
             layout,
+            guide,
             splat,
+            collapse,
             upsample,
         }
     }
@@ -119,7 +164,7 @@ impl SplatPipelines {
 
 const ACCUM: wgpu::TextureSampleType = wgpu::TextureSampleType::Float { filterable: false };
 
-/// Most accumulation levels (bindings 4–7 of `splat.wgsl`).
+/// Most accumulation levels.
 pub const MAX_LEVELS: u32 = 4;
 
 /// Splatting settings.
@@ -134,7 +179,7 @@ pub struct SplatSettings {
     /// this many texels. `bench quality --technique photons --width 640 --height 360 --spp
     /// 256`, Cornell, 10k / 40k photons: relMSE 0.0530 / 0.0409 in one level, 0.0504 /
     /// 0.0394 with 3 texels, 0.0478 / 0.0393 with 2 (the error is mostly noise, which the
-    /// coarser levels smooth); `bench client` indirect pass 152 → 62 → 54 ms.
+    /// coarser levels smooth); 1.5 was no faster.
     pub min_texels: f32,
     /// A surface point farther than `flatten × r` from a photon's plane along its own
     /// normal does not receive it (keeps light from leaking around corners and thin walls).
@@ -182,7 +227,14 @@ struct SplatTargets {
     renderer_id: u64,
     /// One per level (1×1 stand-ins beyond `levels`).
     accum: Vec<Target>,
-    splat: wgpu::BindGroup,
+    /// Each level's surfaces (1×1 stand-ins beyond `levels`).
+    guides: Vec<Target>,
+    /// Bind groups: writing the guides (the G-buffer only), splatting into level l (its
+    /// guide), folding level l + 1 into l (its buffer and guide, and l's guide), upsampling
+    /// level 0.
+    guide: wgpu::BindGroup,
+    splat: Vec<wgpu::BindGroup>,
+    collapse: Vec<wgpu::BindGroup>,
     upsample: wgpu::BindGroup,
     low: (u32, u32),
     levels: u32,
@@ -284,21 +336,30 @@ impl PhotonSplatPass {
             .as_ref()
             .is_none_or(|t| t.renderer_id != ctx.renderer_id || t.low != low || t.levels != levels)
         {
-            let accum: Vec<Target> = (0..MAX_LEVELS)
-                .map(|l| {
-                    let (w, h) = if l < levels {
-                        let f = ds << l;
-                        (ctx.width.div_ceil(f).max(1), ctx.height.div_ceil(f).max(1))
-                    } else {
-                        (1, 1)
-                    };
-                    Target::new(raster, "photon accumulation", w, h, raster.formats().accum)
-                })
-                .collect();
-            // The splat pass reads no accumulation (it writes it): bind stand-ins there.
-            let stand_in = Target::new(raster, "unused", 1, 1, raster.formats().accum);
+            let level_targets = |label: &str, format| -> Vec<Target> {
+                (0..MAX_LEVELS)
+                    .map(|l| {
+                        let (w, h) = if l < levels {
+                            let f = ds << l;
+                            (ctx.width.div_ceil(f).max(1), ctx.height.div_ceil(f).max(1))
+                        } else {
+                            (1, 1)
+                        };
+                        Target::new(raster, label, w, h, format)
+                    })
+                    .collect()
+            };
+            let formats = raster.formats();
+            let accum = level_targets("photon accumulation", formats.accum);
+            let guides = level_targets("photon guide", formats.exact4);
+            // A pass never reads what it writes: stand-ins there.
+            let stand_in = Target::new(raster, "unused", 1, 1, formats.accum);
+            let guide_stand_in = Target::new(raster, "unused", 1, 1, formats.exact4);
             let g = ctx.gbuffer;
-            let bind = |accum_views: [&wgpu::TextureView; 4]| {
+            // (the level read: buffer, guide; the guide of the level written)
+            let bind = |src_accum: &wgpu::TextureView,
+                        src_guide: &wgpu::TextureView,
+                        dst_guide: &wgpu::TextureView| {
                 let tex = |binding, view| wgpu::BindGroupEntry {
                     binding,
                     resource: wgpu::BindingResource::TextureView(view),
@@ -314,18 +375,27 @@ impl PhotonSplatPass {
                         tex(1, &g.position.view),
                         tex(2, &g.normal.view),
                         tex(3, &g.albedo.view),
-                        tex(4, accum_views[0]),
-                        tex(5, accum_views[1]),
-                        tex(6, accum_views[2]),
-                        tex(7, accum_views[3]),
+                        tex(4, src_accum),
+                        tex(5, src_guide),
+                        tex(6, dst_guide),
                     ],
                 })
             };
+            let (none, no_guide) = (&stand_in.view, &guide_stand_in.view);
+            let splat = (0..MAX_LEVELS as usize)
+                .map(|l| bind(none, no_guide, &guides[l].view))
+                .collect();
+            let collapse = (0..MAX_LEVELS as usize - 1)
+                .map(|l| bind(&accum[l + 1].view, &guides[l + 1].view, &guides[l].view))
+                .collect();
             self.targets = Some(SplatTargets {
                 renderer_id: ctx.renderer_id,
-                splat: bind([&stand_in.view; 4]),
-                upsample: bind([0, 1, 2, 3].map(|l| &accum[l].view)),
+                guide: bind(none, no_guide, no_guide),
+                splat,
+                collapse,
+                upsample: bind(&accum[0].view, &guides[0].view, no_guide),
                 accum,
+                guides,
                 low,
                 levels,
             });
@@ -393,15 +463,43 @@ impl IndirectPass for PhotonSplatPass {
             .queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         let t = self.targets.as_ref().expect("made above");
+        // Vertices 3·l .. 3·l + 3 of a full-screen pass (4·l .. 4·l + 4 of a splat) tell the
+        // shader which level it works on.
         for level in 0..t.levels {
-            // Vertices 6·level .. 6·level + 6 tell the shader which level it draws.
+            let mut pass = clear_pass(enc, "splat guide", &t.guides[level as usize].view);
+            pass.set_pipeline(&self.pipelines.guide);
+            pass.set_bind_group(0, &t.guide, &[]);
+            pass.draw(3 * level..3 * level + 3, 0..1);
+        }
+        for level in 0..t.levels {
             let mut pass = clear_pass(enc, "splat", &t.accum[level as usize].view);
             if let (Some(buf), true) = (&self.photons, count > 0) {
                 pass.set_pipeline(&self.pipelines.splat);
-                pass.set_bind_group(0, &t.splat, &[]);
+                pass.set_bind_group(0, &t.splat[level as usize], &[]);
                 pass.set_vertex_buffer(0, buf.slice(..));
-                pass.draw(6 * level..6 * level + 6, 0..count);
+                pass.draw(4 * level..4 * level + 4, 0..count);
             }
+        }
+        for into in (0..t.levels - 1).rev() {
+            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("splat collapse"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &t.accum[into as usize].view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Load,
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: None,
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_pipeline(&self.pipelines.collapse);
+            pass.set_bind_group(0, &t.collapse[into as usize], &[]);
+            pass.draw(3 * into..3 * into + 3, 0..1);
         }
         let mut pass = clear_pass(enc, "upsample", ctx.indirect);
         pass.set_pipeline(&self.pipelines.upsample);

@@ -6,7 +6,7 @@
 //
 // Splat: one screen-space quad per photon covering the projection of its sphere, drawn into
 // one of up to four accumulation levels (each half the resolution of the one before): the
-// coarsest where the projected radius still spans `levels.y` texels (vertices 6l..6l+6 draw
+// coarsest where the projected radius still spans `levels.y` texels (vertices 4l..4l+4 draw
 // level l; a photon of another level is culled). Each covered pixel of the level reads the
 // full-resolution G-buffer at its centre, keeps the photon only if the surface point lies within the photon's disk (flattened
 // along the surface normal) and faces the photon's arrival, and adds
@@ -31,10 +31,13 @@ struct SplatParams {
 @group(0) @binding(1) var gpos: texture_2d<u32>;
 @group(0) @binding(2) var gnrm: texture_2d<u32>;
 @group(0) @binding(3) var galb: texture_2d<u32>;
-@group(0) @binding(4) var accum0: texture_2d<f32>;
-@group(0) @binding(5) var accum1: texture_2d<f32>;
-@group(0) @binding(6) var accum2: texture_2d<f32>;
-@group(0) @binding(7) var accum3: texture_2d<f32>;
+// The level a pass reads (its accumulation and guide) and the guide of the level it writes;
+// each pass binds its own. A guide holds each texel's surface point (f32 bits) and normal
+// (octahedral, 2 × 16-bit unorm, lowest bit set; 0 where the texel sees no geometry), read
+// from the G-buffer once a frame.
+@group(0) @binding(4) var src_accum: texture_2d<f32>;
+@group(0) @binding(5) var src_guide: texture_2d<u32>;
+@group(0) @binding(6) var dst_guide: texture_2d<u32>;
 
 struct PhotonIn {
     @location(0) position_radius: vec4<f32>,
@@ -47,7 +50,7 @@ struct SplatOut {
     @location(0) @interpolate(flat) position_radius: vec4<f32>,
     @location(1) @interpolate(flat) power: vec4<f32>,
     @location(2) @interpolate(flat) direction: vec4<f32>,
-    // x: the level's downsample factor.
+    // x: the level's downsample factor, y: the level.
     @location(3) @interpolate(flat) level: vec4<f32>,
 };
 
@@ -87,19 +90,17 @@ fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
     let fits = max(radius_px / (ds * params.levels.y), 1.0);
     let level = u32(clamp(floor(log2(fits)), 0.0, params.levels.x - 1.0));
     let level_ds = ds * f32(1u << level);
-    out.level = vec4<f32>(level_ds, 0.0, 0.0, 0.0);
-    // Grow by one pixel of the level so that partly covered pixels are kept.
+    out.level = vec4<f32>(level_ds, f32(level), 0.0, 0.0);
+    // Grow by half a pixel of the level: a pixel is shaded at its centre's surface, and a
+    // centre just outside the sphere's bounds can still lie on its (flattened) disk.
     let level_size = ceil(params.sizes.xy / level_ds);
-    let pad = 2.0 / level_size;
+    let pad = 1.0 / level_size;
     lo = clamp(lo - pad, vec2<f32>(-1.0), vec2<f32>(1.0));
     hi = clamp(hi + pad, vec2<f32>(-1.0), vec2<f32>(1.0));
-    // Two triangles: (0,0) (1,0) (0,1) (0,1) (1,0) (1,1).
-    let corners = array<vec2<f32>, 6>(
-        vec2<f32>(0.0, 0.0), vec2<f32>(1.0, 0.0), vec2<f32>(0.0, 1.0),
-        vec2<f32>(0.0, 1.0), vec2<f32>(1.0, 0.0), vec2<f32>(1.0, 1.0));
-    let t = corners[vi % 6u];
+    // A strip of two triangles: (0,0) (1,0) (0,1) (1,1).
+    let t = vec2<f32>(f32(vi & 1u), f32((vi >> 1u) & 1u));
     out.clip = vec4<f32>(mix(lo, hi, t), 0.5, 1.0);
-    if (hi.x <= lo.x || hi.y <= lo.y || r <= 0.0 || level != vi / 6u) {
+    if (hi.x <= lo.x || hi.y <= lo.y || r <= 0.0 || level != vi / 4u) {
         out.clip = vec4<f32>(2.0, 2.0, 2.0, 1.0);
     }
     return out;
@@ -127,14 +128,13 @@ fn full_texel(lp: vec2<i32>, ds: i32) -> vec2<i32> {
 
 @fragment
 fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
-    let px = full_texel(vec2<i32>(in.clip.xy), i32(in.level.x));
-    let g = position_at(px);
-    if (g.w < 0.5) {
+    let surface = surface_of(textureLoad(dst_guide, vec2<i32>(in.clip.xy), 0));
+    if (!surface.covered) {
         discard;
     }
-    let n = normal_at(px);
+    let n = surface.normal;
     let r = in.position_radius.w;
-    let delta = g.xyz - in.position_radius.xyz;
+    let delta = surface.position - in.position_radius.xyz;
     let dn = dot(delta, n);
     if (abs(dn) > params.settings.y * r) {
         discard;
@@ -148,25 +148,69 @@ fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
     return vec4<f32>(in.power.rgb * (kappa / norm * params.scale.x), 1.0);
 }
 
-@vertex
-fn vs_full(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
-    let uv = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u));
-    return vec4<f32>(uv * 2.0 - 1.0, 0.0, 1.0);
-}
+struct Surface {
+    position: vec3<f32>,
+    normal: vec3<f32>,
+    covered: bool,
+};
 
-fn accum_at(level: u32, t: vec2<i32>) -> vec3<f32> {
-    switch level {
-        case 0u: { return textureLoad(accum0, t, 0).rgb; }
-        case 1u: { return textureLoad(accum1, t, 0).rgb; }
-        case 2u: { return textureLoad(accum2, t, 0).rgb; }
-        default: { return textureLoad(accum3, t, 0).rgb; }
+fn oct_encode(n: vec3<f32>) -> vec2<f32> {
+    let p = n.xy / (abs(n.x) + abs(n.y) + abs(n.z));
+    if (n.z < 0.0) {
+        return (vec2<f32>(1.0) - abs(p.yx)) * select(vec2<f32>(-1.0), vec2<f32>(1.0), p >= vec2<f32>(0.0));
     }
+    return p;
 }
 
-// Joint-bilateral upsample of one level's accumulated irradiance at full-resolution pixel
-// `frag` (position `g`, normal `n`). Taps: the four nearest pixels of the level, weighted
-// bilinearly × exp(−|plane distance| / σ) × max(0, n·n')^p; the nearest tap in plane
-// distance is the fallback when every weight vanishes.
+fn oct_decode(e: vec2<f32>) -> vec3<f32> {
+    var n = vec3<f32>(e, 1.0 - abs(e.x) - abs(e.y));
+    if (n.z < 0.0) {
+        n = vec3<f32>((vec2<f32>(1.0) - abs(n.yx)) * select(vec2<f32>(-1.0), vec2<f32>(1.0), n.xy >= vec2<f32>(0.0)), n.z);
+    }
+    return normalize(n);
+}
+
+fn surface_of(v: vec4<u32>) -> Surface {
+    var s: Surface;
+    s.covered = v.w != 0u;
+    s.position = bitcast<vec3<f32>>(v.xyz);
+    s.normal = oct_decode(unpack2x16unorm(v.w) * 2.0 - vec2<f32>(1.0));
+    return s;
+}
+
+struct FullOut {
+    @builtin(position) clip: vec4<f32>,
+    // x: the level the pass works on (vertices 3l .. 3l + 3 draw level l).
+    @location(0) @interpolate(flat) level: vec4<u32>,
+};
+
+@vertex
+fn vs_full(@builtin(vertex_index) vi: u32) -> FullOut {
+    let i = vi % 3u;
+    let uv = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u));
+    var out: FullOut;
+    out.clip = vec4<f32>(uv * 2.0 - 1.0, 0.0, 1.0);
+    out.level = vec4<u32>(vi / 3u, 0u, 0u, 0u);
+    return out;
+}
+
+// The guide of one level: each texel's surface from the full-resolution G-buffer.
+@fragment
+fn fs_guide(in: FullOut) -> @location(0) vec4<u32> {
+    let ds = i32(params.settings.x) << in.level.x;
+    let px = full_texel(vec2<i32>(in.clip.xy), ds);
+    let g = position_at(px);
+    if (g.w < 0.5) {
+        return vec4<u32>(0u);
+    }
+    let e = oct_encode(normal_at(px)) * 0.5 + vec2<f32>(0.5);
+    return vec4<u32>(bitcast<vec3<u32>>(g.xyz), pack2x16unorm(e) | 1u);
+}
+
+// Joint-bilateral upsample of the irradiance of level `level` (`src_accum`, `src_guide`) at
+// a point (`frag`, in full-resolution pixels; surface `g`, `n`). Taps: the four nearest pixels of the level,
+// weighted bilinearly × exp(−|plane distance| / σ) × max(0, n·n')^p; the nearest tap in
+// plane distance is the fallback when every weight vanishes.
 fn upsample_level(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     let ds = params.settings.x * f32(1u << level);
     let low = vec2<i32>(ceil(params.sizes.xy / ds)) - vec2<i32>(1);
@@ -180,19 +224,18 @@ fn upsample_level(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> ve
     for (var k = 0u; k < 4u; k = k + 1u) {
         let o = vec2<i32>(i32(k & 1u), i32(k >> 1u));
         let t = clamp(base + o, vec2<i32>(0), low);
-        let full = full_texel(t, i32(ds));
-        let tg = position_at(full);
-        if (tg.w < 0.5) {
+        let tap = surface_of(textureLoad(src_guide, t, 0));
+        if (!tap.covered) {
             continue;
         }
-        let tn = normal_at(full);
-        let e = accum_at(level, t);
-        let plane = abs(dot(tg.xyz - g, n));
+        let e = textureLoad(src_accum, t, 0).rgb;
+        let plane = abs(dot(tap.position - g, n));
+        let cosine = max(dot(n, tap.normal), 0.0);
         let bw = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1);
-        let w = bw * exp(-plane / params.settings.z) * pow(max(dot(n, tn), 0.0), params.settings.w);
+        let w = bw * exp(-plane / params.settings.z) * pow(cosine, params.settings.w);
         sum += w * e;
         wsum += w;
-        let d = plane + (1.0 - dot(n, tn));
+        let d = plane + (1.0 - cosine);
         if (d < best_d) {
             best_d = d;
             best = e;
@@ -204,7 +247,23 @@ fn upsample_level(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> ve
     return best;
 }
 
-// The levels' irradiance summed, times ρ/π: indirect radiance.
+// Folds level l + 1 into level l (l = the pass's level), at level l's resolution: the
+// coarse levels reach full resolution through one upsample.
+@fragment
+fn fs_collapse(in: FullOut) -> @location(0) vec4<f32> {
+    let level = in.level.x;
+    let surface = surface_of(textureLoad(dst_guide, vec2<i32>(in.clip.xy), 0));
+    if (!surface.covered) {
+        discard;
+    }
+    let ds = params.settings.x * f32(1u << level);
+    // The full-resolution point this texel stands for (its centre texel, as the guide).
+    let frag = vec2<f32>(full_texel(vec2<i32>(in.clip.xy), i32(ds))) + vec2<f32>(0.5);
+    return vec4<f32>(upsample_level(level + 1u, frag, surface.position, surface.normal), 0.0);
+}
+
+// Level 0 (holding the coarser levels, folded in) at full resolution, times ρ/π: indirect
+// radiance.
 @fragment
 fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     let px = vec2<i32>(frag.xy);
@@ -212,11 +271,6 @@ fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     if (g.w < 0.5) {
         return vec4<u32>(0u);
     }
-    let n = normal_at(px);
-    let albedo = albedo_at(px);
-    var irradiance = vec3<f32>(0.0);
-    for (var level = 0u; level < u32(params.levels.x); level = level + 1u) {
-        irradiance += upsample_level(level, frag.xy, g.xyz, n);
-    }
-    return bitcast<vec4<u32>>(vec4<f32>(albedo / 3.14159265 * irradiance / params.scale.x, 1.0));
+    let irradiance = upsample_level(0u, frag.xy, g.xyz, normal_at(px));
+    return bitcast<vec4<u32>>(vec4<f32>(albedo_at(px) / 3.14159265 * irradiance / params.scale.x, 1.0));
 }
