@@ -22,7 +22,8 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
         photons_per_disk: cloudlight::render::photon::PhotonSettings::default().photons_per_disk,
         density_radius: true,
         levels: 4,
-        min_texels: 2.0,
+        min_texels: 3.0,
+        passes: 1,
     };
     let base = cloudlight::scenes::builtin("cornell").unwrap();
     let rows: Vec<QualityRow> = [1.0f32, 1e-6, 1e6]

@@ -523,6 +523,8 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
             "32",
             "--height",
             "32",
+            "--set",
+            "passes=3",
             "--out",
         ])
         .arg(&quality)
@@ -530,6 +532,24 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
         .unwrap();
     ok(&out);
     let report = read_json(quality.join("quality.json"));
+    // Passes 1, 2 and 3 of the first budget while the scene stands still.
+    let progressive = report["progressive"].as_array().unwrap();
+    let passes: Vec<u64> = progressive
+        .iter()
+        .map(|p| p["passes"].as_u64().unwrap())
+        .collect();
+    assert_eq!(passes, vec![1, 2, 3]);
+    for p in progressive {
+        assert!(p["errors"]["relmse"].as_f64().unwrap().is_finite(), "{p}");
+    }
+    let photons: Vec<u64> = progressive
+        .iter()
+        .map(|p| p["photons"].as_u64().unwrap())
+        .collect();
+    assert!(
+        photons[2] > photons[1] && photons[1] > photons[0],
+        "{photons:?}"
+    );
     for row in report["rows"].as_array().unwrap() {
         for packing in ["eight", "twelve", "twenty"] {
             let p = &row[packing];

@@ -53,6 +53,9 @@ pub struct PhotonOptions {
     pub levels: u32,
     /// Least radius in texels of a photon's disk at its level ([`SplatSettings::min_texels`]).
     pub min_texels: f32,
+    /// Refinement passes of a still light (progressive photon mapping); `bench quality`
+    /// measures the error pass by pass when above 1.
+    pub passes: u32,
 }
 
 impl Default for PhotonOptions {
@@ -67,6 +70,7 @@ impl Default for PhotonOptions {
             density_radius: PhotonSettings::default().density_radius,
             levels: SplatSettings::default().levels,
             min_texels: SplatSettings::default().min_texels,
+            passes: PhotonSettings::default().passes,
         }
     }
 }
@@ -87,6 +91,7 @@ impl Photons {
             resend_s: 0.0,
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
+            passes: o.passes,
             format: o.format.name().into(),
             ..BatcherParams::default()
         };
@@ -256,6 +261,7 @@ impl Technique for Photons {
             density_radius: options.density_radius,
             levels: options.levels,
             min_texels: options.min_texels,
+            passes: options.passes,
         };
         let rows = quality(raster, scene, &o, out)?;
         Ok(
@@ -500,6 +506,9 @@ pub struct QualityOptions {
     pub levels: u32,
     /// Least radius in texels of a photon's disk at its level.
     pub min_texels: f32,
+    /// Above 1: the first budget is also measured pass by pass while its lights stand
+    /// still, up to this many passes (progressive photon mapping).
+    pub passes: u32,
 }
 
 /// One point of the trade: a budget in one packing.
@@ -627,6 +636,126 @@ impl QualityView {
     }
 }
 
+/// The error after a number of progressive passes of a still scene.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProgressivePoint {
+    /// Passes drawn.
+    pub passes: u32,
+    /// Scene time they took at the update rate, seconds (passes / rate).
+    pub scene_time_s: f64,
+    /// Photons drawn.
+    pub photons: usize,
+    /// Bytes sent so far, kB.
+    pub kbytes: f64,
+    /// Errors against the reference.
+    pub errors: ImageErrors,
+}
+
+impl QualityView {
+    /// The scene standing still at time 0, `photons` per iteration: after each pass the
+    /// batcher sends (up to `o.passes`), the client's set drawn with its progressive radii
+    /// and compared with the reference; measured after 1, 2, 4, … passes and the last.
+    pub fn progressive(
+        &self,
+        raster: &Raster,
+        photons: u64,
+        o: &QualityOptions,
+    ) -> anyhow::Result<Vec<ProgressivePoint>> {
+        use cloudlight_render::photon::{PhotonSet, PhotonStream, Retrace};
+        let settings = PhotonSettings {
+            photons_per_disk: o.photons_per_disk,
+            density_radius: o.density_radius,
+            passes: o.passes,
+            ..PhotonSettings::for_budget(
+                &self.scene,
+                photons,
+                o.batch_size.min(photons as u32).max(1),
+            )
+        };
+        let mut stream =
+            PhotonStream::new(settings, PackFormat::Compact8, Retrace::Changed, o.seed);
+        let mut set = PhotonSet::new();
+        let (mut points, mut bytes) = (Vec::new(), 0usize);
+        for pass in 1..=o.passes {
+            let it = stream.iterate(&self.scene, &self.bvh, 0.0);
+            bytes += it.data_bytes();
+            for b in &it.batches {
+                set.insert(b);
+            }
+            set.apply_manifest(stream.manifest(0.0));
+            if !(pass.is_power_of_two() || pass == o.passes) {
+                continue;
+            }
+            let drawn: Vec<Photon> = set.photons().collect();
+            let frame = photon_frame(
+                raster,
+                &self.scene,
+                self.bvh.triangles(),
+                &[],
+                &self.camera,
+                o.width,
+                o.height,
+                ShadowSettings {
+                    size: 16,
+                    ..Default::default()
+                },
+                &drawn,
+                SplatSettings {
+                    levels: o.levels,
+                    min_texels: o.min_texels,
+                    ..SplatSettings::default()
+                },
+            )?;
+            let mask: Vec<bool> = (0..frame.indirect.len())
+                .map(|i| frame.gbuffer.covered(i))
+                .collect();
+            let errors = compare(&frame.indirect, &self.reference, &mask, o.width, o.height);
+            eprintln!(
+                "{pass} passes: {} photons, relMSE {:.4}, energy {:.3}",
+                drawn.len(),
+                errors.relmse,
+                errors.energy_ratio
+            );
+            points.push(ProgressivePoint {
+                passes: pass,
+                scene_time_s: pass as f64 / o.rate_hz,
+                photons: drawn.len(),
+                kbytes: bytes as f64 / 1e3,
+                errors,
+            });
+        }
+        Ok(points)
+    }
+}
+
+/// The progressive table.
+pub fn progressive_markdown(points: &[ProgressivePoint], photons: u64) -> String {
+    let mut t = Markdown::new(&[
+        "passes",
+        "scene time s",
+        "photons drawn",
+        "KB sent",
+        "relMSE",
+        "HDR-FLIP",
+        "energy ours / reference",
+    ]);
+    for p in points {
+        t.row(vec![
+            p.passes.to_string(),
+            format!("{:.2}", p.scene_time_s),
+            p.photons.to_string(),
+            format!("{:.0}", p.kbytes),
+            format!("{:.4}", p.errors.relmse),
+            format!("{:.3}", p.errors.flip),
+            format!("{:.3}", p.errors.energy_ratio),
+        ]);
+    }
+    format!(
+        "Still scene, {photons} photons an iteration (progressive photon mapping):\n\n{}",
+        t.render()
+    )
+}
+
 /// The quality table.
 pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
     let mut t = Markdown::new(&[
@@ -689,6 +818,14 @@ pub fn quality(
         rows.push(row);
     }
     println!("{}", quality_markdown(&rows, o.rate_hz));
+    let progressive = match (o.passes > 1, o.budgets.first()) {
+        (true, Some(&photons)) => {
+            let points = view.progressive(raster, photons, o)?;
+            println!("{}", progressive_markdown(&points, photons));
+            points
+        }
+        _ => Vec::new(),
+    };
     println!(
         "relMSE of the client's indirect radiance ({}x{}) against the path tracer's indirect image ({} spp) of the same \
          view and time, both divided by the reference's mean luminance over pixels that see geometry (ε = 0.01 of that \
@@ -701,7 +838,7 @@ pub fn quality(
         paper::PHOTON_OPERATING_POINT.1
     );
     let report = serde_json::json!({ "technique": "photons", "scene": scene_spec, "options": o,
-        "reference_seconds": view.reference_s, "rows": rows });
+        "reference_seconds": view.reference_s, "rows": rows, "progressive": progressive });
     let json = out.join("quality.json");
     std::fs::write(&json, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("writing {}", json.display()))?;

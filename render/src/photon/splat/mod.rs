@@ -176,10 +176,11 @@ pub struct SplatSettings {
     /// [`MAX_LEVELS`]; 1: every photon in the finest buffer).
     pub levels: u32,
     /// A photon goes to the coarsest level where its disk's projected radius spans at least
-    /// this many texels. `bench quality --technique photons --width 640 --height 360 --spp
-    /// 256`, Cornell, 10k / 40k photons: relMSE 0.0530 / 0.0409 in one level, 0.0504 /
-    /// 0.0394 with 3 texels, 0.0478 / 0.0393 with 2 (the error is mostly noise, which the
-    /// coarser levels smooth); 1.5 was no faster.
+    /// this many texels. Cornell box, 10k photons (`bench quality`, relMSE; `bench client`,
+    /// indirect pass at 640×360 on lavapipe): one level 0.0426 at 128², 0.0530 at 640×360,
+    /// 152 ms; 3 texels 0.0415, 0.0490, 42 ms; 2 texels 0.0536, 0.0463, 32 ms (coarse
+    /// levels smooth noise, but in a small frame they are too coarse for the box's edges:
+    /// at 2.5k photons and 128², 0.071 → 0.105).
     pub min_texels: f32,
     /// A surface point farther than `flatten × r` from a photon's plane along its own
     /// normal does not receive it (keeps light from leaking around corners and thin walls).
@@ -196,7 +197,7 @@ impl Default for SplatSettings {
         SplatSettings {
             downsample: 2,
             levels: MAX_LEVELS,
-            min_texels: 2.0,
+            min_texels: 3.0,
             flatten: 0.3,
             depth_sigma: 0.005,
             normal_power: 8.0,
