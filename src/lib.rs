@@ -1,7 +1,7 @@
 //! CloudLight-rs: indirect lighting computed on cloud nodes and streamed to clients.
 //!
 //! This library re-exports the workspace crates and holds the benchmark harness above them
-//! ([`bench`], with its plots in [`plot`]); the `cloudlight` binary is the command-line face,
+//! ([`bench`](mod@bench), with its plots in [`plot`]); the `cloudlight` binary is the command-line face,
 //! which only parses and prints. See the README for the commands and the topology format.
 
 pub mod bench;

@@ -3,7 +3,7 @@
 //! At start it voxelizes the scene (depth from `max_depth` and `budget_mb`, the static
 //! objects once). Every `interval_ms` it takes the octree at the current scene time (the
 //! moving objects voxelized again), injects the direct light of every light into the
-//! leaves with ray-traced shadows ([`inject`]), adding the previous update's gathered
+//! leaves with ray-traced shadows ([`inject`](fn@cloudlight_render::voxel::inject)), adding the previous update's gathered
 //! irradiance from `cone_tracer` (its `bounce` output, when wired back: one more bounce
 //! per update), and sends the leaves' anisotropic radiance with the octree to
 //! `octree_filter`.

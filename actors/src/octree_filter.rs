@@ -1,6 +1,6 @@
 //! `octree_filter`: the second stage of the voxel technique's GI node (CloudLight §4.1):
 //! each inner voxel's anisotropic radiance and opacity from its children, composited front
-//! to back per direction ([`filter`]), for every update `light_injector` sends.
+//! to back per direction ([`filter`](fn@cloudlight_render::voxel::filter)), for every update `light_injector` sends.
 //!
 //! Ports: in [`IN`] (InjectedMsg, `latest`: a newer update supersedes one not yet
 //! filtered), out [`OUT`] (FilteredMsg).

@@ -1,5 +1,5 @@
 //! The photon technique's benchmarks: its [`Technique`] descriptor, the paper's Table 2 rows
-//! ([`table2`]), the client's frame ([`client_frame`]) and the speed/accuracy sweep over
+//! ([`table2_column`]), the client's frame ([`client_frame`]) and the speed/accuracy sweep over
 //! photon budgets ([`quality`]).
 
 use std::path::Path;

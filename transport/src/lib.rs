@@ -13,7 +13,7 @@
 //! - [`driver`]: the I/O thread: one per node socket, driving laminar's `manual_poll` with
 //!   no fixed sleep (it waits on socket readiness, timers and a waker), bridged to tokio.
 //!
-//! - [`bench`]: two drivers on loopback through the emulator, and a plain UDP blast as the
+//! - [`bench`](mod@bench): two drivers on loopback through the emulator, and a plain UDP blast as the
 //!   ceiling (`cloudlight bench transport`).
 //!
 //! This crate moves opaque, already-encoded edge messages; it never knows about lighting,

@@ -275,7 +275,7 @@ impl SceneBvh {
     }
 
     /// Closest hits of `rays` into `out` (as long), on this thread. The BVH8 traverses
-    /// groups of [`wide::STREAM`] rays together ([`WideBvh::intersect_stream`]): the rays
+    /// groups of 64 (`STREAM`) rays together ([`WideBvh::intersect_stream`]): the rays
     /// of each direction octant, in the order given; order rays so that neighbours share
     /// their paths.
     pub fn closest_hits_into(&self, rays: &[RayQuery], out: &mut [Option<Hit>]) {

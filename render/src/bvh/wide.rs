@@ -445,7 +445,7 @@ pub struct WideRay {
 
 impl WideBvh {
     /// Builds over `tris` top-down with the binned SAH, eight children per node
-    /// ([`build`]).
+    /// (`build`).
     pub fn build(tris: &[Triangle]) -> Self {
         let build::Built {
             nodes,
@@ -506,11 +506,11 @@ impl WideBvh {
         }
     }
 
-    /// The closest hits of `rays` (`out[i]` for `rays[i]`), [`STREAM`] at a time. A group
-    /// whose origins lie within [`STREAM_SPREAD`] of the scene is traversed together: each
+    /// The closest hits of `rays` (`out[i]` for `rays[i]`), `STREAM` at a time. A group
+    /// whose origins lie within `STREAM_SPREAD` of the scene is traversed together: each
     /// node is tested for every ray still active in it, and a node's boxes are loaded once
     /// for all of them (camera rays, a photon batch's first segments, gather bundles).
-    /// Groups spread wider share no path and go [`TURNS`] rays at a time taking turns
+    /// Groups spread wider share no path and go `TURNS` rays at a time taking turns
     /// ([`Self::intersect_many`]). Measured on city:250000, one thread: bounce rays from
     /// neighbouring pixels 1.4x as fast in streams as one at a time; random rays 0.8-0.9x in
     /// streams, 1.2x taking turns.
@@ -543,7 +543,7 @@ impl WideBvh {
     }
 
     /// The hits of `rays` (`out[i]` for `rays[i]`: the closest, or with `any` the first
-    /// found), [`TURNS`] rays at a time taking turns node by node: for rays that share no
+    /// found), `TURNS` rays at a time taking turns node by node: for rays that share no
     /// path (random rays, photon paths, shadow rays from scattered points).
     pub fn intersect_many(&self, rays: &[WideRay], any: bool, out: &mut [Option<WideHit>]) {
         assert_eq!(rays.len(), out.len(), "one output per ray");
@@ -562,7 +562,7 @@ impl WideBvh {
         }
     }
 
-    /// Whether the origins of `rays` spread over more than [`STREAM_SPREAD`] of the scene,
+    /// Whether the origins of `rays` spread over more than `STREAM_SPREAD` of the scene,
     /// and whether every direction lies in the first one's octant.
     #[inline(always)]
     fn group(&self, rays: &[WideRay]) -> (bool, bool) {
@@ -582,7 +582,7 @@ impl WideBvh {
         (spread, uniform)
     }
 
-    /// Up to [`STREAM`] rays traversed together (see [`Self::intersect_stream`]); `uniform`:
+    /// Up to `STREAM` rays traversed together (see [`Self::intersect_stream`]); `uniform`:
     /// whether their directions all lie in one octant.
     #[inline(always)]
     fn stream<S: pulp::Simd>(
@@ -935,7 +935,7 @@ impl WideBvh {
     }
 
     /// The hits of `rays` (`out[i]` for `rays[i]`; with `ANY`, the first hit found), traversed
-    /// [`TURNS`] at a time taking turns: each ray visits one node or leaf, asks the cache for
+    /// `TURNS` at a time taking turns: each ray visits one node or leaf, asks the cache for
     /// the next, and waits for it while the others take their turns. Rays that share no
     /// path (random rays, photon paths after a few bounces) spend most of their time waiting
     /// on a node or block from memory (perf: the first load of each is the kernel's top

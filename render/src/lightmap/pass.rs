@@ -3,7 +3,7 @@
 //! full-screen pass looks it up through the G-buffer's light-map UVs with bilinear filtering
 //! and writes ρ/π · E (see `lookup.wgsl`). Pixels whose geometry has no light-map UV, and
 //! every pixel before the first map, get no indirect light. The pass owns its pipeline
-//! ([`LookupPipelines`], built once per device).
+//! (`LookupPipelines`, built once per device).
 
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 

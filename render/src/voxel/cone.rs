@@ -1,8 +1,8 @@
 //! Cone tracing per voxel (CloudLight §4.1 step 3): from each leaf's two sides, a few wide
-//! cones march through the filtered octree ([`super::filter`]) and gather the irradiance
+//! cones march through the filtered octree ([`super::filter`](fn@super::filter)) and gather the irradiance
 //! that the lit voxels send toward the leaf. The result is view-independent (one
 //! irradiance per side of each leaf), so one gather serves every client; fed back into
-//! [`super::inject`] it adds a bounce per update.
+//! [`super::inject`](fn@super::inject) it adds a bounce per update.
 //!
 //! A cone of half-angle θ at distance t covers a disc of diameter 2t·tan θ and samples the
 //! level whose voxels are that size (between two levels, the two are blended), so far light

@@ -8,8 +8,8 @@
 //! - [`Voxelizer`]: the octree of a scene at any time, its depth chosen from the scene's
 //!   surface and a memory budget, the static objects voxelized once and only moving ones
 //!   again;
-//! - [`inject`]: direct light into the leaves, as anisotropic radiance (six directions);
-//! - [`filter`]: inner levels from their children, composited front to back per direction;
+//! - [`inject`](mod@inject): direct light into the leaves, as anisotropic radiance (six directions);
+//! - [`filter`](mod@filter): inner levels from their children, composited front to back per direction;
 //! - [`cone`]: per leaf, cones through the filtered levels gather the indirect irradiance on
 //!   each side (view-independent; fed back into the injection for another bounce).
 

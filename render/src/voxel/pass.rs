@@ -2,7 +2,7 @@
 //! when the irradiance changes ([`VoxelPass::set_volume`]) as an `Rgba16Float` 3D texture,
 //! and each frame a full-screen pass looks it up at every pixel's world position and normal
 //! with trilinear filtering and writes ρ/π · E (see `lookup.wgsl`). Before the first volume
-//! every pixel gets no indirect light. The pass owns its pipeline ([`LookupPipelines`],
+//! every pixel gets no indirect light. The pass owns its pipeline (`LookupPipelines`,
 //! built once per device).
 
 use crate::raster::pass::{CachedBindGroup, draw_fullscreen, lookup_bind_group};

@@ -154,7 +154,7 @@ impl Plan {
         }
     }
 
-    /// Checks every stage's parameters against the loaded scene ([`StageKind::check_scene`]),
+    /// Checks every stage's parameters against the loaded scene ([`StageKind::check_scene`](crate::StageKind::check_scene)),
     /// each problem naming file:line:key.
     pub fn check_scene(
         &self,

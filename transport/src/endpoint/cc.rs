@@ -54,8 +54,8 @@ pub enum Phase {
     Drain,
     /// Cruising at the measured rate, probing for more every eighth round trip.
     ProbeBw,
-    /// The minimum round trip was not seen again for [`RTPROP_FOR`]: four packets in flight
-    /// for [`PROBE_RTT_FOR`] and a round, so that the queue drains and the path's round trip
+    /// The minimum round trip was not seen again for `RTPROP_FOR`: four packets in flight
+    /// for `PROBE_RTT_FOR` and a round, so that the queue drains and the path's round trip
     /// is measured afresh (flows sharing a queue do this together, and each then sees the
     /// empty path instead of the queue the others keep).
     ProbeRtt,

@@ -2,7 +2,7 @@
 //! moves datagrams ([`Endpoint::handle_datagram`], [`Endpoint::poll_transmit`]) and wakes it
 //! at [`Endpoint::poll_timeout`]. One endpoint serves one node socket and all its peers.
 //!
-//! - **Handshake** (three messages, see [`handshake`]): the initiator's HELLO carries a fresh
+//! - **Handshake** (three messages, see `handshake`): the initiator's HELLO carries a fresh
 //!   nonce; the responder's CHALLENGE echoes it with a fresh nonce of its own; the
 //!   initiator's CONFIRM echoes that. Each carries the cluster id, both names, the sender's
 //!   topology digest and clock epoch, and an HMAC under the shared secret over all of it, so

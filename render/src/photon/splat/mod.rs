@@ -12,7 +12,7 @@
 //! at that level's resolution, and only the finest is upsampled to the frame. Passes in a
 //! frame: guides, splats (one per level), folds, upsample. The photons are uploaded once per set
 //! ([`PhotonSplatPass::set_photons`]), not once per frame. The pass owns its pipelines
-//! ([`SplatPipelines`], built once per device); the shared raster knows nothing of photons.
+//! (`SplatPipelines`, built once per device); the shared raster knows nothing of photons.
 
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 
