@@ -573,29 +573,7 @@ impl QualityView {
             )
         };
         let it = trace_iteration(&self.scene, &self.bvh, 0.0, settings, o.seed, format);
-        let frame = photon_frame(
-            raster,
-            &self.scene,
-            self.bvh.triangles(),
-            &[],
-            &self.camera,
-            o.width,
-            o.height,
-            ShadowSettings {
-                size: 16,
-                ..Default::default()
-            },
-            &it.unpacked(),
-            SplatSettings {
-                levels: o.levels,
-                min_texels: o.min_texels,
-                ..SplatSettings::default()
-            },
-        )?;
-        let mask: Vec<bool> = (0..frame.indirect.len())
-            .map(|i| frame.gbuffer.covered(i))
-            .collect();
-        let errors = compare(&frame.indirect, &self.reference, &mask, o.width, o.height);
+        let (errors, indirect) = self.client_errors(raster, &it.unpacked(), o)?;
         let update_ms = (it.trace_time + it.pack_time).as_secs_f64() * 1000.0;
         let bytes = it.data_bytes() as f64;
         let rate = o.rate_hz.min(1000.0 / update_ms.max(1e-3));
@@ -611,7 +589,41 @@ impl QualityView {
             mbps: bytes * 8.0 * rate / 1e6,
             errors,
         };
-        Ok((point, frame.indirect))
+        Ok((point, indirect))
+    }
+
+    /// The client's indirect light of `photons` (its splat as `o` sets it) against the
+    /// reference: the errors and the image.
+    fn client_errors(
+        &self,
+        raster: &Raster,
+        photons: &[Photon],
+        o: &QualityOptions,
+    ) -> anyhow::Result<(ImageErrors, Vec<Vec3>)> {
+        let frame = photon_frame(
+            raster,
+            &self.scene,
+            self.bvh.triangles(),
+            &[],
+            &self.camera,
+            o.width,
+            o.height,
+            ShadowSettings {
+                size: 16,
+                ..Default::default()
+            },
+            photons,
+            SplatSettings {
+                levels: o.levels,
+                min_texels: o.min_texels,
+                ..SplatSettings::default()
+            },
+        )?;
+        let mask: Vec<bool> = (0..frame.indirect.len())
+            .map(|i| frame.gbuffer.covered(i))
+            .collect();
+        let errors = compare(&frame.indirect, &self.reference, &mask, o.width, o.height);
+        Ok((errors, frame.indirect))
     }
 
     /// One budget in the three packings; the 8-byte (default) client image too.
@@ -687,29 +699,7 @@ impl QualityView {
                 continue;
             }
             let drawn: Vec<Photon> = set.photons().collect();
-            let frame = photon_frame(
-                raster,
-                &self.scene,
-                self.bvh.triangles(),
-                &[],
-                &self.camera,
-                o.width,
-                o.height,
-                ShadowSettings {
-                    size: 16,
-                    ..Default::default()
-                },
-                &drawn,
-                SplatSettings {
-                    levels: o.levels,
-                    min_texels: o.min_texels,
-                    ..SplatSettings::default()
-                },
-            )?;
-            let mask: Vec<bool> = (0..frame.indirect.len())
-                .map(|i| frame.gbuffer.covered(i))
-                .collect();
-            let errors = compare(&frame.indirect, &self.reference, &mask, o.width, o.height);
+            let (errors, _) = self.client_errors(raster, &drawn, o)?;
             eprintln!(
                 "{pass} passes: {} photons, relMSE {:.4}, energy {:.3}",
                 drawn.len(),

@@ -100,8 +100,21 @@ pub(crate) fn fullscreen_pipeline(
     label: &str,
     layout: &wgpu::PipelineLayout,
     shader: &wgpu::ShaderModule,
+    entries: (&str, &str),
+    format: wgpu::TextureFormat,
+) -> wgpu::RenderPipeline {
+    blended_fullscreen_pipeline(device, label, layout, shader, entries, format, None)
+}
+
+/// [`fullscreen_pipeline`] blending into its target with `blend`.
+pub(crate) fn blended_fullscreen_pipeline(
+    device: &wgpu::Device,
+    label: &str,
+    layout: &wgpu::PipelineLayout,
+    shader: &wgpu::ShaderModule,
     (vs, fs): (&str, &str),
     format: wgpu::TextureFormat,
+    blend: Option<wgpu::BlendState>,
 ) -> wgpu::RenderPipeline {
     device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
         label: Some(label),
@@ -121,7 +134,7 @@ pub(crate) fn fullscreen_pipeline(
             compilation_options: Default::default(),
             targets: &[Some(wgpu::ColorTargetState {
                 format,
-                blend: None,
+                blend,
                 write_mask: wgpu::ColorWrites::ALL,
             })],
         }),

@@ -18,7 +18,8 @@ use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 
 use super::Photon;
 use crate::raster::pipelines::{
-    D2, FRAGMENT, UINT, buffer_entry, fullscreen_pipeline, layout, pipeline_layout, texture_entry,
+    D2, FRAGMENT, UINT, blended_fullscreen_pipeline, buffer_entry, fullscreen_pipeline, layout,
+    pipeline_layout, texture_entry,
 };
 use crate::raster::targets::clear_pass;
 use crate::raster::{
@@ -124,34 +125,18 @@ impl SplatPipelines {
             ("vs_full", "fs_guide"),
             formats.exact4,
         );
-        let collapse = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("splat collapse"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some("vs_full"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: Default::default(),
-            depth_stencil: None,
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some("fs_collapse"),
-                compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: formats.accum,
-                    blend: Some(wgpu::BlendState {
-                        color: additive,
-                        alpha: additive,
-                    }),
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
+        let collapse = blended_fullscreen_pipeline(
+            device,
+            "splat collapse",
+            &pipeline_layout,
+            &shader,
+            ("vs_full", "fs_collapse"),
+            formats.accum,
+            Some(wgpu::BlendState {
+                color: additive,
+                alpha: additive,
             }),
-            multiview_mask: None,
-            cache: None,
-        });
+        );
         SplatPipelines {
             layout,
             guide,

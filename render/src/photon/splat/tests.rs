@@ -107,6 +107,70 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
     });
 }
 
+/// The Cornell box at time 0 seen by its camera at 64², with the path tracer's indirect
+/// image (2048 spp) to compare client frames with.
+struct CornellView {
+    scene: cloudlight_scenes::Scene,
+    tris: Vec<cloudlight_scenes::WorldTriangle>,
+    bvh: SceneBvh,
+    camera: cloudlight_scenes::Camera,
+    reference: Vec<Vec3>,
+}
+
+const VIEW: u32 = 64;
+
+impl CornellView {
+    fn new() -> Self {
+        let scene = cloudlight_scenes::builtin("cornell").unwrap();
+        let tris = scene.triangles_at(0.0);
+        let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
+        let camera = scene.cameras[0].camera;
+        let settings = crate::reference::RenderSettings {
+            width: VIEW,
+            height: VIEW,
+            camera,
+            time_s: 0.0,
+            seed: 21,
+            max_bounces: 64,
+        };
+        let reference = crate::reference::render(&scene, &bvh, settings, 2048).indirect();
+        CornellView {
+            scene,
+            tris,
+            bvh,
+            camera,
+            reference,
+        }
+    }
+
+    /// The client's indirect image of `photons` and its scale-invariant errors.
+    fn errors(
+        &self,
+        raster: &crate::raster::Raster,
+        photons: &[crate::photon::Photon],
+    ) -> (crate::metrics::ImageErrors, Vec<Vec3>) {
+        let frame = super::photon_frame(
+            raster,
+            &self.scene,
+            &self.tris,
+            &[],
+            &self.camera,
+            VIEW,
+            VIEW,
+            ShadowSettings::default(),
+            photons,
+            SplatSettings::default(),
+        )
+        .unwrap();
+        assert!(frame.indirect.iter().all(|v| v.is_finite()));
+        let mask: Vec<bool> = (0..(VIEW * VIEW) as usize)
+            .map(|i| frame.gbuffer.covered(i))
+            .collect();
+        let e = crate::metrics::compare(&frame.indirect, &self.reference, &mask, VIEW, VIEW);
+        (e, frame.indirect)
+    }
+}
+
 #[test]
 fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
     // Cornell box, indirect only, 64²: relMSE against the path tracer's indirect image must
@@ -115,50 +179,17 @@ fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
     // 160k photons: 0.107 / 0.079 / 0.056 / 0.043 with one radius per iteration and 40
     // photons per disk; 0.072 / 0.046 / 0.031 / 0.023 with density radii (160 per disk).
     use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
+    let view = CornellView::new();
     on_every_backend(|raster| {
-        let scene = cloudlight_scenes::builtin("cornell").unwrap();
-        let tris = scene.triangles_at(0.0);
-        let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
-        let camera = scene.cameras[0].camera;
-        let (w, h) = (64u32, 64u32);
-        let settings = crate::reference::RenderSettings {
-            width: w,
-            height: h,
-            camera,
-            time_s: 0.0,
-            seed: 21,
-            max_bounces: 64,
-        };
-        let reference = crate::reference::render(&scene, &bvh, settings, 2048).indirect();
         let mut errors = Vec::new();
         for photons in [2_500u64, 10_000, 40_000, 160_000] {
-            let s = PhotonSettings::for_budget(&scene, photons, 10_000.min(photons as u32));
-            let it = trace_iteration(&scene, &bvh, 0.0, s, 3, PackFormat::Compact12);
-            let frame = super::photon_frame(
-                raster,
-                &scene,
-                &tris,
-                &[],
-                &camera,
-                w,
-                h,
-                ShadowSettings::default(),
-                &it.unpacked(),
-                SplatSettings::default(),
-            )
-            .unwrap();
-            assert!(frame.indirect.iter().all(|v| v.is_finite()));
+            let s = PhotonSettings::for_budget(&view.scene, photons, 10_000.min(photons as u32));
+            let it = trace_iteration(&view.scene, &view.bvh, 0.0, s, 3, PackFormat::Compact12);
             // The scale-invariant figures (what benchmarks report) and, as before, relMSE
             // with an absolute ε (radiance in watts: it reads ~25× lower).
-            let mask: Vec<bool> = (0..(w * h) as usize)
-                .map(|i| frame.gbuffer.covered(i))
-                .collect();
-            let e = crate::metrics::compare(&frame.indirect, &reference, &mask, w, h);
-            let absolute = crate::metrics::relmse(
-                &frame.indirect,
-                &reference,
-                crate::metrics::REL_MSE_EPSILON,
-            );
+            let (e, indirect) = view.errors(raster, &it.unpacked());
+            let absolute =
+                crate::metrics::relmse(&indirect, &view.reference, crate::metrics::REL_MSE_EPSILON);
             eprintln!(
                 "{photons} photons: {} stored, radius {:.4} m, relMSE {:.4} (absolute ε: {absolute:.5}), energy {:.3}",
                 it.stored, it.radius, e.relmse, e.energy_ratio
@@ -260,24 +291,12 @@ fn progressive_passes_converge_while_the_light_stands_still() {
     // the bounds.
     use crate::photon::stream::{PhotonStream, Retrace};
     use crate::photon::{PackFormat, PhotonSet, PhotonSettings};
+    let view = CornellView::new();
+    let (scene, bvh) = (&view.scene, &view.bvh);
     on_every_backend(|raster| {
-        let scene = cloudlight_scenes::builtin("cornell").unwrap();
-        let tris = scene.triangles_at(0.0);
-        let bvh = SceneBvh::build(tris.clone(), BvhKind::default());
-        let camera = scene.cameras[0].camera;
-        let (w, h) = (64u32, 64u32);
-        let settings = crate::reference::RenderSettings {
-            width: w,
-            height: h,
-            camera,
-            time_s: 0.0,
-            seed: 21,
-            max_bounces: 64,
-        };
-        let reference = crate::reference::render(&scene, &bvh, settings, 2048).indirect();
         let photon_settings = PhotonSettings {
             passes: 16,
-            ..PhotonSettings::for_budget(&scene, 10_000, 10_000)
+            ..PhotonSettings::for_budget(scene, 10_000, 10_000)
         };
         let mut stream =
             PhotonStream::new(photon_settings, PackFormat::Compact8, Retrace::Changed, 7);
@@ -289,7 +308,7 @@ fn progressive_passes_converge_while_the_light_stands_still() {
             16
         };
         for pass in 1..=last {
-            let it = stream.iterate(&scene, &bvh, 0.0);
+            let it = stream.iterate(scene, bvh, 0.0);
             for b in &it.batches {
                 set.insert(b);
             }
@@ -300,23 +319,7 @@ fn progressive_passes_converge_while_the_light_stands_still() {
                 continue;
             }
             let photons: Vec<_> = set.photons().collect();
-            let frame = super::photon_frame(
-                raster,
-                &scene,
-                &tris,
-                &[],
-                &camera,
-                w,
-                h,
-                ShadowSettings::default(),
-                &photons,
-                SplatSettings::default(),
-            )
-            .unwrap();
-            let mask: Vec<bool> = (0..(w * h) as usize)
-                .map(|i| frame.gbuffer.covered(i))
-                .collect();
-            let e = crate::metrics::compare(&frame.indirect, &reference, &mask, w, h);
+            let (e, _) = view.errors(raster, &photons);
             eprintln!(
                 "{pass} passes: {} photons, relMSE {:.4}, energy {:.3}",
                 photons.len(),
@@ -333,7 +336,7 @@ fn progressive_passes_converge_while_the_light_stands_still() {
         if last == 16 {
             assert!(errors[4] < errors[0] * 0.7, "{errors:?}");
             // The stream holds 16 passes: it traces nothing more.
-            assert!(stream.iterate(&scene, &bvh, 0.0).batches.is_empty());
+            assert!(stream.iterate(scene, bvh, 0.0).batches.is_empty());
         } else {
             assert!(errors[2] < errors[0] * 0.9, "{errors:?}");
         }
