@@ -232,33 +232,36 @@ impl PhotonSet {
         })
     }
 
-    /// Per light: its complete passes and their batches.
+    /// Per light: its drawn passes and their batches.
     fn drawn(&self) -> impl Iterator<Item = (u32, Vec<&Held>)> + '_ {
         let lights: std::collections::BTreeSet<u32> = self.held.keys().map(|k| k.0).collect();
-        lights.into_iter().filter_map(move |light| {
-            let mut passes = Vec::new();
-            for pass in 0.. {
-                let batches: Vec<&Held> = self
-                    .held
-                    .range((light, pass, 0)..=(light, pass, u32::MAX))
-                    .map(|(_, h)| h)
-                    .collect();
-                let slots = batches.first().map_or(0, |h| h.batch.header.slots);
-                if batches.is_empty() || (pass > 0 && batches.len() as u32 != slots) {
-                    break;
-                }
-                passes.push(batches);
-            }
-            let count = passes.len() as u32;
-            (count > 0).then(|| (count, passes.concat()))
-        })
+        lights.into_iter().filter_map(|light| self.drawn_of(light))
     }
 
-    /// Complete refinement passes drawn for `light` (0: none complete yet).
+    /// `light`'s drawn passes (its first, then each complete one up to the first that is
+    /// not) and their batches; `None` when nothing of it is held.
+    fn drawn_of(&self, light: u32) -> Option<(u32, Vec<&Held>)> {
+        let mut passes = Vec::new();
+        for pass in 0.. {
+            let batches: Vec<&Held> = self
+                .held
+                .range((light, pass, 0)..=(light, pass, u32::MAX))
+                .map(|(_, h)| h)
+                .collect();
+            let slots = batches.first().map_or(0, |h| h.batch.header.slots);
+            if batches.is_empty() || (pass > 0 && batches.len() as u32 != slots) {
+                break;
+            }
+            passes.push(batches);
+        }
+        let count = passes.len() as u32;
+        (count > 0).then(|| (count, passes.concat()))
+    }
+
+    /// Passes drawn for `light`: its first and its complete refinement passes (0: nothing
+    /// held).
     pub fn passes_of(&self, light: u32) -> u32 {
-        self.drawn()
-            .find(|(_, held)| held.first().is_some_and(|h| h.batch.header.light == light))
-            .map_or(0, |(passes, _)| passes)
+        self.drawn_of(light).map_or(0, |(passes, _)| passes)
     }
 
     /// Photons held.
