@@ -23,6 +23,7 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
         density_radius: true,
         levels: 4,
         min_texels: 3.0,
+        compute: true,
         passes: 1,
     };
     let base = cloudlight::scenes::builtin("cornell").unwrap();

@@ -37,6 +37,10 @@ pub struct PhotonClientParams {
     /// smoother and slower.
     #[serde(default = "default_min_texels")]
     pub min_texels: f32,
+    /// Splat with a compute shader where the device runs them (true), or rasterise each
+    /// photon as a quad (false; the way before, kept to compare).
+    #[serde(default = "default_compute")]
+    pub compute: bool,
 }
 
 fn default_downsample() -> u32 {
@@ -51,12 +55,17 @@ fn default_min_texels() -> f32 {
     SplatSettings::default().min_texels
 }
 
+fn default_compute() -> bool {
+    SplatSettings::default().compute
+}
+
 impl Default for PhotonClientParams {
     fn default() -> Self {
         PhotonClientParams {
             downsample: default_downsample(),
             levels: default_levels(),
             min_texels: default_min_texels(),
+            compute: default_compute(),
         }
     }
 }
@@ -156,6 +165,7 @@ impl ClientTechnique for PhotonClient {
                 downsample: params.downsample,
                 levels: params.levels,
                 min_texels: params.min_texels,
+                compute: params.compute,
                 ..Default::default()
             },
         )

@@ -53,6 +53,8 @@ pub struct PhotonOptions {
     pub levels: u32,
     /// Least radius in texels of a photon's disk at its level ([`SplatSettings::min_texels`]).
     pub min_texels: f32,
+    /// The client splats with a compute shader where it can ([`SplatSettings::compute`]).
+    pub compute: bool,
     /// Refinement passes of a still light (progressive photon mapping); `bench quality`
     /// measures the error pass by pass when above 1.
     pub passes: u32,
@@ -70,6 +72,7 @@ impl Default for PhotonOptions {
             density_radius: PhotonSettings::default().density_radius,
             levels: SplatSettings::default().levels,
             min_texels: SplatSettings::default().min_texels,
+            compute: SplatSettings::default().compute,
             passes: PhotonSettings::default().passes,
         }
     }
@@ -107,6 +110,7 @@ impl Photons {
                 downsample: o.downsample,
                 levels: o.levels,
                 min_texels: o.min_texels,
+                compute: o.compute,
             },
         };
         Ok(params.to_table()?)
@@ -207,6 +211,7 @@ impl Technique for Photons {
             downsample: o.downsample,
             levels: o.levels,
             min_texels: o.min_texels,
+            compute: o.compute,
             ..SplatSettings::default()
         };
         let mut bench = client_frame_with(raster, scene, &photons, splat, frame)?;
@@ -261,6 +266,7 @@ impl Technique for Photons {
             density_radius: options.density_radius,
             levels: options.levels,
             min_texels: options.min_texels,
+            compute: options.compute,
             passes: options.passes,
         };
         let rows = quality(raster, scene, &o, out)?;
@@ -506,6 +512,8 @@ pub struct QualityOptions {
     pub levels: u32,
     /// Least radius in texels of a photon's disk at its level.
     pub min_texels: f32,
+    /// The client's splat is a compute shader (where the device runs them).
+    pub compute: bool,
     /// Above 1: the first budget is also measured pass by pass while its lights stand
     /// still, up to this many passes (progressive photon mapping).
     pub passes: u32,
@@ -616,6 +624,7 @@ impl QualityView {
             SplatSettings {
                 levels: o.levels,
                 min_texels: o.min_texels,
+                compute: o.compute,
                 ..SplatSettings::default()
             },
         )?;

@@ -113,6 +113,8 @@ pub struct Raster {
     pub(crate) device: wgpu::Device,
     pub(crate) queue: wgpu::Queue,
     adapter_info: wgpu::AdapterInfo,
+    /// Whether compute shaders with storage buffers (read in fragment shaders too) run here.
+    compute: bool,
     formats: Formats,
     errors: device::ErrorSink,
     pub(crate) pipelines: pipelines::Pipelines,
@@ -197,6 +199,13 @@ impl Raster {
             });
         };
         let adapter_info = adapter.get_info();
+        let limits = adapter.limits();
+        let compute = adapter
+            .get_downlevel_capabilities()
+            .flags
+            .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
+            && limits.max_storage_buffers_per_shader_stage >= 2
+            && limits.max_compute_invocations_per_workgroup >= 64;
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("cloudlight raster"),
@@ -224,6 +233,7 @@ impl Raster {
             device,
             queue,
             adapter_info,
+            compute,
             formats,
             errors,
             pipelines,
@@ -253,6 +263,12 @@ impl Raster {
     /// The adapter in use (name, backend, device type).
     pub fn adapter(&self) -> &wgpu::AdapterInfo {
         &self.adapter_info
+    }
+
+    /// Whether compute shaders (with storage buffers, which fragment shaders may read) run on
+    /// this device.
+    pub fn supports_compute(&self) -> bool {
+        self.compute
     }
 
     /// One line naming the adapter and its backend.

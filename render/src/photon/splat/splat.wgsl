@@ -21,10 +21,13 @@ struct SplatParams {
     sizes: vec4<f32>,
     // x: downsample factor, y: flatten (max |Δ·n| / r), z: depth sigma (m), w: normal power.
     settings: vec4<f32>,
-    // x: accumulation scale (accumulated = irradiance × x).
+    // x: accumulation scale (accumulated = irradiance × x); y: fixed-point units per W/m²
+    // of the compute splat's sums.
     scale: vec4<f32>,
     // x: levels, y: least projected radius in texels of a photon's level.
     levels: vec4<f32>,
+    // x: photons (the compute splat's).
+    counts: vec4<u32>,
 };
 
 @group(0) @binding(0) var<uniform> params: SplatParams;
@@ -38,6 +41,23 @@ struct SplatParams {
 @group(0) @binding(4) var src_accum: texture_2d<f32>;
 @group(0) @binding(5) var src_guide: texture_2d<u32>;
 @group(0) @binding(6) var dst_guide: texture_2d<u32>;
+
+// The compute splat (see `cs_splat`): the photons, the levels' fixed-point sums (three
+// per texel, level after level) written atomically by the splat and read by the resolve,
+// and the level a splat dispatch works on.
+struct PhotonStored {
+    position_radius: vec4<f32>,
+    power: vec4<f32>,
+    direction: vec4<f32>,
+};
+struct LevelParams {
+    // x: the level.
+    level: vec4<u32>,
+};
+@group(0) @binding(7) var<storage, read> fixed_sums: array<u32>;
+@group(0) @binding(8) var<storage, read> photons: array<PhotonStored>;
+@group(0) @binding(9) var<storage, read_write> fixed_accum: array<atomic<u32>>;
+@group(0) @binding(10) var<uniform> level_params: LevelParams;
 
 struct PhotonIn {
     @location(0) position_radius: vec4<f32>,
@@ -62,14 +82,19 @@ fn tangent_bounds(x: f32, depth: f32, r: f32) -> vec2<f32> {
     return vec2<f32>(x * depth - root, x * depth + root) / d2;
 }
 
-@vertex
-fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
-    var out: SplatOut;
-    out.position_radius = p.position_radius;
-    out.power = p.power;
-    out.direction = p.direction;
-    let c = p.position_radius.xyz;
-    let r = p.position_radius.w;
+// Where a photon splats: its level and its padded screen bounds (NDC, lo and hi).
+struct Footprint {
+    lo: vec2<f32>,
+    hi: vec2<f32>,
+    level: u32,
+    // x: the level's downsample factor (full-resolution pixels per texel).
+    level_ds: f32,
+    visible: bool,
+};
+
+fn footprint(position_radius: vec4<f32>) -> Footprint {
+    let c = position_radius.xyz;
+    let r = position_radius.w;
     // Tight screen bounds of the sphere (tangent planes through the eye, per axis); a
     // sphere that reaches the near plane covers the whole screen.
     let v = (params.view_from_world * vec4<f32>(c, 1.0)).xyz;
@@ -88,19 +113,31 @@ fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
     let radius_px = min(extent_px.x, extent_px.y);
     let ds = params.settings.x;
     let fits = max(radius_px / (ds * params.levels.y), 1.0);
-    let level = u32(clamp(floor(log2(fits)), 0.0, params.levels.x - 1.0));
-    let level_ds = ds * f32(1u << level);
-    out.level = vec4<f32>(level_ds, f32(level), 0.0, 0.0);
+    var f: Footprint;
+    f.level = u32(clamp(floor(log2(fits)), 0.0, params.levels.x - 1.0));
+    f.level_ds = ds * f32(1u << f.level);
     // Grow by half a pixel of the level: a pixel is shaded at its centre's surface, and a
     // centre just outside the sphere's bounds can still lie on its (flattened) disk.
-    let level_size = ceil(params.sizes.xy / level_ds);
+    let level_size = ceil(params.sizes.xy / f.level_ds);
     let pad = 1.0 / level_size;
-    lo = clamp(lo - pad, vec2<f32>(-1.0), vec2<f32>(1.0));
-    hi = clamp(hi + pad, vec2<f32>(-1.0), vec2<f32>(1.0));
+    f.lo = clamp(lo - pad, vec2<f32>(-1.0), vec2<f32>(1.0));
+    f.hi = clamp(hi + pad, vec2<f32>(-1.0), vec2<f32>(1.0));
+    f.visible = f.hi.x > f.lo.x && f.hi.y > f.lo.y && r > 0.0;
+    return f;
+}
+
+@vertex
+fn vs_splat(@builtin(vertex_index) vi: u32, p: PhotonIn) -> SplatOut {
+    var out: SplatOut;
+    out.position_radius = p.position_radius;
+    out.power = p.power;
+    out.direction = p.direction;
+    let f = footprint(p.position_radius);
+    out.level = vec4<f32>(f.level_ds, f32(f.level), 0.0, 0.0);
     // A strip of two triangles: (0,0) (1,0) (0,1) (1,1).
     let t = vec2<f32>(f32(vi & 1u), f32((vi >> 1u) & 1u));
-    out.clip = vec4<f32>(mix(lo, hi, t), 0.5, 1.0);
-    if (hi.x <= lo.x || hi.y <= lo.y || r <= 0.0 || level != vi / 4u) {
+    out.clip = vec4<f32>(mix(f.lo, f.hi, t), 0.5, 1.0);
+    if (!f.visible || f.level != vi / 4u) {
         out.clip = vec4<f32>(2.0, 2.0, 2.0, 1.0);
     }
     return out;
@@ -126,26 +163,36 @@ fn full_texel(lp: vec2<i32>, ds: i32) -> vec2<i32> {
     return min(lp * ds + vec2<i32>(ds / 2), full);
 }
 
-@fragment
-fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
-    let surface = surface_of(textureLoad(dst_guide, vec2<i32>(in.clip.xy), 0));
+// What a photon (`position_radius`, arrival `direction`) adds to a surface point,
+// Φ · κ(s) / N_κ(r) per unit power; negative where the point does not receive it.
+fn kernel_at(surface: Surface, position_radius: vec4<f32>, direction: vec3<f32>) -> f32 {
     if (!surface.covered) {
-        discard;
+        return -1.0;
     }
     let n = surface.normal;
-    let r = in.position_radius.w;
-    let delta = surface.position - in.position_radius.xyz;
+    let r = position_radius.w;
+    let delta = surface.position - position_radius.xyz;
     let dn = dot(delta, n);
     if (abs(dn) > params.settings.y * r) {
-        discard;
+        return -1.0;
     }
     let s2 = max(dot(delta, delta) - dn * dn, 0.0);
-    if (s2 >= r * r || dot(n, in.direction.xyz) >= 0.0) {
-        discard;
+    if (s2 >= r * r || dot(n, direction) >= 0.0) {
+        return -1.0;
     }
     let kappa = 1.0 - sqrt(s2) / r;
     let norm = 3.14159265 * r * r / 3.0;
-    return vec4<f32>(in.power.rgb * (kappa / norm * params.scale.x), 1.0);
+    return kappa / norm;
+}
+
+@fragment
+fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
+    let surface = surface_of(textureLoad(dst_guide, vec2<i32>(in.clip.xy), 0));
+    let k = kernel_at(surface, in.position_radius, in.direction.xyz);
+    if (k < 0.0) {
+        discard;
+    }
+    return vec4<f32>(in.power.rgb * (k * params.scale.x), 1.0);
 }
 
 struct Surface {
@@ -273,4 +320,106 @@ fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     }
     let irradiance = upsample_level(0u, frag.xy, g.xyz, normal_at(px));
     return bitcast<vec4<u32>>(vec4<f32>(albedo_at(px) / 3.14159265 * irradiance / params.scale.x, 1.0));
+}
+
+// Texels of level `l` (per axis).
+fn level_size(l: u32) -> vec2<u32> {
+    return vec2<u32>(ceil(params.sizes.xy / (params.settings.x * f32(1u << l))));
+}
+
+// The first texel of level `l` in the fixed-point sums.
+fn level_offset(l: u32) -> u32 {
+    var o = 0u;
+    for (var k = 0u; k < l; k = k + 1u) {
+        let s = level_size(k);
+        o = o + s.x * s.y;
+    }
+    return o;
+}
+
+// A uniform number in [0, 1) from two words (PCG hash; Jarzynski & Olano 2020).
+fn hash01(a: u32, b: u32) -> f32 {
+    var v = a * 747796405u + b * 2891336453u + 2654435769u;
+    let w = ((v >> ((v >> 28u) + 4u)) ^ v) * 277803737u;
+    return f32((w >> 22u) ^ w) * 2.3283064e-10;
+}
+
+// Fixed-point units one photon may add to one texel (keeps a pathological photon from
+// overflowing a sum: ~2^12 units is a typical photon's peak).
+const MAX_UNITS: f32 = 16777216.0;
+
+// The compute splat: one invocation per photon, for the photons of this dispatch's level
+// (`level_params.level.x`). Each covered texel of the photon's padded bounds gets
+// Φ · κ(s) / N_κ(r) — the same test and kernel as `fs_splat` — added in fixed point
+// (`scale.y` units per W/m², rounded stochastically so that small additions stay
+// unbiased). The cost is the texels a disk covers, with no per-triangle set-up.
+@compute @workgroup_size(64)
+fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = id.x + id.y * groups.x * 64u;
+    if (i >= params.counts.x) {
+        return;
+    }
+    let p = photons[i];
+    let f = footprint(p.position_radius);
+    let level = level_params.level.x;
+    if (!f.visible || f.level != level) {
+        return;
+    }
+    let size = level_size(level);
+    let sizef = vec2<f32>(size);
+    // Texels whose centre lies in the bounds (NDC y up, texel rows down).
+    let x0 = i32(ceil((f.lo.x * 0.5 + 0.5) * sizef.x - 0.5));
+    let x1 = i32(floor((f.hi.x * 0.5 + 0.5) * sizef.x - 0.5));
+    let y0 = i32(ceil((0.5 - f.hi.y * 0.5) * sizef.y - 0.5));
+    let y1 = i32(floor((0.5 - f.lo.y * 0.5) * sizef.y - 0.5));
+    let last = vec2<i32>(size) - vec2<i32>(1);
+    let offset = level_offset(level);
+    let power = p.power.rgb * params.scale.y;
+    for (var y = max(y0, 0); y <= min(y1, last.y); y = y + 1) {
+        for (var x = max(x0, 0); x <= min(x1, last.x); x = x + 1) {
+            let surface = surface_of(textureLoad(dst_guide, vec2<i32>(x, y), 0));
+            let k = kernel_at(surface, p.position_radius, p.direction.xyz);
+            if (k < 0.0) {
+                continue;
+            }
+            let texel = offset + u32(y) * size.x + u32(x);
+            let u = hash01(i, texel);
+            let e = min(power * k + vec3<f32>(u), vec3<f32>(MAX_UNITS));
+            let units = vec3<u32>(e);
+            if (units.r != 0u) {
+                atomicAdd(&fixed_accum[3u * texel], units.r);
+            }
+            if (units.g != 0u) {
+                atomicAdd(&fixed_accum[3u * texel + 1u], units.g);
+            }
+            if (units.b != 0u) {
+                atomicAdd(&fixed_accum[3u * texel + 2u], units.b);
+            }
+        }
+    }
+}
+
+// After the compute splat, level l (the pass's level) as the accumulation buffer holds it:
+// its own fixed-point sums plus level l + 1 folded in (as `fs_collapse`; the coarsest level
+// has none). Levels are resolved coarsest first.
+@fragment
+fn fs_resolve(in: FullOut) -> @location(0) vec4<f32> {
+    let level = in.level.x;
+    let t = vec2<u32>(in.clip.xy);
+    let texel = level_offset(level) + t.y * level_size(level).x + t.x;
+    let sums = vec3<f32>(
+        f32(fixed_sums[3u * texel]),
+        f32(fixed_sums[3u * texel + 1u]),
+        f32(fixed_sums[3u * texel + 2u]),
+    );
+    var e = sums * (params.scale.x / params.scale.y);
+    if (level + 1u < u32(params.levels.x)) {
+        let surface = surface_of(textureLoad(dst_guide, vec2<i32>(t), 0));
+        if (surface.covered) {
+            let ds = params.settings.x * f32(1u << level);
+            let frag = vec2<f32>(full_texel(vec2<i32>(t), i32(ds))) + vec2<f32>(0.5);
+            e += upsample_level(level + 1u, frag, surface.position, surface.normal);
+        }
+    }
+    return vec4<f32>(e, 0.0);
 }

@@ -68,7 +68,14 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
         let (e0, h) = (2.0f32, 0.02f32);
         let photons = uniform_field(e0, h);
         let (w, hgt) = (192u32, 192u32);
-        for (downsample, levels) in [(1, 1), (2, 1), (2, 4), (1, 4)] {
+        let layouts = [
+            (1, 1, true),
+            (2, 1, true),
+            (2, 4, true),
+            (1, 4, true),
+            (2, 4, false),
+        ];
+        for (downsample, levels, compute) in layouts {
             let frame = super::photon_frame(
                 raster,
                 &scene,
@@ -82,6 +89,7 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
                 SplatSettings {
                     downsample,
                     levels,
+                    compute,
                     ..Default::default()
                 },
             )
@@ -94,12 +102,12 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
             let mean = inner.iter().copied().sum::<Vec3>() / inner.len() as f32;
             assert!(
                 ((mean / expect) - Vec3::ONE).abs().max_element() < 0.03,
-                "downsample {downsample}, levels {levels}: mean {mean} vs {expect}"
+                "downsample {downsample}, levels {levels}, compute {compute}: mean {mean} vs {expect}"
             );
             for v in &inner {
                 assert!(
                     ((*v / expect) - Vec3::ONE).abs().max_element() < 0.15,
-                    "downsample {downsample}, levels {levels}: pixel {v} vs {expect}"
+                    "downsample {downsample}, levels {levels}, compute {compute}: pixel {v} vs {expect}"
                 );
             }
             assert!(frame.direct.iter().all(|d| *d == Vec3::ZERO));
@@ -149,6 +157,16 @@ impl CornellView {
         raster: &crate::raster::Raster,
         photons: &[crate::photon::Photon],
     ) -> (crate::metrics::ImageErrors, Vec<Vec3>) {
+        self.errors_with(raster, photons, SplatSettings::default())
+    }
+
+    /// [`Self::errors`] with `splat` settings.
+    fn errors_with(
+        &self,
+        raster: &crate::raster::Raster,
+        photons: &[crate::photon::Photon],
+        splat: SplatSettings,
+    ) -> (crate::metrics::ImageErrors, Vec<Vec3>) {
         let frame = super::photon_frame(
             raster,
             &self.scene,
@@ -159,7 +177,7 @@ impl CornellView {
             VIEW,
             ShadowSettings::default(),
             photons,
-            SplatSettings::default(),
+            splat,
         )
         .unwrap();
         assert!(frame.indirect.iter().all(|v| v.is_finite()));
@@ -207,6 +225,51 @@ fn the_photon_client_converges_toward_the_reference_as_the_budget_grows() {
         }
         assert!(errors[3].1 < 0.004, "{errors:?}");
         assert!(errors[3].0 < 0.04, "{errors:?}");
+    });
+}
+
+#[test]
+fn the_compute_splat_draws_what_the_raster_splat_draws() {
+    // The same photons through both splats (Cornell box, 10k photons, 64²; one level and
+    // four): the compute splat's fixed-point sums (stochastic rounding at 2^-12 of a typical
+    // photon's peak) and its texel-centre rule must give the rasterised quads' image, up to
+    // the rounding (and, on GL llvmpipe, the raster's half-precision accumulation).
+    use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
+    let view = CornellView::new();
+    let s = PhotonSettings::for_budget(&view.scene, 10_000, 10_000);
+    let photons =
+        trace_iteration(&view.scene, &view.bvh, 0.0, s, 3, PackFormat::Compact8).unpacked();
+    on_every_backend(|raster| {
+        assert!(raster.supports_compute(), "{}", raster.describe());
+        // A half-precision raster accumulation loses ~2% of the light here (the compute
+        // splat's image is the same on every backend).
+        let (within, energy) = if raster.formats().accum_is_half() {
+            (1e-3, 0.03)
+        } else {
+            (1e-5, 1e-3)
+        };
+        // At 64² every disk spans under 3 texels of the finest level: half a texel puts
+        // photons on all four.
+        for (levels, min_texels) in [(1, 3.0), (4, 0.5)] {
+            let image = |compute| {
+                let splat = SplatSettings {
+                    levels,
+                    min_texels,
+                    compute,
+                    ..Default::default()
+                };
+                view.errors_with(raster, &photons, splat)
+            };
+            let ((ec, compute), (er, rasterised)) = (image(true), image(false));
+            let mask: Vec<bool> = rasterised.iter().map(|v| v.max_element() > 0.0).collect();
+            let between = crate::metrics::compare(&compute, &rasterised, &mask, VIEW, VIEW);
+            eprintln!(
+                "levels {levels}: compute relMSE {:.5}, raster {:.5}; between them {:.2e}, energy {:.5}",
+                ec.relmse, er.relmse, between.relmse, between.energy_ratio
+            );
+            assert!(between.relmse < within, "levels {levels}: {between:?}");
+            assert!((between.energy_ratio - 1.0).abs() < energy, "{between:?}");
+        }
     });
 }
 
@@ -285,10 +348,10 @@ fn progressive_passes_converge_while_the_light_stands_still() {
     // draws a still light's refinement passes together with shrinking radii; its error
     // must fall as passes come and end well below one pass's. Measured (64², 2048 spp,
     // Vulkan/lavapipe, f32 accumulation): relMSE 0.035 / 0.029 / 0.025 / 0.021 / 0.020 at
-    // 1 / 2 / 4 / 8 / 16 passes. A half-precision accumulation buffer (GL llvmpipe) loses
-    // light once a pixel sums ~1000 small splats (each below an f16 step of the sum:
-    // energy 0.94 / 0.89 / 0.87 at 1 / 4 / 8 passes), so there only 4 passes are held to
-    // the bounds.
+    // 1 / 2 / 4 / 8 / 16 passes. The compute splat sums in integers; the raster splat into a
+    // half-precision buffer (GL llvmpipe) loses light once a pixel sums ~1000 small splats
+    // (each below an f16 step of the sum: energy 0.94 / 0.89 / 0.87 at 1 / 4 / 8 passes),
+    // so a device without compute shaders is held to the bounds for 4 passes only.
     use crate::photon::stream::{PhotonStream, Retrace};
     use crate::photon::{PackFormat, PhotonSet, PhotonSettings};
     let view = CornellView::new();
@@ -302,7 +365,7 @@ fn progressive_passes_converge_while_the_light_stands_still() {
             PhotonStream::new(photon_settings, PackFormat::Compact8, Retrace::Changed, 7);
         let mut set = PhotonSet::new();
         let mut errors = Vec::new();
-        let last = if raster.formats().accum_is_half() {
+        let last = if raster.formats().accum_is_half() && !raster.supports_compute() {
             4
         } else {
             16
