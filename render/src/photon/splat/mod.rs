@@ -17,8 +17,9 @@
 //! level and adds to integer sums with atomics (fixed point, stochastic rounding); each
 //! level is then resolved into its buffer with the coarser one folded in. llvmpipe's
 //! rasteriser pays ~2 µs of set-up per quad whatever its size; the compute splat pays per
-//! texel (Cornell, 10k photons, 640×360, lavapipe: indirect pass 42 → 23 ms, frame 52 →
-//! 33 ms), and its integer sums lose nothing to a half-precision buffer (GL llvmpipe).
+//! texel (Cornell, 10k photons, 640×360, lavapipe: indirect pass 42 → 20 ms, frame 52 →
+//! 31 ms), and its integer sums lose nothing to a half-precision buffer (GL llvmpipe). It
+//! reads each texel's surface from the G-buffer, so one dispatch serves every level.
 //! The photons are uploaded once per set
 //! ([`PhotonSplatPass::set_photons`]), not once per frame. The pass owns its pipelines
 //! (`SplatPipelines`, built once per device); the shared raster knows nothing of photons.
@@ -164,10 +165,10 @@ impl SplatPipelines {
                 "compute splat",
                 &[
                     buffer_entry(0, cs, wgpu::BufferBindingType::Uniform),
-                    texture_entry(6, cs, UINT, D2),
+                    texture_entry(1, cs, UINT, D2),
+                    texture_entry(2, cs, UINT, D2),
                     buffer_entry(8, cs, READ_ONLY),
                     buffer_entry(9, cs, wgpu::BufferBindingType::Storage { read_only: false }),
-                    buffer_entry(10, cs, wgpu::BufferBindingType::Uniform),
                 ],
             );
             let splat = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
@@ -211,10 +212,6 @@ const READ_ONLY: wgpu::BufferBindingType = wgpu::BufferBindingType::Storage { re
 
 /// Workgroup size of `cs_splat`.
 const WORKGROUP: u32 = 64;
-
-/// Bytes between the levels' entries in the level uniform buffer (the largest offset
-/// alignment wgpu allows).
-const LEVEL_STRIDE: u64 = 256;
 
 /// Fixed-point units of the compute splat for a typical photon's peak (its power over its
 /// kernel's normalisation; the median over the set): 2^12 keeps a single addition's
@@ -307,9 +304,9 @@ struct SplatTargets {
     upsample: wgpu::BindGroup,
     low: (u32, u32),
     levels: u32,
-    /// The compute splat's fixed-point sums (three per texel of every level) and each
-    /// level's index (one entry per [`LEVEL_STRIDE`]), when it is used.
-    fixed: Option<(wgpu::Buffer, wgpu::Buffer)>,
+    /// The compute splat's fixed-point sums (three per texel of every level), where the
+    /// device runs compute shaders.
+    fixed: Option<wgpu::Buffer>,
 }
 
 /// The photon client's indirect pass.
@@ -466,25 +463,12 @@ impl PhotonSplatPass {
                 } else {
                     16
                 };
-                let sums = raster.device.create_buffer(&wgpu::BufferDescriptor {
+                raster.device.create_buffer(&wgpu::BufferDescriptor {
                     label: Some("photon fixed-point sums"),
                     size,
                     usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
                     mapped_at_creation: false,
-                });
-                let mut level_words = vec![0u8; (LEVEL_STRIDE * u64::from(MAX_LEVELS)) as usize];
-                for l in 0..MAX_LEVELS {
-                    let at = (LEVEL_STRIDE * u64::from(l)) as usize;
-                    level_words[at..at + 4].copy_from_slice(&l.to_le_bytes());
-                }
-                let level_index = raster.device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("splat levels"),
-                    size: level_words.len() as u64,
-                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                });
-                raster.queue.write_buffer(&level_index, 0, &level_words);
-                (sums, level_index)
+                })
             });
             // (the level read: buffer, guide; the guide of the level written)
             let bind = |src_accum: &wgpu::TextureView,
@@ -506,7 +490,7 @@ impl PhotonSplatPass {
                     tex(5, src_guide),
                     tex(6, dst_guide),
                 ];
-                if let Some((sums, _)) = &fixed {
+                if let Some(sums) = &fixed {
                     entries.push(wgpu::BindGroupEntry {
                         binding: 7,
                         resource: sums.as_entire_binding(),
@@ -543,14 +527,15 @@ impl PhotonSplatPass {
 }
 
 impl PhotonSplatPass {
-    /// The compute splat: the sums cleared, one dispatch per level, then each level resolved
-    /// into its accumulation buffer with the next coarser one folded in, coarsest first.
+    /// The compute splat: the sums cleared, one dispatch (a photon per invocation, at its
+    /// level), then each level resolved into its accumulation buffer with the next coarser
+    /// one folded in, coarsest first.
     fn splat_compute(
         &self,
         raster: &Raster,
+        ctx: &IndirectContext<'_>,
         compute: &ComputePipelines,
         sums: &wgpu::Buffer,
-        level_index: &wgpu::Buffer,
         enc: &mut wgpu::CommandEncoder,
     ) {
         let t = self.targets.as_ref().expect("made by encode");
@@ -563,47 +548,37 @@ impl PhotonSplatPass {
                 .max_compute_workgroups_per_dimension
                 .max(1);
             let (x, y) = (groups.min(max), groups.div_ceil(max));
+            let tex = |binding, view| wgpu::BindGroupEntry {
+                binding,
+                resource: wgpu::BindingResource::TextureView(view),
+            };
+            let group = raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("compute splat"),
+                layout: &compute.layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: self.params.as_entire_binding(),
+                    },
+                    tex(1, &ctx.gbuffer.position.view),
+                    tex(2, &ctx.gbuffer.normal.view),
+                    wgpu::BindGroupEntry {
+                        binding: 8,
+                        resource: photons.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 9,
+                        resource: sums.as_entire_binding(),
+                    },
+                ],
+            });
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("compute splat"),
                 timestamp_writes: None,
             });
             pass.set_pipeline(&compute.splat);
-            for level in 0..t.levels {
-                let group = raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("compute splat"),
-                    layout: &compute.layout,
-                    entries: &[
-                        wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: self.params.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 6,
-                            resource: wgpu::BindingResource::TextureView(
-                                &t.guides[level as usize].view,
-                            ),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 8,
-                            resource: photons.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 9,
-                            resource: sums.as_entire_binding(),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 10,
-                            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                                buffer: level_index,
-                                offset: LEVEL_STRIDE * u64::from(level),
-                                size: wgpu::BufferSize::new(16),
-                            }),
-                        },
-                    ],
-                });
-                pass.set_bind_group(0, &group, &[]);
-                pass.dispatch_workgroups(x, y, 1);
-            }
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups(x, y, 1);
         }
         for level in (0..t.levels).rev() {
             let l = level as usize;
@@ -722,8 +697,8 @@ impl IndirectPass for PhotonSplatPass {
             pass.draw(3 * level..3 * level + 3, 0..1);
         }
         match (&self.pipelines.compute, &t.fixed, settings.compute) {
-            (Some(compute), Some((sums, level_index)), true) => {
-                self.splat_compute(raster, compute, sums, level_index, enc)
+            (Some(compute), Some(sums), true) => {
+                self.splat_compute(raster, ctx, compute, sums, enc)
             }
             _ => self.splat_raster(enc),
         }
