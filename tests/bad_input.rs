@@ -41,7 +41,7 @@ address = "127.0.0.1:0"
 name = "batcher"
 kind = "photon_batcher"
 node = @node_ref@
-params = { photons = @photons@, batch_size = @batch_size@, bounces = @bounces@, photons_per_disk = @photons_per_disk@, radius_m = @radius_m@, interval_ms = @interval_ms@, resend_s = @resend_s@, passes = @passes@, format = @format@ }
+params = { photons = @photons@, batch_size = @batch_size@, bounces = @bounces@, photons_per_disk = @photons_per_disk@, radius_m = @radius_m@, interval_ms = @interval_ms@, resend_s = @resend_s@, passes = @passes@, format = @format@, receive = @receive@ }
 [[stage]]
 name = "viewer"
 kind = "photon_reconstructor"
@@ -102,6 +102,7 @@ const KEYS: &[(&str, &str)] = &[
     ("resend_s", "1.0"),
     ("passes", "4"),
     ("format", "\"compact8\""),
+    ("receive", "\"normal\""),
     ("replicas", "2"),
     ("width", "64"),
     ("height", "48"),

@@ -21,6 +21,7 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
         seed: 5,
         photons_per_disk: cloudlight::render::photon::PhotonSettings::default().photons_per_disk,
         density_radius: true,
+        receive: Default::default(),
         levels: 4,
         min_texels: 3.0,
         compute: true,

@@ -175,6 +175,7 @@ impl Stage for GarbageBatcher {
                 direction: cloudlight::scenes::glam::Vec3::NEG_Y,
                 power: cloudlight::scenes::glam::Vec3::ONE,
                 radius: 0.1,
+                receive: Default::default(),
             };
             8
         ];
@@ -186,6 +187,7 @@ impl Stage for GarbageBatcher {
             pass: 0,
             scene_time_s: 0.0,
             emitted: 8,
+            receive: Default::default(),
         };
         let mut b = PackedBatch::pack(header, &photons, PackFormat::Compact12);
         for (i, x) in b.data.iter_mut().enumerate() {

@@ -13,7 +13,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use cloudlight_render::photon::{
-    PackFormat, PackedBatch, PhotonSettings, PhotonStream, TracedBatch,
+    PackFormat, PackedBatch, PhotonSettings, PhotonStream, Receive, TracedBatch,
 };
 use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_runtime::stage::show_number;
@@ -82,6 +82,11 @@ pub struct BatcherParams {
     /// `wide20`.
     #[serde(default = "default_format")]
     pub format: String,
+    /// What each photon carries to tell which surfaces it lights: `normal` (default: its
+    /// surface's normal; no light rounds an edge) or `direction` (the direction it
+    /// travelled; a closed box's corners get more light, open scenes leak).
+    #[serde(default)]
+    pub receive: Receive,
 }
 
 fn default_batch_size() -> u32 {
@@ -124,6 +129,7 @@ impl Default for BatcherParams {
             retrace: Retrace::default(),
             resend_s: default_resend(),
             format: default_format(),
+            receive: Receive::default(),
         }
     }
 }
@@ -468,6 +474,7 @@ impl BatcherParams {
         settings.radius_m = self.radius_m;
         settings.density_radius = self.density_radius;
         settings.passes = self.passes;
+        settings.receive = self.receive;
         let lights = cloudlight_render::photon::photon_lights(scene, 0.0);
         let per_iteration =
             cloudlight_render::photon::BatchPlan::new(&lights, &settings).total_photons();

@@ -69,6 +69,7 @@ fn photons(c: &mut Criterion) {
         pass: 0,
         scene_time_s: 0.0,
         emitted: settings.batch_size,
+        receive: Default::default(),
     };
     for format in [
         PackFormat::Compact8,

@@ -12,7 +12,7 @@ use cloudlight_actors::photon_reconstructor::{PhotonClientParams, PhotonClientRe
 use cloudlight_actors::wire::PhotonMsg;
 use cloudlight_render::metrics::{ImageErrors, compare};
 use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings, photon_frame};
-use cloudlight_render::photon::{PackFormat, Photon, PhotonSettings, trace_iteration};
+use cloudlight_render::photon::{PackFormat, Photon, PhotonSettings, Receive, trace_iteration};
 use cloudlight_render::raster::{Raster, ShadowSettings};
 use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_scenes::Scene;
@@ -48,6 +48,8 @@ pub struct PhotonOptions {
     /// Each photon's radius from the density of photons around it (false: the reference
     /// radius for all, as before issue 34).
     pub density_radius: bool,
+    /// What photons carry to tell which surfaces they light (`normal` or `direction`).
+    pub receive: Receive,
     /// The client's accumulation levels (1: every photon at `downsample`; see
     /// [`SplatSettings::levels`]).
     pub levels: u32,
@@ -70,6 +72,7 @@ impl Default for PhotonOptions {
             downsample: PhotonClientParams::default().downsample,
             photons_per_disk: PhotonSettings::default().photons_per_disk,
             density_radius: PhotonSettings::default().density_radius,
+            receive: PhotonSettings::default().receive,
             levels: SplatSettings::default().levels,
             min_texels: SplatSettings::default().min_texels,
             compute: SplatSettings::default().compute,
@@ -94,6 +97,7 @@ impl Photons {
             resend_s: 0.0,
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
+            receive: o.receive,
             passes: o.passes,
             format: o.format.name().into(),
             ..BatcherParams::default()
@@ -200,6 +204,7 @@ impl Technique for Photons {
         let settings = PhotonSettings {
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
+            receive: o.receive,
             ..PhotonSettings::for_budget(
                 scene,
                 o.photons,
@@ -264,6 +269,7 @@ impl Technique for Photons {
             seed: common.seed,
             photons_per_disk: options.photons_per_disk,
             density_radius: options.density_radius,
+            receive: options.receive,
             levels: options.levels,
             min_texels: options.min_texels,
             compute: options.compute,
@@ -508,6 +514,8 @@ pub struct QualityOptions {
     pub photons_per_disk: f32,
     /// Per-photon density radii.
     pub density_radius: bool,
+    /// What photons carry to tell which surfaces they light.
+    pub receive: Receive,
     /// The client's accumulation levels.
     pub levels: u32,
     /// Least radius in texels of a photon's disk at its level.
@@ -574,6 +582,7 @@ impl QualityView {
         let settings = PhotonSettings {
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
+            receive: o.receive,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,
@@ -686,6 +695,7 @@ impl QualityView {
         let settings = PhotonSettings {
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
+            receive: o.receive,
             passes: o.passes,
             ..PhotonSettings::for_budget(
                 &self.scene,

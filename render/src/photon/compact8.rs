@@ -196,6 +196,8 @@ pub fn decode(frame: &Frame, data: &[u8], count: u32) -> Result<Vec<Photon>, Pac
             direction: oct_dequantize(u, v, DIRECTION_BITS),
             power: from_shared_exponent(exp, m, POWER_BITS) * frame.power_scale,
             radius,
+            // The header's, set by `PackedBatch::unpack`.
+            receive: super::Receive::Normal,
         });
     }
     r.byte_align();

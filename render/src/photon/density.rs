@@ -71,6 +71,7 @@ mod tests {
             direction: Vec3::NEG_Y,
             power: Vec3::ONE,
             radius: 0.0,
+            receive: Default::default(),
         }
     }
 

@@ -55,6 +55,26 @@ pub use stream::{
 /// Largest batch size accepted (a batch is one message; 10⁷ compact photons are 120 MB).
 pub const MAX_BATCH_SIZE: u32 = 10_000_000;
 
+/// What a photon's vector is, and so which surfaces its disk lights on the client.
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Receive {
+    /// The normal of the surface it landed on (reversed: into the surface): it lights
+    /// surfaces whose normal lies within [`crate::photon::splat::SplatSettings::facing`] of
+    /// its own. No light crosses an edge onto a surface facing elsewhere (a platform's
+    /// top onto its side, a street onto a wall), at the price of the light a disk loses
+    /// past its surface's edge. Measured (`bench quality`, relMSE, 160k photons): dungeon
+    /// 1.30 → 0.37, city:250000 5.1 → 0.94; Cornell box (10k) 0.0415 → 0.052.
+    #[default]
+    Normal,
+    /// The direction it travelled (the paper's n·ω test): it lights any surface facing
+    /// against that direction within the flatten distance, so a floor's photons also light
+    /// the foot of a wall — light a closed box's corners need, a leak at game-level scale.
+    Direction,
+}
+
 /// Settings of the photon tracer.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PhotonSettings {
@@ -79,6 +99,9 @@ pub struct PhotonSettings {
     /// 1 (the default): a still light is traced once. Each doubling of the passes costs
     /// the client's splat ~1.6× (disks hold P^α times the photons).
     pub passes: u32,
+    /// What each photon's vector is: its surface's normal (the default) or the direction
+    /// it travelled ([`Receive`]).
+    pub receive: Receive,
 }
 
 /// Radius reduction of progressive photon mapping (Knaus & Zwicker 2011): each pass keeps
@@ -113,6 +136,7 @@ impl Default for PhotonSettings {
             radius_m: None,
             density_radius: true,
             passes: 1,
+            receive: Receive::Normal,
         }
     }
 }
@@ -424,12 +448,15 @@ impl BatchPlan {
 pub struct Photon {
     /// Where it landed, meters.
     pub position: Vec3,
-    /// Unit direction it travelled (into the surface).
+    /// A unit vector into the surface: the surface's normal reversed, or the direction it
+    /// travelled (`receive`).
     pub direction: Vec3,
     /// Power per channel, watts.
     pub power: Vec3,
     /// Splat radius, meters.
     pub radius: f32,
+    /// What `direction` is, and so which surfaces the photon lights.
+    pub receive: Receive,
 }
 
 /// Traces batches of one scene at one scene time.
@@ -563,9 +590,13 @@ impl<'a> PhotonTracer<'a> {
             if depth >= 1 {
                 out.push(Photon {
                     position: x,
-                    direction: d,
+                    direction: match self.settings.receive {
+                        Receive::Normal => -n,
+                        Receive::Direction => d,
+                    },
                     power,
                     radius: self.radius,
+                    receive: self.settings.receive,
                 });
             }
             if depth == self.settings.bounces {

@@ -98,6 +98,8 @@ pub struct BatchHeader {
     pub scene_time_s: f64,
     /// Photons emitted for the batch (the stored ones are fewer or more).
     pub emitted: u32,
+    /// What the photons' vectors are ([`super::Receive`]).
+    pub receive: super::Receive,
 }
 
 /// A packed batch of photons, as sent.
@@ -311,7 +313,10 @@ impl PackedBatch {
             {
                 return Err(PackError::NonFinite(i as u32));
             }
-            out.push(p);
+            out.push(Photon {
+                receive: self.header.receive,
+                ..p
+            });
         }
         Ok(out)
     }
@@ -422,6 +427,8 @@ impl Quantizer {
                     power: from_shared_exponent(exp5(f(64, 5)), [f(69, 7), f(76, 7), f(83, 7)], 7)
                         * self.power_scale,
                     radius: self.radius(f(90, 6), 6),
+                    // The header's, set by `unpack`.
+                    receive: super::Receive::Normal,
                 }
             }
             PackFormat::Compact8 => unreachable!("Compact8 is a stream, decoded whole"),
@@ -437,6 +444,7 @@ impl Quantizer {
                     power: from_shared_exponent(exp5(f(0, 5)), [f(5, 9), f(14, 9), f(23, 9)], 9)
                         * self.power_scale,
                     radius: self.radius(f(56, 8), 8),
+                    receive: super::Receive::Normal,
                 }
             }
         }

@@ -233,6 +233,7 @@ impl PhotonStream {
                 pass: job.pass,
                 scene_time_s: plan.t_s,
                 emitted: plan.plan.photons_per_batch(light.id),
+                receive: plan.settings.receive,
             },
             &photons,
             format,

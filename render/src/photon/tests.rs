@@ -321,6 +321,7 @@ fn random_photons(n: usize, seed: u64) -> Vec<Photon> {
                 * 10f32.powf(-3.0 * rng.next_f32())
                 * 1e-4,
             radius: 0.02 + 0.03 * rng.next_f32(),
+            receive: Default::default(),
         })
         .collect()
 }
@@ -334,6 +335,7 @@ fn header() -> BatchHeader {
         pass: 0,
         scene_time_s: 1.25,
         emitted: 1000,
+        receive: Default::default(),
     }
 }
 
@@ -605,6 +607,7 @@ fn pass_batch(
             pass,
             scene_time_s: t,
             emitted: 10,
+            receive: Default::default(),
         },
         &random_photons(10, generation * 100 + pass as u64 * 10 + slot as u64),
         PackFormat::Compact12,

@@ -24,7 +24,8 @@ struct SplatParams {
     // x: accumulation scale (accumulated = irradiance × x); y: fixed-point units per W/m²
     // of the compute splat's sums.
     scale: vec4<f32>,
-    // x: levels, y: least projected radius in texels of a photon's level.
+    // x: levels, y: least projected radius in texels of a photon's level, z: least cosine
+    // between a receiver's normal and a photon's (photons that carry their normal).
     levels: vec4<f32>,
     // x: photons (the compute splat's).
     counts: vec4<u32>,
@@ -157,9 +158,12 @@ fn full_texel(lp: vec2<i32>, ds: i32) -> vec2<i32> {
     return min(lp * ds + vec2<i32>(ds / 2), full);
 }
 
-// What a photon (`position_radius`, arrival `direction`) adds to a surface point,
-// Φ · κ(s) / N_κ(r) per unit power; negative where the point does not receive it.
-fn kernel_at(surface: Surface, position_radius: vec4<f32>, direction: vec3<f32>) -> f32 {
+// What a photon (`position_radius`; `direction`: into its surface, w = 1 its surface's
+// normal reversed, w = 0 the direction it travelled) adds to a surface point,
+// Φ · κ(s) / N_κ(r) per unit power; negative where the point does not receive it. A photon
+// with its normal lights surfaces facing within `levels.z` (a cosine) of it; one with its
+// direction any surface facing against that direction.
+fn kernel_at(surface: Surface, position_radius: vec4<f32>, direction: vec4<f32>) -> f32 {
     if (!surface.covered) {
         return -1.0;
     }
@@ -171,7 +175,9 @@ fn kernel_at(surface: Surface, position_radius: vec4<f32>, direction: vec3<f32>)
         return -1.0;
     }
     let s2 = max(dot(delta, delta) - dn * dn, 0.0);
-    if (s2 >= r * r || dot(n, direction) >= 0.0) {
+    let against = -dot(n, direction.xyz);
+    let least = select(0.0, params.levels.z, direction.w > 0.5);
+    if (s2 >= r * r || against <= least) {
         return -1.0;
     }
     let kappa = 1.0 - sqrt(s2) / r;
@@ -182,7 +188,7 @@ fn kernel_at(surface: Surface, position_radius: vec4<f32>, direction: vec3<f32>)
 @fragment
 fn fs_splat(in: SplatOut) -> @location(0) vec4<f32> {
     let surface = surface_of(textureLoad(dst_guide, vec2<i32>(in.clip.xy), 0));
-    let k = kernel_at(surface, in.position_radius, in.direction.xyz);
+    let k = kernel_at(surface, in.position_radius, in.direction);
     if (k < 0.0) {
         discard;
     }
@@ -380,7 +386,7 @@ fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroup
             surface.covered = g.w >= 0.5;
             surface.position = g.xyz;
             surface.normal = normal_at(px);
-            let k = kernel_at(surface, p.position_radius, p.direction.xyz);
+            let k = kernel_at(surface, p.position_radius, p.direction);
             if (k < 0.0) {
                 continue;
             }
