@@ -53,6 +53,32 @@ fn quads(name: &str, quads: &[[Vec3; 4]]) -> cloudlight_scenes::Scene {
     }
 }
 
+/// The photon client's frame of `photons` alone (no direct light, default shadows).
+#[allow(clippy::too_many_arguments)]
+fn unlit_frame(
+    raster: &crate::raster::Raster,
+    scene: &cloudlight_scenes::Scene,
+    tris: &[cloudlight_scenes::WorldTriangle],
+    camera: &cloudlight_scenes::Camera,
+    (width, height): (u32, u32),
+    photons: &[crate::photon::Photon],
+    splat: SplatSettings,
+) -> super::PhotonFrame {
+    super::photon_frame(
+        raster,
+        scene,
+        tris,
+        &[],
+        camera,
+        width,
+        height,
+        ShadowSettings::default(),
+        photons,
+        splat,
+    )
+    .unwrap()
+}
+
 #[test]
 fn no_light_rounds_a_convex_edge_onto_a_surface_facing_elsewhere() {
     // A platform's top (y = 0, facing up) and its front face (z = 0, facing the camera),
@@ -102,19 +128,15 @@ fn no_light_rounds_a_convex_edge_onto_a_surface_facing_elsewhere() {
                     receive,
                 })
                 .collect();
-            let frame = super::photon_frame(
+            let frame = unlit_frame(
                 raster,
                 &scene,
                 &tris,
-                &[],
                 &camera,
-                w,
-                h,
-                ShadowSettings::default(),
+                (w, h),
                 &photons,
                 SplatSettings::default(),
-            )
-            .unwrap();
+            );
             // Mean indirect luminance of the pixels seeing the top and of those seeing the
             // face (by their normal).
             let mut sums = [(0.0f32, 0u32); 2];
@@ -171,15 +193,12 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
             (2, 4, false),
         ];
         for (downsample, levels, compute) in layouts {
-            let frame = super::photon_frame(
+            let frame = unlit_frame(
                 raster,
                 &scene,
                 &tris,
-                &[],
                 &camera,
-                w,
-                hgt,
-                ShadowSettings::default(),
+                (w, hgt),
                 &photons,
                 SplatSettings {
                     downsample,
@@ -187,8 +206,7 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
                     compute,
                     ..Default::default()
                 },
-            )
-            .unwrap();
+            );
             let expect = Vec3::new(e0, e0 * 0.5, e0 * 0.25) * 0.5 / std::f32::consts::PI;
             let inner: Vec<Vec3> = (24..168)
                 .flat_map(|y| (24..168).map(move |x| (y, x)))
@@ -262,19 +280,15 @@ impl CornellView {
         photons: &[crate::photon::Photon],
         splat: SplatSettings,
     ) -> (crate::metrics::ImageErrors, Vec<Vec3>) {
-        let frame = super::photon_frame(
+        let frame = unlit_frame(
             raster,
             &self.scene,
             &self.tris,
-            &[],
             &self.camera,
-            VIEW,
-            VIEW,
-            ShadowSettings::default(),
+            (VIEW, VIEW),
             photons,
             splat,
-        )
-        .unwrap();
+        );
         assert!(frame.indirect.iter().all(|v| v.is_finite()));
         let mask: Vec<bool> = (0..(VIEW * VIEW) as usize)
             .map(|i| frame.gbuffer.covered(i))
