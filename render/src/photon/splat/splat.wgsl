@@ -254,6 +254,17 @@ fn fs_guide(in: FullOut) -> @location(0) vec4<u32> {
     return vec4<u32>(bitcast<vec3<u32>>(g.xyz), pack2x16unorm(e) | 1u);
 }
 
+// cos^p of the upsample's normal weight: by squaring when p is 8 (the default; llvmpipe's
+// pow is an exp2 and a log2 per tap), else pow.
+fn cosine_power(c: f32) -> f32 {
+    if (params.settings.w == 8.0) {
+        let c2 = c * c;
+        let c4 = c2 * c2;
+        return c4 * c4;
+    }
+    return pow(c, params.settings.w);
+}
+
 // Joint-bilateral upsample of the irradiance of level `level` (`src_accum`, `src_guide`) at
 // a point (`frag`, in full-resolution pixels; surface `g`, `n`). Taps: the four nearest pixels of the level,
 // weighted bilinearly × exp(−|plane distance| / σ) × max(0, n·n')^p; the nearest tap in
@@ -279,7 +290,7 @@ fn upsample_level(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> ve
         let plane = abs(dot(tap.position - g, n));
         let cosine = max(dot(n, tap.normal), 0.0);
         let bw = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1);
-        let w = bw * exp(-plane / params.settings.z) * pow(cosine, params.settings.w);
+        let w = bw * exp(-plane / params.settings.z) * cosine_power(cosine);
         sum += w * e;
         wsum += w;
         let d = plane + (1.0 - cosine);
