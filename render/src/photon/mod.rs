@@ -66,7 +66,7 @@ pub enum Receive {
     /// its own. No light crosses an edge onto a surface facing elsewhere (a platform's
     /// top onto its side, a street onto a wall), at the price of the light a disk loses
     /// past its surface's edge. Measured (`bench quality`, relMSE, 160k photons): dungeon
-    /// 1.30 → 0.37, city:250000 5.1 → 0.94; Cornell box (10k) 0.0415 → 0.052.
+    /// 1.30 → 0.37, city:250000 3.85 → 0.64; Cornell box (10k) 0.0415 → 0.052.
     #[default]
     Normal,
     /// The direction it travelled (the paper's n·ω test): it lights any surface facing
