@@ -59,7 +59,7 @@ struct SplatPipelines {
 }
 
 /// The compute splat (photons added in fixed point into one storage buffer, one dispatch
-/// per level) and the resolve of each level into its accumulation buffer.
+/// for every level) and the resolve of each level into its accumulation buffer.
 struct ComputePipelines {
     layout: wgpu::BindGroupLayout,
     splat: wgpu::ComputePipeline,
@@ -373,15 +373,18 @@ impl PhotonSplatPass {
                     .to_array(),
             })
             .collect();
-        self.power_w = instances
+        // Each photon's largest power channel, W.
+        let largest: Vec<f32> = instances
             .iter()
             .map(|p| p.power[..3].iter().fold(0.0f32, |a, b| a.max(b.abs())))
-            .sum();
+            .collect();
+        self.power_w = largest.iter().sum();
+        // Each photon's peak irradiance: power over the cone kernel's normalisation πr²/3.
         let mut peaks: Vec<f32> = instances
             .iter()
-            .map(|p| {
+            .zip(&largest)
+            .map(|(p, max)| {
                 let r = p.position_radius[3];
-                let max = p.power[..3].iter().fold(0.0f32, |a, b| a.max(b.abs()));
                 max * 3.0 / (std::f32::consts::PI * r * r)
             })
             .filter(|e| e.is_finite() && *e > 0.0)

@@ -309,15 +309,20 @@ fn upsample_level(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> ve
 // coarse levels reach full resolution through one upsample.
 @fragment
 fn fs_collapse(in: FullOut) -> @location(0) vec4<f32> {
-    let level = in.level.x;
-    let surface = surface_of(textureLoad(dst_guide, vec2<i32>(in.clip.xy), 0));
+    return vec4<f32>(coarser_at(in.level.x, vec2<i32>(in.clip.xy)), 0.0);
+}
+
+// Level l + 1 upsampled at texel `t` of level l (its guide `dst_guide`): zero where the
+// texel sees no geometry.
+fn coarser_at(level: u32, t: vec2<i32>) -> vec3<f32> {
+    let surface = surface_of(textureLoad(dst_guide, t, 0));
     if (!surface.covered) {
-        discard;
+        return vec3<f32>(0.0);
     }
     let ds = params.settings.x * f32(1u << level);
     // The full-resolution point this texel stands for (its centre texel, as the guide).
-    let frag = vec2<f32>(full_texel(vec2<i32>(in.clip.xy), i32(ds))) + vec2<f32>(0.5);
-    return vec4<f32>(upsample_level(level + 1u, frag, surface.position, surface.normal), 0.0);
+    let frag = vec2<f32>(full_texel(t, i32(ds))) + vec2<f32>(0.5);
+    return upsample_level(level + 1u, frag, surface.position, surface.normal);
 }
 
 // Level 0 (holding the coarser levels, folded in) at full resolution, times ρ/π: indirect
@@ -433,12 +438,7 @@ fn fs_resolve(in: FullOut) -> @location(0) vec4<f32> {
     );
     var e = sums * (params.scale.x / params.scale.y);
     if (level + 1u < u32(params.levels.x)) {
-        let surface = surface_of(textureLoad(dst_guide, vec2<i32>(t), 0));
-        if (surface.covered) {
-            let ds = params.settings.x * f32(1u << level);
-            let frag = vec2<f32>(full_texel(vec2<i32>(t), i32(ds))) + vec2<f32>(0.5);
-            e += upsample_level(level + 1u, frag, surface.position, surface.normal);
-        }
+        e += coarser_at(level, vec2<i32>(t));
     }
     return vec4<f32>(e, 0.0);
 }
