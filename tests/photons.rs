@@ -280,3 +280,148 @@ params = { photons = 4000, batch_size = 500, interval_ms = 100.0 }
         "{emitted} photons an iteration: {b}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_send_their_views_upstream_and_the_batcher_guides_by_them() {
+    // A client at home sends its camera each frame over the cut edge `client.view ->
+    // batcher.views` (a cycle with `batcher.out -> client.in`, both `latest`); the
+    // batcher guides the city's sun by it. A batcher without the edge is not warned about:
+    // the input is optional.
+    let edges = |views: bool| {
+        format!(
+            r#"
+[[stage]]
+name = "batcher"
+kind = "photon_batcher"
+node = "cloud"
+params = {{ photons = 4000, batch_size = 2000, interval_ms = 100.0 }}
+[[stage]]
+name = "client"
+kind = "photon_reconstructor"
+node = "home"
+params = {{ render = false, fps = 20.0 }}
+[[edge]]
+from = "batcher.out"
+to = "client.in"
+{}"#,
+            if views {
+                "[[edge]]\nfrom = \"client.view\"\nto = \"batcher.views\"\n"
+            } else {
+                ""
+            }
+        )
+    };
+    let registry = cloudlight::actors::registry();
+    let unguided = plan_text(&cloud_and_home("city:2000", 1.5, &edges(false)), &registry);
+    assert!(
+        unguided
+            .warnings
+            .iter()
+            .all(|w| !w.message.contains("views")),
+        "{:?}",
+        unguided.warnings
+    );
+    let plan = plan_text(&cloud_and_home("city:2000", 2.0, &edges(true)), &registry);
+    let run = run_plan(&plan, &registry, RunOptions::default())
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    let b = report(&run.metrics, "batcher");
+    assert!(f(b, "views_received") >= 10.0, "{b}");
+    assert_eq!(f(b, "views_rejected"), 0.0, "{b}");
+    assert_eq!(f(b, "views_in_use"), 1.0, "{b}");
+    let c = report(&run.metrics, "client");
+    assert_eq!(c["indirect_shown"], true, "{c}");
+    let views = run
+        .metrics
+        .edges
+        .iter()
+        .find(|e| e.name.starts_with("client.view -> batcher.views") && e.wire.is_some())
+        .expect("the views edge is cut");
+    assert!(views.messages >= 10, "{views:?}");
+}
+
+/// Sends views whose numbers are out of range, then one good view.
+struct BadViews {
+    sent: usize,
+}
+
+impl BadViews {
+    fn views() -> Vec<cloudlight::scenes::View> {
+        use cloudlight::scenes::glam::Vec3;
+        let good = cloudlight::scenes::View {
+            camera: cloudlight::scenes::Camera {
+                position: Vec3::new(0.0, 2.0, 0.0),
+                target: Vec3::new(10.0, 2.0, 1.0),
+                up: Vec3::Y,
+                fov_y_rad: 1.0,
+            },
+            aspect: 1.5,
+        };
+        let mut v = Vec::new();
+        for k in 0..6 {
+            let mut bad = good;
+            match k {
+                0 => bad.camera.position.x = f32::NAN,
+                1 => bad.camera.target = bad.camera.position,
+                2 => bad.camera.fov_y_rad = 0.0,
+                3 => bad.camera.fov_y_rad = f32::INFINITY,
+                4 => bad.aspect = -1.0,
+                _ => bad.camera.up.y = f32::NEG_INFINITY,
+            }
+            v.push(bad);
+        }
+        v.push(good);
+        v
+    }
+}
+
+#[async_trait::async_trait]
+impl Stage for BadViews {
+    async fn on_tick(&mut self, ctx: &mut StageCtx) -> anyhow::Result<NextTick> {
+        let views = Self::views();
+        let Some(v) = views.get(self.sent) else {
+            return Ok(NextTick::Never);
+        };
+        self.sent += 1;
+        ctx.send(cloudlight::actors::client::VIEW, 0.0, *v).await?;
+        Ok(NextTick::After(Duration::from_millis(5)))
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn views_out_of_range_are_dropped_and_counted() {
+    let mut registry: StageRegistry = cloudlight::actors::registry();
+    registry.register(
+        StageKind::new("bad_views", "photons", "sends views out of range", |_| {
+            Ok(Box::new(BadViews { sent: 0 }))
+        })
+        .output(cloudlight::actors::client::VIEW),
+    );
+    let text = cloud_and_home(
+        "city:2000",
+        1.0,
+        r#"
+[[stage]]
+name = "batcher"
+kind = "photon_batcher"
+node = "cloud"
+params = { photons = 2000, batch_size = 2000, interval_ms = 100.0 }
+[[stage]]
+name = "views"
+kind = "bad_views"
+node = "home"
+[[edge]]
+from = "views.view"
+to = "batcher.views"
+capacity = 16
+"#,
+    );
+    let plan = plan_text(&text, &registry);
+    let run = run_plan(&plan, &registry, RunOptions::default())
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    let b = report(&run.metrics, "batcher");
+    assert_eq!(f(b, "views_received"), 7.0, "{b}");
+    assert_eq!(f(b, "views_rejected"), 6.0, "{b}");
+    assert_eq!(f(b, "views_in_use"), 1.0, "{b}");
+}

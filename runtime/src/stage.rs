@@ -276,6 +276,8 @@ pub struct PortSpec {
     pub ty: MessageType,
     /// Default capacity and policy of edges into this port (inputs only).
     pub default: Option<EdgeSettings>,
+    /// An input the stage works without (no warning when no edge feeds it).
+    pub optional: bool,
 }
 
 /// Everything a stage kind's constructor gets.
@@ -425,7 +427,19 @@ impl StageKind {
             name: port.name(),
             ty: MessageType::of::<T>(),
             default: Some(default),
+            optional: false,
         });
+        self
+    }
+
+    /// Declares an input port the stage works without: [`Self::input`], but a topology
+    /// that feeds it nothing gets no warning (e.g. clients' views, which only refine what
+    /// the stage does).
+    pub fn optional_input<T: Message>(mut self, port: Port<T>, default: EdgeSettings) -> Self {
+        self = self.input(port, default);
+        if let Some(p) = self.inputs.last_mut() {
+            p.optional = true;
+        }
         self
     }
 
@@ -435,6 +449,7 @@ impl StageKind {
             name: port.name(),
             ty: MessageType::of::<T>(),
             default: None,
+            optional: false,
         });
         self
     }

@@ -14,7 +14,7 @@ pub mod model;
 
 pub use model::{
     Camera, CameraPath, Light, LightKind, LightState, Material, Mesh, Motion, Object, Scene,
-    SunPath, Texture, WorldTriangle,
+    SunPath, Texture, View, WorldTriangle,
 };
 
 /// Smallest and largest `N` accepted by `city:N`.

@@ -419,7 +419,7 @@ impl Light {
 }
 
 /// A pinhole camera.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Camera {
     /// Eye position, meters.
     pub position: Vec3,
@@ -446,6 +446,30 @@ impl Camera {
         let h = (self.fov_y_rad * 0.5).tan();
         let d = Vec3::new(ndc.x * h * aspect, ndc.y * h, -1.0);
         (self.world_from_camera() * d).normalize()
+    }
+}
+
+/// Where a client looks: its camera and its image's aspect. Clients send theirs upstream
+/// (the client shell's `view` port) so that servers can favour what they see.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct View {
+    /// The camera.
+    pub camera: Camera,
+    /// Width / height of its image.
+    pub aspect: f32,
+}
+
+impl View {
+    /// Whether every number is finite, the field of view within (0, π), the aspect
+    /// positive and the eye apart from the target.
+    pub fn is_valid(&self) -> bool {
+        let c = &self.camera;
+        [c.position, c.target, c.up].iter().all(|v| v.is_finite())
+            && c.position != c.target
+            && c.fov_y_rad > 0.0
+            && c.fov_y_rad < std::f32::consts::PI
+            && self.aspect > 0.0
+            && self.aspect < 1e3
     }
 }
 

@@ -12,7 +12,9 @@ use cloudlight_actors::photon_reconstructor::{PhotonClientParams, PhotonClientRe
 use cloudlight_actors::wire::PhotonMsg;
 use cloudlight_render::metrics::{ImageErrors, compare};
 use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings, photon_frame};
-use cloudlight_render::photon::{PackFormat, Photon, PhotonSettings, Receive, trace_iteration};
+use cloudlight_render::photon::{
+    PackFormat, Photon, PhotonSettings, PhotonStream, Receive, View, trace_iteration,
+};
 use cloudlight_render::raster::{Raster, ShadowSettings};
 use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_scenes::Scene;
@@ -60,6 +62,12 @@ pub struct PhotonOptions {
     /// Refinement passes of a still light (progressive photon mapping); `bench quality`
     /// measures the error pass by pass when above 1.
     pub passes: u32,
+    /// Share of a sun's photons sent toward what the client sees (its view goes upstream
+    /// to the batcher; [`PhotonSettings::guide_share`]); 0: uniform over the footprint.
+    pub guide: f32,
+    /// Reach of the guide, a fraction of the scene's half diagonal
+    /// ([`PhotonSettings::guide_reach`]).
+    pub guide_reach: f32,
 }
 
 impl Default for PhotonOptions {
@@ -77,6 +85,8 @@ impl Default for PhotonOptions {
             min_texels: SplatSettings::default().min_texels,
             compute: SplatSettings::default().compute,
             passes: PhotonSettings::default().passes,
+            guide: PhotonSettings::default().guide_share,
+            guide_reach: PhotonSettings::default().guide_reach,
         }
     }
 }
@@ -274,6 +284,8 @@ impl Technique for Photons {
             min_texels: options.min_texels,
             compute: options.compute,
             passes: options.passes,
+            guide: options.guide,
+            guide_reach: options.guide_reach,
         };
         let rows = quality(raster, scene, &o, out)?;
         Ok(
@@ -525,6 +537,10 @@ pub struct QualityOptions {
     /// Above 1: the first budget is also measured pass by pass while its lights stand
     /// still, up to this many passes (progressive photon mapping).
     pub passes: u32,
+    /// Share of a sun's photons guided toward the view.
+    pub guide: f32,
+    /// Reach of the guide (fraction of the scene's half diagonal).
+    pub guide_reach: f32,
 }
 
 /// One point of the trade: a budget in one packing.
@@ -583,13 +599,17 @@ impl QualityView {
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
             receive: o.receive,
+            guide_share: o.guide,
+            guide_reach: o.guide_reach,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,
                 o.batch_size.min(photons as u32).max(1),
             )
         };
-        let it = trace_iteration(&self.scene, &self.bvh, 0.0, settings, o.seed, format);
+        let mut stream = PhotonStream::new(settings, format, Retrace::Always, o.seed);
+        stream.set_views(vec![self.view(o)]);
+        let it = stream.iterate(&self.scene, &self.bvh, 0.0);
         let (errors, indirect) = self.client_errors(raster, &it.unpacked(), o)?;
         let update_ms = (it.trace_time + it.pack_time).as_secs_f64() * 1000.0;
         let bytes = it.data_bytes() as f64;
@@ -607,6 +627,14 @@ impl QualityView {
             errors,
         };
         Ok((point, indirect))
+    }
+
+    /// The view the client reports upstream: the reference's camera.
+    fn view(&self, o: &QualityOptions) -> View {
+        View {
+            camera: self.camera,
+            aspect: o.width as f32 / o.height.max(1) as f32,
+        }
     }
 
     /// The client's indirect light of `photons` (its splat as `o` sets it) against the
@@ -691,12 +719,14 @@ impl QualityView {
         photons: u64,
         o: &QualityOptions,
     ) -> anyhow::Result<Vec<ProgressivePoint>> {
-        use cloudlight_render::photon::{PhotonSet, PhotonStream, Retrace};
+        use cloudlight_render::photon::PhotonSet;
         let settings = PhotonSettings {
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
             receive: o.receive,
             passes: o.passes,
+            guide_share: o.guide,
+            guide_reach: o.guide_reach,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,
@@ -705,6 +735,7 @@ impl QualityView {
         };
         let mut stream =
             PhotonStream::new(settings, PackFormat::Compact8, Retrace::Changed, o.seed);
+        stream.set_views(vec![self.view(o)]);
         let mut set = PhotonSet::new();
         let (mut points, mut bytes) = (Vec::new(), 0usize);
         for pass in 1..=o.passes {

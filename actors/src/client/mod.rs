@@ -34,7 +34,7 @@ use cloudlight_runtime::{
 use crate::the_scene;
 use crate::wire::FrameMsg;
 use cloudlight_scenes::glam::Vec3;
-use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
+use cloudlight_scenes::{Camera, LightState, Scene, View, WorldTriangle};
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
@@ -50,6 +50,10 @@ pub fn input_port<T: ClientTechnique>() -> Port<T::Msg> {
 /// The frames a rendering client shows (when anything consumes them: a `video_encoder` of
 /// the full-frame baseline).
 pub const FRAMES: Port<FrameMsg> = Port::new("frames");
+
+/// Where the client looks, sent each frame when anything consumes it (an edge to a
+/// server that guides its work toward what clients see, e.g. `photon_batcher.views`).
+pub const VIEW: Port<View> = Port::new("view");
 
 /// What a technique brings to the client shell.
 pub trait ClientTechnique: Send + Sized + 'static {
@@ -682,6 +686,13 @@ impl<T: ClientTechnique> Stage for ClientShell<T> {
         self.cadence.begin();
         let t = ctx.clock().scene_time_at_s(now_unix_ns());
         self.record_age(t);
+        if ctx.has_consumers(VIEW) {
+            let view = View {
+                camera: self.camera_at(t),
+                aspect: self.params.width as f32 / self.params.height.max(1) as f32,
+            };
+            ctx.send(VIEW, t, view).await?;
+        }
         let recording = self.output.record.is_some();
         let sample = self.due_sample(t);
         let frame_ms = if T::SHOWS_PICTURES {
@@ -773,6 +784,7 @@ pub fn register<T: ClientTechnique>(
         })
         .input(input_port::<T>(), edge)
         .output(FRAMES)
+        .output(VIEW)
         .checked_params::<Params<T::Params>>()
         .scene_check(|table, scene| {
             let params: Params<T::Params> = parse_params(table)?;

@@ -37,6 +37,28 @@ pub struct Footprint {
     pub blocks: Vec<[u32; 3]>,
     /// Cumulative covered area of `blocks`, in fine cells.
     cdf: Vec<u64>,
+    /// Coarse cells across and along the grid.
+    columns: u32,
+    /// Coarse cells along the grid's second axis.
+    rows: u32,
+}
+
+/// How a directional light's photons favour where clients look ([`Footprint::guide`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Guide {
+    /// Coarse cells with covered area, in the footprint's block order.
+    cells: Vec<GuideCell>,
+    /// Cumulative probability of `cells`.
+    cdf: Vec<f64>,
+}
+
+/// A coarse cell of a guide: its run of the footprint's blocks and its probability.
+#[derive(Clone, Debug, PartialEq)]
+struct GuideCell {
+    coarse: usize,
+    start: u32,
+    end: u32,
+    probability: f64,
 }
 
 /// The footprints of a scene whose geometry does not move, by light direction: the sun's
@@ -201,6 +223,8 @@ impl Footprint {
             cell_m,
             blocks,
             cdf,
+            columns,
+            rows,
         })
     }
 
@@ -220,6 +244,123 @@ impl Footprint {
         let [x, y, side] = self.blocks[i];
         let (x, y) = (x as f32 + u1 * side as f32, y as f32 + u2 * side as f32);
         self.origin + (self.axes[0] * x + self.axes[1] * y) * self.cell_m
+    }
+
+    /// Where on the plane the light's photons should go so that they come to rest near
+    /// `points` (surfaces clients see): a coarse cell's weight counts the points whose
+    /// projection along the light lies within `reach_m` of it (a photon's first hit lights
+    /// what lies within about that distance). `share` of the photons follow the weights,
+    /// the rest stay uniform over the footprint, so every surface the light reaches keeps
+    /// photons and the estimate stays unbiased (each photon's power is divided by its
+    /// density, [`Self::sample_guided`]). `None` when no point lies near the footprint.
+    pub fn guide(&self, points: &[Vec3], reach_m: f32, share: f32) -> Option<Guide> {
+        let share = share.clamp(0.0, 1.0);
+        let total = *self.cdf.last()?;
+        if share <= 0.0 || total == 0 || points.is_empty() {
+            return None;
+        }
+        let coarse_m = self.cell_m * FINE_CELLS as f32;
+        let (columns, rows) = (self.columns as usize, self.rows as usize);
+        let mut weight = vec![0.0f64; columns * rows];
+        let reach = (reach_m.max(0.0) / coarse_m).min((columns.max(rows)) as f32);
+        for p in points.iter().filter(|p| p.is_finite()) {
+            let q = Vec2::new(
+                (*p - self.origin).dot(self.axes[0]),
+                (*p - self.origin).dot(self.axes[1]),
+            ) / coarse_m;
+            let lo = (q - Vec2::splat(reach)).floor().max(Vec2::ZERO);
+            let hi = (q + Vec2::splat(reach)).floor();
+            if hi.x < 0.0 || hi.y < 0.0 || lo.x >= columns as f32 || lo.y >= rows as f32 {
+                continue;
+            }
+            let hi = hi.min(Vec2::new(columns as f32 - 1.0, rows as f32 - 1.0));
+            for cy in lo.y as usize..=hi.y as usize {
+                for cx in lo.x as usize..=hi.x as usize {
+                    // Distance from the point to the cell's square, in coarse cells.
+                    let c = Vec2::new(cx as f32, cy as f32);
+                    let d = (c - q).max(q - (c + Vec2::ONE)).max(Vec2::ZERO);
+                    if d.length() <= reach {
+                        weight[cy * columns + cx] += 1.0;
+                    }
+                }
+            }
+        }
+        // Each coarse cell's run of blocks (the blocks of one coarse cell are contiguous).
+        let mut cells: Vec<GuideCell> = Vec::new();
+        for (i, b) in self.blocks.iter().enumerate() {
+            let coarse = (b[1] / FINE_CELLS) as usize * columns + (b[0] / FINE_CELLS) as usize;
+            match cells.last_mut() {
+                Some(c) if c.coarse == coarse => c.end = i as u32 + 1,
+                _ => cells.push(GuideCell {
+                    coarse,
+                    start: i as u32,
+                    end: i as u32 + 1,
+                    probability: 0.0,
+                }),
+            }
+        }
+        let area = |c: &GuideCell| {
+            let before = if c.start == 0 {
+                0
+            } else {
+                self.cdf[c.start as usize - 1]
+            };
+            (self.cdf[c.end as usize - 1] - before) as f64
+        };
+        let guided: f64 = cells.iter().map(|c| weight[c.coarse] * area(c)).sum();
+        if guided <= 0.0 {
+            return None;
+        }
+        let share = share as f64;
+        for c in &mut cells {
+            let a = area(c);
+            c.probability =
+                (1.0 - share) * a / total as f64 + share * weight[c.coarse] * a / guided;
+        }
+        let cdf = cells
+            .iter()
+            .scan(0.0f64, |sum, c| {
+                *sum += c.probability;
+                Some(*sum)
+            })
+            .collect();
+        Some(Guide { cells, cdf })
+    }
+
+    /// A point on the plane drawn as `guide` says, from three uniform numbers, and its
+    /// weight: the uniform density over the covered area divided by the density it was
+    /// drawn with (a photon's power is multiplied by it).
+    pub fn sample_guided(&self, guide: &Guide, u0: f32, u1: f32, u2: f32) -> (Vec3, f32) {
+        let sum = guide.cdf.last().copied().unwrap_or(1.0);
+        let target = u0 as f64 * sum;
+        let i = guide
+            .cdf
+            .partition_point(|c| *c <= target)
+            .min(guide.cells.len() - 1);
+        let cell = &guide.cells[i];
+        // The rest of u0 picks the point within the cell, uniform over its covered area.
+        let before = if i == 0 { 0.0 } else { guide.cdf[i - 1] };
+        let within = ((target - before) / cell.probability.max(f64::MIN_POSITIVE)).clamp(0.0, 1.0);
+        let first = if cell.start == 0 {
+            0
+        } else {
+            self.cdf[cell.start as usize - 1]
+        };
+        let last = self.cdf[cell.end as usize - 1];
+        let area = last - first;
+        let fine = (first + (within * area as f64) as u64).min(last - 1);
+        let b = self
+            .cdf
+            .partition_point(|c| *c <= fine)
+            .clamp(cell.start as usize, cell.end as usize - 1);
+        let [x, y, side] = self.blocks[b];
+        let (x, y) = (x as f32 + u1 * side as f32, y as f32 + u2 * side as f32);
+        let total = self.cdf.last().copied().unwrap_or(1) as f64;
+        let weight = (area as f64 / total) / (cell.probability / sum);
+        (
+            self.origin + (self.axes[0] * x + self.axes[1] * y) * self.cell_m,
+            weight as f32,
+        )
     }
 }
 

@@ -29,13 +29,14 @@
 //! counter-based per (seed, light, slot, generation, photon), so a batch is the same bytes
 //! on any thread count and any node.
 
+pub use cloudlight_scenes::View;
 use cloudlight_scenes::{LightState, Scene, WorldTriangle};
 use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::bvh::SceneBvh;
 use crate::sampling::{Rng, basis, cosine_hemisphere, uniform_sphere, uniform_triangle};
-use footprint::{Footprint, FootprintCache};
+use footprint::{Footprint, FootprintCache, Guide};
 
 pub mod compact8;
 pub mod density;
@@ -102,6 +103,40 @@ pub struct PhotonSettings {
     /// What each photon's vector is: its surface's normal (the default) or the direction
     /// it travelled ([`Receive`]).
     pub receive: Receive,
+    /// Share of a directional light's photons sent toward what clients see, when the
+    /// stream knows their views ([`PhotonStream::set_views`], [`Footprint::guide`]); the
+    /// rest stay uniform over its footprint. 0: no guidance.
+    pub guide_share: f32,
+    /// How far from a surface a client sees the photons that light it are sought, as a
+    /// fraction of the scene's half diagonal.
+    pub guide_reach: f32,
+}
+
+/// Rays per view along each image axis when finding the surfaces clients see.
+pub const VIEW_RAYS: u32 = 48;
+
+/// The surfaces `views` see: one point per ray of a `VIEW_RAYS`² grid across each view
+/// (rays that meet nothing give none), so each pixel's surface counts alike.
+pub fn view_points(bvh: &SceneBvh, views: &[View]) -> Vec<Vec3> {
+    let n = VIEW_RAYS;
+    views
+        .iter()
+        .filter(|v| v.is_valid())
+        .flat_map(|v| {
+            (0..n * n)
+                .into_par_iter()
+                .filter_map(move |i| {
+                    let ndc = glam::Vec2::new(
+                        ((i % n) as f32 + 0.5) / n as f32 * 2.0 - 1.0,
+                        ((i / n) as f32 + 0.5) / n as f32 * 2.0 - 1.0,
+                    );
+                    let d = v.camera.ray_direction(ndc, v.aspect);
+                    let o = v.camera.position;
+                    bvh.closest_hit(o, d, f32::INFINITY).map(|h| o + d * h.t)
+                })
+                .collect::<Vec<_>>()
+        })
+        .collect()
 }
 
 /// Radius reduction of progressive photon mapping (Knaus & Zwicker 2011): each pass keeps
@@ -137,6 +172,8 @@ impl Default for PhotonSettings {
             density_radius: true,
             passes: 1,
             receive: Receive::Normal,
+            guide_share: 0.5,
+            guide_reach: 0.05,
         }
     }
 }
@@ -468,7 +505,12 @@ pub struct PhotonTracer<'a> {
     eps: f32,
     radius: f32,
     plan: BatchPlan,
+    guides: &'a std::collections::BTreeMap<u32, std::sync::Arc<Guide>>,
 }
+
+/// No guides.
+static NO_GUIDES: std::collections::BTreeMap<u32, std::sync::Arc<Guide>> =
+    std::collections::BTreeMap::new();
 
 impl<'a> PhotonTracer<'a> {
     /// A tracer for `scene` (whose BVH at the scene time is `bvh`) emitting `plan`'s photons
@@ -504,7 +546,16 @@ impl<'a> PhotonTracer<'a> {
             eps: extent * 1e-5,
             radius,
             plan: plan.clone(),
+            guides: &NO_GUIDES,
         }
+    }
+
+    /// This tracer with directional lights' emission guided by `guides` (by light id).
+    pub fn guided(
+        self,
+        guides: &'a std::collections::BTreeMap<u32, std::sync::Arc<Guide>>,
+    ) -> Self {
+        PhotonTracer { guides, ..self }
     }
 
     /// The splat radius of this iteration's photons, meters.
@@ -570,10 +621,11 @@ impl<'a> PhotonTracer<'a> {
     }
 
     fn trace_one(&self, light: &PhotonLight, power: Vec3, rng: &mut Rng, out: &mut Vec<Photon>) {
-        let Some((mut o, mut d)) = emit(&light.emitter, rng, self.eps) else {
+        let guide = self.guides.get(&light.id).map(|g| &**g);
+        let Some((mut o, mut d, weight)) = emit(&light.emitter, guide, rng, self.eps) else {
             return;
         };
-        let mut power = power;
+        let mut power = power * weight;
         for depth in 0..=self.settings.bounces {
             let Some(hit) = self.bvh.closest_hit(o, d, f32::INFINITY) else {
                 return;
@@ -621,8 +673,25 @@ impl<'a> PhotonTracer<'a> {
     }
 }
 
-/// Origin and unit direction of one emitted photon.
-fn emit(emitter: &Emitter, rng: &mut Rng, eps: f32) -> Option<(Vec3, Vec3)> {
+/// Origin and unit direction of one emitted photon, and the factor on its power (1 but
+/// where `guide` drew it).
+fn emit(
+    emitter: &Emitter,
+    guide: Option<&Guide>,
+    rng: &mut Rng,
+    eps: f32,
+) -> Option<(Vec3, Vec3, f32)> {
+    if let (Emitter::Directional(footprint), Some(guide)) = (emitter, guide) {
+        let (o, weight) =
+            footprint.sample_guided(guide, rng.next_f32(), rng.next_f32(), rng.next_f32());
+        return Some((o, footprint.direction, weight));
+    }
+    let (o, d) = emit_uniform(emitter, rng, eps)?;
+    Some((o, d, 1.0))
+}
+
+/// Origin and unit direction of one photon emitted with the light's own distribution.
+fn emit_uniform(emitter: &Emitter, rng: &mut Rng, eps: f32) -> Option<(Vec3, Vec3)> {
     match emitter {
         Emitter::Punctual {
             position,

@@ -18,14 +18,17 @@
 //! clock).
 
 use std::collections::{BTreeMap, HashSet};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use cloudlight_scenes::Scene;
 
+use super::Emitter;
 use super::pack::BatchHeader;
 use super::{
     BatchPlan, Manifest, ManifestLight, PackFormat, PackedBatch, Photon, PhotonLight,
-    PhotonSettings, PhotonTracer, footprint::FootprintCache, photon_lights_cached,
+    PhotonSettings, PhotonTracer, View, footprint::FootprintCache, footprint::Guide,
+    photon_lights_cached, view_points,
 };
 use crate::bvh::SceneBvh;
 
@@ -88,6 +91,9 @@ pub struct IterationPlan {
     pub settings: PhotonSettings,
     /// The batches to trace, light by light and slot by slot.
     pub jobs: Vec<BatchJob>,
+    /// Directional lights' emission toward what clients see, by light id (empty while
+    /// the stream knows no view, [`PhotonStream::set_views`]).
+    pub guides: BTreeMap<u32, Arc<Guide>>,
 }
 
 impl IterationPlan {
@@ -120,6 +126,9 @@ pub struct PhotonStream {
     sets: BTreeMap<u32, LightSet>,
     iteration: u64,
     footprints: FootprintCache,
+    views: Vec<View>,
+    /// The views each guided light's current set was traced toward.
+    guided: BTreeMap<u32, Vec<View>>,
 }
 
 impl PhotonStream {
@@ -133,7 +142,21 @@ impl PhotonStream {
             sets: BTreeMap::new(),
             iteration: 0,
             footprints: FootprintCache::default(),
+            views: Vec::new(),
+            guided: BTreeMap::new(),
         }
+    }
+
+    /// The views of the clients (their cameras now): from the next plan on, directional
+    /// lights send [`PhotonSettings::guide_share`] of their photons toward what they see.
+    /// Invalid views are ignored; none: uniform emission.
+    pub fn set_views(&mut self, views: Vec<View>) {
+        self.views = views.into_iter().filter(View::is_valid).collect();
+    }
+
+    /// The views emission is guided toward.
+    pub fn views(&self) -> &[View] {
+        &self.views
     }
 
     /// The tracer's settings.
@@ -171,15 +194,24 @@ impl PhotonStream {
         };
         let live: HashSet<u32> = lights.iter().map(|l| l.id).collect();
         self.sets.retain(|id, _| live.contains(id));
+        self.guided.retain(|id, _| live.contains(id));
+        let guides = self.guides(bvh, &lights);
+        let reach = self.reach_m(bvh);
         self.iteration += 1;
         let mut jobs = Vec::new();
         for (index, light) in lights.iter().enumerate() {
             let slots = plan.batches_of(light.id);
             let current = self.sets.get(&light.id);
+            let guided = guides.contains_key(&light.id);
             let changed = current.is_none_or(|s| {
                 self.retrace == Retrace::Always
                     || s.light != *light
                     || s.passes.first().map_or(0, |p| p.len() as u32) != slots
+                    || match (self.guided.get(&light.id), guided) {
+                        (Some(before), true) => views_moved(before, &self.views, reach),
+                        (None, false) => false,
+                        _ => true,
+                    }
             });
             let (generation, pass) = match current {
                 Some(s) if !changed => {
@@ -191,6 +223,13 @@ impl PhotonStream {
                 }
                 _ => (current.map_or(1, |s| s.generation + 1), 0),
             };
+            if pass == 0 {
+                if guided {
+                    self.guided.insert(light.id, self.views.clone());
+                } else {
+                    self.guided.remove(&light.id);
+                }
+            }
             jobs.extend((0..slots).map(|slot| BatchJob {
                 light: index,
                 slot,
@@ -205,6 +244,40 @@ impl PhotonStream {
             plan,
             settings,
             jobs,
+            guides,
+        }
+    }
+
+    /// Each directional light's guide toward the surfaces the views see.
+    fn guides(&self, bvh: &SceneBvh, lights: &[PhotonLight]) -> BTreeMap<u32, Arc<Guide>> {
+        let share = self.settings.guide_share;
+        let directional = lights
+            .iter()
+            .any(|l| matches!(l.emitter, Emitter::Directional(_)));
+        if self.views.is_empty() || share.is_nan() || share <= 0.0 || !directional {
+            return BTreeMap::new();
+        }
+        let points = view_points(bvh, &self.views);
+        let reach = self.reach_m(bvh);
+        lights
+            .iter()
+            .filter_map(|l| match &l.emitter {
+                Emitter::Directional(f) => {
+                    f.guide(&points, reach, share).map(|g| (l.id, Arc::new(g)))
+                }
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// How far from what a client sees the guide looks, meters.
+    fn reach_m(&self, bvh: &SceneBvh) -> f32 {
+        let (lo, hi) = bvh.bounds();
+        let half_diag = (hi - lo).length() * 0.5;
+        if half_diag.is_finite() {
+            half_diag * self.settings.guide_reach
+        } else {
+            0.0
         }
     }
 
@@ -218,7 +291,8 @@ impl PhotonStream {
         format: PackFormat,
     ) -> TracedBatch {
         let light = &plan.lights[job.light];
-        let tracer = PhotonTracer::new(scene, bvh, plan.settings, &plan.plan, seed);
+        let tracer =
+            PhotonTracer::new(scene, bvh, plan.settings, &plan.plan, seed).guided(&plan.guides);
         let start = Instant::now();
         let photons: Vec<Photon> =
             tracer.trace_pass(light, job.slot, job.slots, job.generation, job.pass);
@@ -371,6 +445,20 @@ impl PhotonStream {
             pack_time,
         }
     }
+}
+
+/// Whether `now` differs from the views `before` a set was guided toward enough to trace
+/// it again: another count of views, an eye moved by more than a quarter of the guide's
+/// reach, or a view turned by more than 10°. (Smaller moves keep the set: its photons are
+/// unbiased whatever they were guided toward, only less dense where the client now looks;
+/// a progressive light keeps refining.)
+fn views_moved(before: &[View], now: &[View], reach_m: f32) -> bool {
+    let forward = |v: &View| (v.camera.target - v.camera.position).normalize_or_zero();
+    before.len() != now.len()
+        || before.iter().zip(now).any(|(a, b)| {
+            a.camera.position.distance(b.camera.position) > 0.25 * reach_m
+                || forward(a).dot(forward(b)) < 10f32.to_radians().cos()
+        })
 }
 
 /// One whole iteration, traced and packed (what benchmarks and tests measure).

@@ -258,7 +258,7 @@ fn a_sun_spends_its_photons_on_geometry_and_its_power_on_what_it_lights() {
         let per_photon = lights[0].power_w.x / n as f32;
         let mut hits = 0;
         for _ in 0..n {
-            let (o, d) = emit(&lights[0].emitter, &mut rng, 1e-4).unwrap();
+            let (o, d) = emit_uniform(&lights[0].emitter, &mut rng, 1e-4).unwrap();
             assert!((d - direction).length() < 1e-5);
             hits += bvh.closest_hit(o, d, f32::INFINITY).is_some() as u32;
         }
@@ -834,4 +834,140 @@ fn a_stream_traces_again_only_the_lights_that_changed() {
     let again = always.iterate(&scene, &bvh, 0.0);
     assert_eq!(again.batches.len() as u64, again.plan.total_batches());
     assert!(again.batches.iter().all(|b| b.header.generation == 2));
+}
+
+/// Two 1 m cubes 40 m apart (on a floor if `floor`) under a sun along `direction`
+/// (1000 W/m² per channel), and a camera 5 m from the far one looking at it.
+fn two_cubes_and_a_view(direction: Vec3, floor: bool) -> (Scene, View) {
+    let mut scene = small_scene_in_large_bounds(direction);
+    let mut far = Mesh::default();
+    far.push_box(Vec3::new(40.0, 0.0, 0.0), Vec3::new(41.0, 1.0, 1.0));
+    if floor {
+        far.push_box(Vec3::new(-5.0, -0.1, -5.0), Vec3::new(46.0, 0.0, 6.0));
+    }
+    scene.objects[1].mesh = far;
+    let view = View {
+        camera: cloudlight_scenes::Camera {
+            position: Vec3::new(40.5, 3.0, 6.0),
+            target: Vec3::new(40.5, 0.5, 0.5),
+            up: Vec3::Y,
+            fov_y_rad: 0.8,
+        },
+        aspect: 1.0,
+    };
+    (scene, view)
+}
+
+#[test]
+fn a_guided_sun_sends_its_photons_where_clients_look_and_keeps_each_surfaces_power() {
+    let direction = Vec3::new(0.3, -1.0, 0.2).normalize();
+    let (scene, view) = two_cubes_and_a_view(direction, false);
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let lights = photon_lights(&scene, 0.0);
+    let Emitter::Directional(footprint) = &lights[0].emitter else {
+        panic!("{:?}", lights[0].emitter);
+    };
+    let points = view_points(&bvh, &[view]);
+    assert!(points.len() > 60, "{} points", points.len());
+    assert!(
+        points.iter().all(|p| p.x > 39.0),
+        "the view sees the far cube only"
+    );
+    let share = 0.8;
+    let guide = footprint.guide(&points, 2.0, share).expect("a guide");
+    // Power reaching each cube, per photon emitted: unguided and guided, and how many
+    // guided photons reach the far cube.
+    let n = 40_000;
+    let per_photon = lights[0].power_w.x / n as f32;
+    let mut power = [[0.0f64; 2]; 2];
+    let mut far_hits = 0;
+    for (g, guide) in [None, Some(&guide)].into_iter().enumerate() {
+        let mut rng = Rng::new(11, g as u64);
+        for _ in 0..n {
+            let (o, d, w) = emit(&lights[0].emitter, guide, &mut rng, 1e-4).unwrap();
+            let Some(hit) = bvh.closest_hit(o, d, f32::INFINITY) else {
+                continue;
+            };
+            let far = (o + d * hit.t).x > 20.0;
+            power[g][far as usize] += (w * per_photon) as f64;
+            if g == 1 && far {
+                far_hits += 1;
+            }
+        }
+    }
+    // Each cube gets the irradiance times its shadow area, guided or not.
+    let shadow = 1000.0 * direction.abs().element_sum() as f64;
+    for (g, p) in power.iter().enumerate() {
+        for (cube, w) in p.iter().enumerate() {
+            assert!(
+                (w / shadow - 1.0).abs() < 0.04,
+                "guided {g}, cube {cube}: {w} W against {shadow} W"
+            );
+        }
+    }
+    // The guide sends `share` of the photons (plus the uniform part's half) to the cube
+    // in view: 0.8 + 0.2 / 2 = 90%, against 50% unguided.
+    let far_share = far_hits as f64 / n as f64;
+    assert!(
+        far_share > 0.85,
+        "{far_share} of the photons reach the cube in view"
+    );
+    // Unguided photons on the cube out of view carry 1 / (1 − share) of the power.
+    let mut rng = Rng::new(5, 5);
+    let weights: Vec<f32> = (0..2000)
+        .map(|_| footprint.sample_guided(&guide, rng.next_f32(), rng.next_f32(), rng.next_f32()))
+        .filter(|(o, _)| o.x < 20.0)
+        .map(|(_, w)| w)
+        .collect();
+    assert!(!weights.is_empty());
+    assert!(
+        weights.iter().all(|w| (w - 5.0).abs() < 1e-3),
+        "{weights:?}"
+    );
+    // No point near the footprint, or no share: no guide.
+    assert!(footprint.guide(&[Vec3::splat(1e4)], 2.0, share).is_none());
+    assert!(footprint.guide(&points, 2.0, 0.0).is_none());
+    assert!(footprint.guide(&[], 2.0, share).is_none());
+}
+
+#[test]
+fn a_stream_guides_toward_views_and_traces_again_only_when_they_move() {
+    use super::stream::{PhotonStream, Retrace};
+    let (scene, view) = two_cubes_and_a_view(Vec3::NEG_Y, true);
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let settings = PhotonSettings {
+        guide_share: 0.8,
+        ..PhotonSettings::for_budget(&scene, 4000, 4000)
+    };
+    let mut stream = PhotonStream::new(settings, PackFormat::Compact12, Retrace::Changed, 3);
+    let far_share = |it: &Iteration| {
+        let photons = it.unpacked();
+        photons.iter().filter(|p| p.position.x > 20.0).count() as f64 / photons.len() as f64
+    };
+    let generation = |s: &PhotonStream| s.sets().values().next().unwrap().generation;
+    let unguided = stream.iterate(&scene, &bvh, 0.0);
+    assert!(far_share(&unguided) < 0.6, "{}", far_share(&unguided));
+    // A client's view arrives: the sun is traced again, toward it.
+    stream.set_views(vec![view]);
+    let guided = stream.iterate(&scene, &bvh, 0.0);
+    assert!(!guided.batches.is_empty());
+    assert_eq!(generation(&stream), 2);
+    assert!(far_share(&guided) > 0.8, "{}", far_share(&guided));
+    // Invalid views are ignored; a small move keeps the set.
+    let mut nudged = view;
+    nudged.camera.position.x += 0.01;
+    let mut broken = view;
+    broken.camera.fov_y_rad = f32::NAN;
+    stream.set_views(vec![nudged, broken]);
+    assert_eq!(stream.views().len(), 1);
+    assert!(stream.iterate(&scene, &bvh, 0.0).batches.is_empty());
+    // Turning to the near cube traces again; so does the client leaving.
+    let mut turned = view;
+    turned.camera.target = Vec3::new(0.5, 0.5, 0.5);
+    stream.set_views(vec![turned]);
+    assert!(!stream.iterate(&scene, &bvh, 0.0).batches.is_empty());
+    assert_eq!(generation(&stream), 3);
+    stream.set_views(Vec::new());
+    assert!(!stream.iterate(&scene, &bvh, 0.0).batches.is_empty());
+    assert_eq!(generation(&stream), 4);
 }

@@ -410,7 +410,7 @@ impl Plan {
             let Some(kind) = registry.get(&s.kind) else {
                 continue;
             };
-            for port in &kind.inputs {
+            for port in kind.inputs.iter().filter(|p| !p.optional) {
                 let name = instance_name(&s.name, 0, s.replicas());
                 if !connected.contains(&(name, port.name)) {
                     warnings.push(map.diag(
