@@ -256,6 +256,10 @@ pub struct SplatSettings {
     /// has no per-triangle cost, and its integer sums do not lose small additions to
     /// half-precision accumulation.
     pub compute: bool,
+    /// Photons per compute dispatch at most (each bound as its own range of the photon
+    /// buffer); `None`: as many as one storage binding of the device holds (128 MiB, 2.8M
+    /// photons, on lavapipe and llvmpipe — a long progressive set holds more).
+    pub chunk_photons: Option<u32>,
 }
 
 impl Default for SplatSettings {
@@ -269,6 +273,7 @@ impl Default for SplatSettings {
             normal_power: 8.0,
             facing: 0.5,
             compute: true,
+            chunk_photons: None,
         }
     }
 }
@@ -291,6 +296,11 @@ struct SplatParams {
     levels: [f32; 4],
     /// x: photons.
     counts: [u32; 4],
+}
+
+/// Greatest common divisor.
+fn gcd(a: u64, b: u64) -> u64 {
+    if b == 0 { a } else { gcd(b, a % b) }
 }
 
 /// Targets and bind groups of the pass for one frame renderer.
@@ -554,13 +564,27 @@ impl PhotonSplatPass {
     ) {
         let t = self.targets.as_ref().expect("made by encode");
         enc.clear_buffer(sums, 0, None);
-        if let (Some(photons), true) = (&self.photons, self.count > 0) {
-            let groups = self.count.div_ceil(WORKGROUP);
-            let max = raster
-                .device
-                .limits()
-                .max_compute_workgroups_per_dimension
-                .max(1);
+        // A set larger than one storage binding may hold goes in chunks, each a range of
+        // the buffer at an offset the device accepts.
+        let limits = raster.device.limits();
+        let size = std::mem::size_of::<SplatPhoton>() as u64;
+        let align = limits.min_storage_buffer_offset_alignment.max(1) as u64;
+        let step = align / gcd(align, size);
+        let fits = limits.max_storage_buffer_binding_size / size;
+        let wanted = self
+            .settings
+            .chunk_photons
+            .map_or(fits, |c| (c as u64).min(fits));
+        let chunk = (wanted / step * step).max(step).min(u32::MAX as u64) as u32;
+        let chunks = match (&self.photons, self.count > 0) {
+            (Some(photons), true) => (0..self.count.div_ceil(chunk))
+                .map(|k| (photons, k * chunk, (self.count - k * chunk).min(chunk)))
+                .collect(),
+            _ => Vec::new(),
+        };
+        for (photons, first, count) in chunks {
+            let groups = count.div_ceil(WORKGROUP);
+            let max = limits.max_compute_workgroups_per_dimension.max(1);
             let (x, y) = (groups.min(max), groups.div_ceil(max));
             let tex = |binding, view| wgpu::BindGroupEntry {
                 binding,
@@ -578,7 +602,11 @@ impl PhotonSplatPass {
                     tex(2, &ctx.gbuffer.normal.view),
                     wgpu::BindGroupEntry {
                         binding: 8,
-                        resource: photons.as_entire_binding(),
+                        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                            buffer: photons,
+                            offset: first as u64 * size,
+                            size: std::num::NonZeroU64::new(count as u64 * size),
+                        }),
                     },
                     wgpu::BindGroupEntry {
                         binding: 9,

@@ -373,7 +373,8 @@ const MAX_UNITS: f32 = 16777216.0;
 @compute @workgroup_size(64)
 fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = id.x + id.y * groups.x * 64u;
-    if (i >= params.counts.x) {
+    // A large set is dispatched in chunks, each bound as its own range of the buffer.
+    if (i >= min(params.counts.x, arrayLength(&photons))) {
         return;
     }
     let p = photons[i];

@@ -387,6 +387,22 @@ fn the_compute_splat_draws_what_the_raster_splat_draws() {
                 view.errors_with(raster, &photons, splat)
             };
             let ((ec, compute), (er, rasterised)) = (image(true), image(false));
+            // The same set in dispatches of 1024 photons, each its own binding range (as
+            // a set larger than one storage binding goes).
+            let (_, chunked) = view.errors_with(
+                raster,
+                &photons,
+                SplatSettings {
+                    levels,
+                    min_texels,
+                    chunk_photons: Some(1024),
+                    ..Default::default()
+                },
+            );
+            let all: Vec<bool> = compute.iter().map(|v| v.max_element() > 0.0).collect();
+            let split = crate::metrics::compare(&chunked, &compute, &all, VIEW, VIEW);
+            assert!(split.relmse < 1e-6, "chunks of 1024: {split:?}");
+            assert!((split.energy_ratio - 1.0).abs() < 1e-4, "{split:?}");
             let mask: Vec<bool> = rasterised.iter().map(|v| v.max_element() > 0.0).collect();
             let between = crate::metrics::compare(&compute, &rasterised, &mask, VIEW, VIEW);
             eprintln!(
