@@ -37,7 +37,7 @@ pub struct Footprint {
     pub blocks: Vec<[u32; 3]>,
     /// Cumulative covered area of `blocks`, in fine cells.
     cdf: Vec<u64>,
-    /// Coarse cells across and along the grid.
+    /// Coarse cells along the grid's first axis.
     columns: u32,
     /// Coarse cells along the grid's second axis.
     rows: u32,
