@@ -299,14 +299,8 @@ impl Footprint {
                 }),
             }
         }
-        let area = |c: &GuideCell| {
-            let before = if c.start == 0 {
-                0
-            } else {
-                self.cdf[c.start as usize - 1]
-            };
-            (self.cdf[c.end as usize - 1] - before) as f64
-        };
+        let area =
+            |c: &GuideCell| (self.cdf[c.end as usize - 1] - self.area_before(c.start)) as f64;
         let guided: f64 = cells.iter().map(|c| weight[c.coarse] * area(c)).sum();
         if guided <= 0.0 {
             return None;
@@ -327,6 +321,11 @@ impl Footprint {
         Some(Guide { cells, cdf })
     }
 
+    /// Covered area of the blocks before block `i`, in fine cells.
+    fn area_before(&self, i: u32) -> u64 {
+        i.checked_sub(1).map_or(0, |k| self.cdf[k as usize])
+    }
+
     /// A point on the plane drawn as `guide` says, from three uniform numbers, and its
     /// weight: the uniform density over the covered area divided by the density it was
     /// drawn with (a photon's power is multiplied by it).
@@ -341,11 +340,7 @@ impl Footprint {
         // The rest of u0 picks the point within the cell, uniform over its covered area.
         let before = if i == 0 { 0.0 } else { guide.cdf[i - 1] };
         let within = ((target - before) / cell.probability.max(f64::MIN_POSITIVE)).clamp(0.0, 1.0);
-        let first = if cell.start == 0 {
-            0
-        } else {
-            self.cdf[cell.start as usize - 1]
-        };
+        let first = self.area_before(cell.start);
         let last = self.cdf[cell.end as usize - 1];
         let area = last - first;
         let fine = (first + (within * area as f64) as u64).min(last - 1);

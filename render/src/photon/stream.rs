@@ -195,8 +195,8 @@ impl PhotonStream {
         let live: HashSet<u32> = lights.iter().map(|l| l.id).collect();
         self.sets.retain(|id, _| live.contains(id));
         self.guided.retain(|id, _| live.contains(id));
-        let guides = self.guides(bvh, &lights);
         let reach = self.reach_m(bvh);
+        let guides = self.guides(bvh, &lights, reach);
         self.iteration += 1;
         let mut jobs = Vec::new();
         for (index, light) in lights.iter().enumerate() {
@@ -248,8 +248,13 @@ impl PhotonStream {
         }
     }
 
-    /// Each directional light's guide toward the surfaces the views see.
-    fn guides(&self, bvh: &SceneBvh, lights: &[PhotonLight]) -> BTreeMap<u32, Arc<Guide>> {
+    /// Each directional light's guide toward the surfaces the views see (within `reach` m).
+    fn guides(
+        &self,
+        bvh: &SceneBvh,
+        lights: &[PhotonLight],
+        reach: f32,
+    ) -> BTreeMap<u32, Arc<Guide>> {
         let share = self.settings.guide_share;
         let directional = lights
             .iter()
@@ -258,7 +263,6 @@ impl PhotonStream {
             return BTreeMap::new();
         }
         let points = view_points(bvh, &self.views);
-        let reach = self.reach_m(bvh);
         lights
             .iter()
             .filter_map(|l| match &l.emitter {
