@@ -377,6 +377,7 @@ impl FrameRenderer {
                 &self.targets.gbuffer,
                 &self.geometry,
                 clip,
+                inputs.camera.position,
             );
             timer.lap(raster, &mut enc, &mut times.gbuffer)?;
             let g = &self.geometry;

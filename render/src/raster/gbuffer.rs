@@ -81,12 +81,35 @@ impl Chunks {
 
     /// The vertex ranges `clip_from_world` may see, neighbouring chunks merged.
     pub(crate) fn visible(&self, clip_from_world: Mat4) -> Vec<std::ops::Range<u32>> {
+        self.runs(
+            (0..self.bounds.len()).filter(|&i| Self::in_frustum(clip_from_world, self.bounds[i])),
+        )
+    }
+
+    /// [`Self::visible`], the chunk nearest to `eye` first (by the distance from `eye` to
+    /// its box): the depth test then rejects what nearer chunks hide before it is shaded.
+    pub(crate) fn visible_near_first(
+        &self,
+        clip_from_world: Mat4,
+        eye: Vec3,
+    ) -> Vec<std::ops::Range<u32>> {
+        let mut near: Vec<(f32, usize)> = (0..self.bounds.len())
+            .filter(|&i| Self::in_frustum(clip_from_world, self.bounds[i]))
+            .map(|i| {
+                let (lo, hi) = self.bounds[i];
+                (eye.clamp(lo, hi).distance_squared(eye), i)
+            })
+            .collect();
+        near.sort_by(|a, b| a.0.total_cmp(&b.0));
+        self.runs(near.into_iter().map(|(_, i)| i))
+    }
+
+    /// The vertex ranges of `chunks` in their order, a chunk that continues the one before
+    /// merged into it.
+    fn runs(&self, chunks: impl Iterator<Item = usize>) -> Vec<std::ops::Range<u32>> {
         let mut runs: Vec<std::ops::Range<u32>> = Vec::new();
         let per = CHUNK_TRIANGLES as u32 * 3;
-        for (i, b) in self.bounds.iter().enumerate() {
-            if !Self::in_frustum(clip_from_world, *b) {
-                continue;
-            }
+        for i in chunks {
             let (start, end) = (i as u32 * per, ((i as u32 + 1) * per).min(self.vertices));
             match runs.last_mut() {
                 Some(r) if r.end == start => r.end = end,
@@ -115,7 +138,8 @@ impl GBufferPass {
         GBufferPass { camera, bind }
     }
 
-    /// Records the pass: `geometry` seen through `clip` (clip_from_world) → `targets`.
+    /// Records the pass: `geometry` seen through `clip` (clip_from_world) from `eye` →
+    /// `targets`, nearest chunks first.
     pub(crate) fn encode(
         &self,
         raster: &Raster,
@@ -123,6 +147,7 @@ impl GBufferPass {
         targets: &GBufferTargets,
         geometry: &Geometry,
         clip: Mat4,
+        eye: Vec3,
     ) {
         raster
             .queue
@@ -145,9 +170,58 @@ impl GBufferPass {
             pass.set_pipeline(&raster.pipelines.gbuffer);
             pass.set_bind_group(0, &self.bind, &[0]);
             pass.set_vertex_buffer(0, vbuf.slice(..));
-            for run in geometry.culled.visible(clip) {
+            for run in geometry.culled.visible_near_first(clip, eye) {
                 pass.draw(run, 0..1);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use cloudlight_scenes::{Camera, WorldTriangle};
+    use glam::{Vec2, Vec3};
+
+    use super::{CHUNK_TRIANGLES, Chunks};
+
+    /// Chunks of small triangles along a line, chunk `c` around x = 10·c (c = 0..8).
+    fn row() -> Vec<WorldTriangle> {
+        (0..8 * CHUNK_TRIANGLES)
+            .map(|i| {
+                let x = 10.0 * (i / CHUNK_TRIANGLES) as f32;
+                WorldTriangle {
+                    v: [
+                        Vec3::new(x, 0.0, 0.0),
+                        Vec3::new(x + 1.0, 0.0, 0.0),
+                        Vec3::new(x, 1.0, 0.0),
+                    ],
+                    n: [Vec3::Z; 3],
+                    uv: [Vec2::ZERO; 3],
+                    lightmap_uv: [Vec2::ZERO; 3],
+                    material: 0,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_near_first_order_draws_what_the_frustum_sees_nearest_chunk_first() {
+        let chunks = Chunks::new(&row());
+        // Between chunks 5 and 6, looking down −x: chunks 0–5 in view, 6 and 7 behind.
+        let camera = Camera {
+            position: Vec3::new(55.0, 0.5, 2.0),
+            target: Vec3::new(0.0, 0.5, 0.0),
+            up: Vec3::Y,
+            fov_y_rad: 1.0,
+        };
+        let (clip_from_view, view_from_world) =
+            crate::raster::camera_matrices(&camera, 1.0, 0.1, 1000.0);
+        let clip = clip_from_view * view_from_world;
+        let per = CHUNK_TRIANGLES as u32 * 3;
+        assert_eq!(chunks.visible(clip), vec![0..6 * per]);
+        let near = chunks.visible_near_first(clip, camera.position);
+        let order: Vec<u32> = near.iter().map(|r| r.start / per).collect();
+        assert_eq!(order, vec![5, 4, 3, 2, 1, 0]);
+        assert!(near.iter().all(|r| r.end - r.start == per));
     }
 }
