@@ -669,12 +669,24 @@ impl<'a> PhotonTracer<'a> {
                     .texture
                     .as_ref()
                     .map_or(Vec3::ONE, |t| t.sample(self.bvh.hit_uv(&hit)));
-            // Russian roulette: survive with the largest albedo channel.
-            let q = albedo.max_element().min(1.0);
-            if q <= 0.0 || rng.next_f32() >= q {
-                return;
+            if depth == 0 && matches!(light.emitter, Emitter::Directional(_)) {
+                // A sun's photon always leaves its first hit (which stores nothing), its
+                // power times the albedo: roulette there killed most of them before they
+                // stored anything (city:250000 stored 11% of what it emitted, 25% now; the
+                // dungeon's error per byte fell 20–30%; on the Cornell box's area light the
+                // same rule cost more in bytes than it gave).
+                if albedo.max_element() <= 0.0 {
+                    return;
+                }
+                power *= albedo;
+            } else {
+                // Russian roulette: survive with the largest albedo channel.
+                let q = albedo.max_element().min(1.0);
+                if q <= 0.0 || rng.next_f32() >= q {
+                    return;
+                }
+                power *= albedo / q;
             }
-            power *= albedo / q;
             let (t, b) = basis(n);
             let l = cosine_hemisphere(rng.next_f32(), rng.next_f32());
             d = (t * l.x + b * l.y + n * l.z).normalize();

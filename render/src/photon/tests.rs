@@ -1021,3 +1021,57 @@ fn no_photon_is_stored_behind_an_area_light() {
     let ceiling = ceiling.count();
     assert!(ceiling <= 40, "{ceiling} photons stored over the light");
 }
+
+#[test]
+fn a_suns_first_bounce_stores_the_power_its_hits_reflect_onto_geometry() {
+    // A sun over a grey floor with a cube on it, one stored bounce: the stored power must
+    // be the sun's power × albedo × the share of cosine bounces from its first hits that
+    // reach geometry (the floor's bounces that reach the cube, the cube's that reach the
+    // floor), estimated here on its own. A sun's photons skip roulette at the first hit and
+    // carry power × albedo: dropping either factor, or roulette's 1/q with it, is 2× off.
+    let direction = Vec3::new(0.3, -1.0, 0.2).normalize();
+    let mut scene = small_scene_in_large_bounds(direction);
+    let mut floor = Mesh::default();
+    floor.push_box(Vec3::new(-4.0, -0.1, -4.0), Vec3::new(5.0, 0.0, 5.0));
+    scene.objects.truncate(1);
+    scene.objects.push(Object {
+        name: "floor".into(),
+        mesh: floor,
+        material: 0,
+        motion: Motion::identity(),
+    });
+    let albedo = 0.5;
+    let settings = PhotonSettings {
+        bounces: 1,
+        density_radius: false,
+        ..PhotonSettings::for_budget(&scene, 200_000, 10_000)
+    };
+    let (photons, _) = iteration(&scene, settings, 4);
+    let stored = total_power(&photons).x;
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let lights = photon_lights(&scene, 0.0);
+    let n = 100_000;
+    let mut rng = Rng::new(77, 3);
+    let mut reflected = 0u32;
+    for _ in 0..n {
+        let (o, d) = emit_uniform(&lights[0].emitter, &mut rng, 1e-4).unwrap();
+        let Some(hit) = bvh.closest_hit(o, d, f32::INFINITY) else {
+            continue;
+        };
+        let mut ng = bvh.geometric_normal(hit.triangle);
+        if ng.dot(d) > 0.0 {
+            ng = -ng;
+        }
+        let (t, b) = crate::sampling::basis(ng);
+        let l = crate::sampling::cosine_hemisphere(rng.next_f32(), rng.next_f32());
+        let bounce = (t * l.x + b * l.y + ng * l.z).normalize();
+        let x = o + d * hit.t + ng * 1e-4;
+        reflected += bvh.closest_hit(x, bounce, f32::INFINITY).is_some() as u32;
+    }
+    let expected = lights[0].power_w.x * albedo * reflected as f32 / n as f32;
+    assert!(reflected > 2000, "{reflected} bounces reach geometry");
+    assert!(
+        (stored / expected - 1.0).abs() < 0.05,
+        "stored {stored} W against {expected} W"
+    );
+}
