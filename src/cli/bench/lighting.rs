@@ -149,6 +149,10 @@ pub struct QualityArgs {
     /// Update rate the Mbps column assumes (capped by the update time), Hz.
     #[arg(long, default_value_t = 30.0, value_parser = ranges::closed(0.001, 1e6, "Hz"))]
     rate_hz: f64,
+    /// Seed of the technique's random streams (the reference keeps its own): a difference
+    /// between two settings is real when it holds across seeds.
+    #[arg(long, default_value_t = 5)]
+    seed: u64,
     /// Output folder [default: runs/bench-quality-<time>].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
@@ -266,7 +270,7 @@ impl Visit for Quality {
             width: a.width,
             height: a.height,
             rate_hz: a.rate_hz,
-            seed: 5,
+            seed: a.seed,
         };
         let out = a.out.clone().unwrap_or_else(|| default_out("quality"));
         T::quality(&raster, &a.scene, &common, &options, &sweep, &out)?;
