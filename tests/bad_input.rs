@@ -41,7 +41,7 @@ address = "127.0.0.1:0"
 name = "batcher"
 kind = "photon_batcher"
 node = @node_ref@
-params = { photons = @photons@, batch_size = @batch_size@, bounces = @bounces@, photons_per_disk = @photons_per_disk@, radius_m = @radius_m@, interval_ms = @interval_ms@, resend_s = @resend_s@, passes = @passes@, format = @format@, receive = @receive@, guide_share = @guide_share@, guide_reach = @guide_reach@ }
+params = { photons = @photons@, batch_size = @batch_size@, bounces = @bounces@, photons_per_disk = @photons_per_disk@, radius_m = @radius_m@, interval_ms = @interval_ms@, resend_s = @resend_s@, passes = @passes@, format = @format@, receive = @receive@, guide_share = @guide_share@, guide_reach = @guide_reach@, relax = @relax@ }
 [[stage]]
 name = "viewer"
 kind = "photon_reconstructor"
@@ -105,6 +105,7 @@ const KEYS: &[(&str, &str)] = &[
     ("receive", "\"normal\""),
     ("guide_share", "0.5"),
     ("guide_reach", "0.05"),
+    ("relax", "2"),
     ("replicas", "2"),
     ("width", "64"),
     ("height", "48"),

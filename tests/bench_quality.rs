@@ -22,12 +22,14 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
         photons_per_disk: cloudlight::render::photon::PhotonSettings::default().photons_per_disk,
         density_radius: true,
         receive: Default::default(),
+        downsample: 2,
         levels: 4,
         min_texels: 3.0,
         compute: true,
         passes: 1,
         guide: 0.5,
         guide_reach: 0.05,
+        relax: 0,
     };
     let base = cloudlight::scenes::builtin("cornell").unwrap();
     let rows: Vec<QualityRow> = [1.0f32, 1e-6, 1e6]

@@ -1,5 +1,5 @@
 //! Photon kernels on the Cornell box at the paper's budget (10k photons, one batch): tracing
-//! a batch, packing it (12 and 20 bytes per photon), unpacking it; and tracing a batch on
+//! a batch (and relaxing it), packing it (12 and 20 bytes per photon), unpacking it; and tracing a batch on
 //! city:250000, where the BVH no longer fits the caches.
 //!
 //! `cargo bench -p cloudlight-render --bench photons`
@@ -60,6 +60,17 @@ fn photons(c: &mut Criterion) {
     } = setup("cornell");
     let tracer = PhotonTracer::new(&scene, &bvh, settings, &plan, 1);
     trace(c, "cornell: trace one 10k-photon batch", &tracer, &lights);
+    let relaxed = PhotonSettings {
+        relax: 6,
+        ..settings
+    };
+    let tracer_relaxed = PhotonTracer::new(&scene, &bvh, relaxed, &plan, 1);
+    trace(
+        c,
+        "cornell: trace one 10k-photon batch, 6 rounds of relaxation",
+        &tracer_relaxed,
+        &lights,
+    );
     let stored = tracer.trace_batch(&lights[0], 0, 1, 0);
     let header = BatchHeader {
         light: 0,

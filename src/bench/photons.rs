@@ -68,6 +68,8 @@ pub struct PhotonOptions {
     /// Reach of the guide, a fraction of the scene's half diagonal
     /// ([`PhotonSettings::guide_reach`]).
     pub guide_reach: f32,
+    /// Rounds of photon relaxation per batch ([`PhotonSettings::relax`]; 0: none).
+    pub relax: u32,
 }
 
 impl Default for PhotonOptions {
@@ -87,6 +89,7 @@ impl Default for PhotonOptions {
             passes: PhotonSettings::default().passes,
             guide: PhotonSettings::default().guide_share,
             guide_reach: PhotonSettings::default().guide_reach,
+            relax: PhotonSettings::default().relax,
         }
     }
 }
@@ -109,6 +112,7 @@ impl Photons {
             density_radius: o.density_radius,
             receive: o.receive,
             passes: o.passes,
+            relax: o.relax,
             format: o.format.name().into(),
             ..BatcherParams::default()
         };
@@ -280,12 +284,14 @@ impl Technique for Photons {
             photons_per_disk: options.photons_per_disk,
             density_radius: options.density_radius,
             receive: options.receive,
+            downsample: options.downsample,
             levels: options.levels,
             min_texels: options.min_texels,
             compute: options.compute,
             passes: options.passes,
             guide: options.guide,
             guide_reach: options.guide_reach,
+            relax: options.relax,
         };
         let rows = quality(raster, scene, &o, out)?;
         Ok(
@@ -528,6 +534,8 @@ pub struct QualityOptions {
     pub density_radius: bool,
     /// What photons carry to tell which surfaces they light.
     pub receive: Receive,
+    /// The client's finest accumulation buffer is this many times smaller per axis.
+    pub downsample: u32,
     /// The client's accumulation levels.
     pub levels: u32,
     /// Least radius in texels of a photon's disk at its level.
@@ -541,6 +549,8 @@ pub struct QualityOptions {
     pub guide: f32,
     /// Reach of the guide (fraction of the scene's half diagonal).
     pub guide_reach: f32,
+    /// Rounds of photon relaxation per batch.
+    pub relax: u32,
 }
 
 /// One point of the trade: a budget in one packing.
@@ -601,6 +611,7 @@ impl QualityView {
             receive: o.receive,
             guide_share: o.guide,
             guide_reach: o.guide_reach,
+            relax: o.relax,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,
@@ -659,6 +670,7 @@ impl QualityView {
             },
             photons,
             SplatSettings {
+                downsample: o.downsample,
                 levels: o.levels,
                 min_texels: o.min_texels,
                 compute: o.compute,
@@ -727,6 +739,7 @@ impl QualityView {
             passes: o.passes,
             guide_share: o.guide,
             guide_reach: o.guide_reach,
+            relax: o.relax,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,

@@ -42,6 +42,7 @@ pub mod compact8;
 pub mod density;
 pub mod footprint;
 pub mod pack;
+pub mod relax;
 pub mod splat;
 pub mod store;
 pub mod stream;
@@ -112,6 +113,13 @@ pub struct PhotonSettings {
     /// How far from a surface a client sees the photons that light it are sought, as a
     /// fraction of the scene's half diagonal.
     pub guide_reach: f32,
+    /// Rounds of photon relaxation of each batch before its radii are set ([`relax`]): its
+    /// photons pushed apart on their surfaces, so that the random clumps a splat shows as
+    /// blotches thin out. 0 (the default): none. It lowers the error where noise dominates
+    /// it and raises it where bias does (features finer than the disks): `bench quality`,
+    /// 10k photons, seeds 1–4, relMSE 0 → 6 rounds: Cornell box (`receive = direction`)
+    /// 0.0377 → 0.0298; the dungeon (40k / 160k) 0.235 / 0.235 → ~0.27 / 0.26.
+    pub relax: u32,
 }
 
 /// Rays per view along each image axis when finding the surfaces clients see.
@@ -176,6 +184,7 @@ impl Default for PhotonSettings {
             receive: Receive::Normal,
             guide_share: 0.5,
             guide_reach: 0.05,
+            relax: 0,
         }
     }
 }
@@ -598,10 +607,10 @@ impl<'a> PhotonTracer<'a> {
             ^ generation.wrapping_mul(0x9E37)
             ^ u64::from(pass).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
         const CHUNK: u32 = 1024;
-        let chunks: Vec<Vec<Photon>> = (0..n.div_ceil(CHUNK))
+        let chunks: Vec<(Vec<Photon>, Vec<Vec3>)> = (0..n.div_ceil(CHUNK))
             .into_par_iter()
             .map(|c| {
-                let mut out = Vec::new();
+                let mut out = (Vec::new(), Vec::new());
                 for i in c * CHUNK..((c + 1) * CHUNK).min(n) {
                     let mut rng = Rng::new(self.seed ^ stream, i as u64);
                     self.trace_one(light, power, &mut rng, &mut out);
@@ -609,7 +618,21 @@ impl<'a> PhotonTracer<'a> {
                 out
             })
             .collect();
-        let mut photons = chunks.concat();
+        let (mut photons, normals): (Vec<Photon>, Vec<Vec3>) =
+            chunks
+                .into_iter()
+                .fold((Vec::new(), Vec::new()), |(mut p, mut n), (a, b)| {
+                    p.extend(a);
+                    n.extend(b);
+                    (p, n)
+                });
+        relax::relax(
+            &mut photons,
+            &normals,
+            self.bvh,
+            self.settings.relax,
+            self.eps,
+        );
         if self.settings.density_radius {
             let (lo, hi) = DENSITY_RADIUS_RANGE;
             density::assign(
@@ -622,7 +645,13 @@ impl<'a> PhotonTracer<'a> {
         photons
     }
 
-    fn trace_one(&self, light: &PhotonLight, power: Vec3, rng: &mut Rng, out: &mut Vec<Photon>) {
+    fn trace_one(
+        &self,
+        light: &PhotonLight,
+        power: Vec3,
+        rng: &mut Rng,
+        (out, normals): &mut (Vec<Photon>, Vec<Vec3>),
+    ) {
         let guide = self.guides.get(&light.id).map(|g| &**g);
         let Some((mut o, mut d, weight)) = emit(&light.emitter, guide, rng, self.eps) else {
             return;
@@ -660,6 +689,7 @@ impl<'a> PhotonTracer<'a> {
                     radius: self.radius,
                     receive: self.settings.receive,
                 });
+                normals.push(ng);
             }
             if depth == self.settings.bounces {
                 return;

@@ -1075,3 +1075,141 @@ fn a_suns_first_bounce_stores_the_power_its_hits_reflect_onto_geometry() {
         "stored {stored} W against {expected} W"
     );
 }
+
+/// The distance from each photon to its nearest neighbour on a surface of the same
+/// orientation (brute force; photons carrying their normal).
+fn nearest_distances(photons: &[Photon]) -> Vec<f32> {
+    photons
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            photons
+                .iter()
+                .enumerate()
+                .filter(|(j, q)| *j != i && q.direction.dot(p.direction) > 0.99)
+                .map(|(_, q)| (p.position - q.position).length())
+                .fold(f32::INFINITY, f32::min)
+        })
+        .collect()
+}
+
+#[test]
+fn relaxation_spreads_photons_evenly_on_their_surfaces_and_keeps_their_power() {
+    // The Cornell box (its boxes' edges and the walls' corners included): the same photons
+    // traced without and with relaxation. Relaxed, each keeps its power and direction and
+    // still lies on a surface facing the way it did (most move: those pushed over an edge
+    // or into a wall stay); clumps thin out (the closest pairs
+    // part: the 5th percentile of the distance to the nearest photon on a surface of the same
+    // orientation grows by more than a third — 1.58× at this seed — while the density's
+    // shape stays.
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let lights = photon_lights(&scene, 0.0);
+    let base = PhotonSettings {
+        density_radius: false,
+        ..PhotonSettings::for_budget(&scene, 4000, 4000)
+    };
+    let plan = BatchPlan::new(&lights, &base);
+    let trace = |relax: u32| {
+        PhotonTracer::new(&scene, &bvh, PhotonSettings { relax, ..base }, &plan, 3)
+            .trace_batch(&lights[0], 0, 1, 0)
+    };
+    let landed = trace(0);
+    let relaxed = trace(6);
+    assert_eq!(landed.len(), relaxed.len());
+    assert!(landed.len() > 3000, "{} photons stored", landed.len());
+    let mut moved = 0;
+    for (a, b) in landed.iter().zip(&relaxed) {
+        assert_eq!(
+            (a.power, a.direction, a.radius),
+            (b.power, b.direction, b.radius)
+        );
+        if a.position != b.position {
+            moved += 1;
+        }
+        // `receive = normal`: the direction is the surface's normal reversed. A ray from
+        // just off the surface back along it meets a face right there.
+        let lift = 1e-3;
+        let hit = bvh
+            .closest_hit(b.position - b.direction * lift, b.direction, 4.0 * lift)
+            .unwrap_or_else(|| panic!("photon at {} left its surface", b.position));
+        assert!(
+            (hit.t - lift).abs() < 2e-4,
+            "{} off its surface by {}",
+            b.position,
+            hit.t - lift
+        );
+        assert!(bvh.geometric_normal(hit.triangle).dot(b.direction).abs() > 0.99);
+    }
+    assert!(
+        moved * 4 > landed.len() * 3,
+        "only {moved} of {} moved",
+        landed.len()
+    );
+    let percentile = |mut d: Vec<f32>, q: f32| {
+        d.sort_by(f32::total_cmp);
+        d[((d.len() - 1) as f32 * q) as usize]
+    };
+    let (before, after) = (nearest_distances(&landed), nearest_distances(&relaxed));
+    let (low_before, low_after) = (
+        percentile(before.clone(), 0.05),
+        percentile(after.clone(), 0.05),
+    );
+    assert!(
+        low_after > 1.35 * low_before,
+        "5th percentile {low_before} -> {low_after}"
+    );
+    // Blue rather than white noise: the typical spacing grows toward an even spread's, not
+    // beyond (the median of a Poisson spread is about 0.47/√density, a hexagonal grid's
+    // 1.07/√density).
+    let (mid_before, mid_after) = (percentile(before, 0.5), percentile(after, 0.5));
+    assert!(
+        mid_after > mid_before && mid_after < 2.0 * mid_before,
+        "median {mid_before} -> {mid_after}"
+    );
+    // The density, and so the light, keeps its shape at the scale of a few disks: photons
+    // counted in 15 cm cells (per surface orientation; ~50 a cell) move between cells by
+    // under 10%.
+    let cells = |photons: &[Photon]| {
+        let mut count = std::collections::BTreeMap::new();
+        for p in photons {
+            let key = (
+                (p.position / 0.15).floor().as_ivec3().to_array(),
+                p.direction.round().as_ivec3().to_array(),
+            );
+            *count.entry(key).or_insert(0i64) += 1;
+        }
+        count
+    };
+    let (a, b) = (cells(&landed), cells(&relaxed));
+    let keys: std::collections::BTreeSet<_> = a.keys().chain(b.keys()).collect();
+    let moved_between: i64 = keys
+        .iter()
+        .map(|k| (a.get(*k).unwrap_or(&0) - b.get(*k).unwrap_or(&0)).abs())
+        .sum();
+    assert!(
+        (moved_between as f64) / 2.0 < 0.1 * landed.len() as f64,
+        "{moved_between} of {} changed cells",
+        landed.len()
+    );
+}
+
+#[test]
+fn relaxation_of_few_photons_or_none_changes_nothing() {
+    let scene = cloudlight_scenes::builtin("cornell").unwrap();
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let mut photons: Vec<Photon> = (0..relax::NEIGHBOURS)
+        .map(|i| Photon {
+            position: Vec3::new(0.1 * i as f32, 0.0, 0.2),
+            direction: Vec3::NEG_Y,
+            power: Vec3::ONE,
+            radius: 0.1,
+            receive: Receive::Normal,
+        })
+        .collect();
+    let normals = vec![Vec3::Y; photons.len()];
+    let before = photons.clone();
+    relax::relax(&mut photons, &normals, &bvh, 6, 1e-5);
+    assert_eq!(photons, before);
+    relax::relax(&mut [], &[], &bvh, 6, 1e-5);
+}
