@@ -30,14 +30,17 @@ const MAX_STEP: f32 = 0.5;
 
 /// Strength of the push: a round moves a photon by `GAIN` / [`NEIGHBOURS`] of the summed
 /// repulsion. Tuned with [`REFRESH`] and [`MAX_STEP`] on the Cornell box (`bench quality`,
-/// 10k photons, `receive = direction`, seeds 1–4, 6 rounds): gain 1 / 4 / 8 / 16 (step
-/// 0.3–0.7) gave relMSE 0.0329 (8 rounds) / 0.0298 / 0.0302 / 0.0323.
+/// 10k photons, `receive = direction`, mean relMSE of seeds 1–4; 0.0377 unrelaxed): 6
+/// rounds searching every third, gain 4 0.0298, gain 8 0.0302 (step 0.4: 0.0303); 4 rounds
+/// searching every second, gain 4 0.0307, gain 8 0.0310, gain 16 (step 0.7) 0.0323.
 const GAIN: f32 = 4.0;
 
 /// Rounds between two neighbour searches (each round between them pushes against the
-/// same neighbours from the same neighbourhood radius): the search is most of the cost.
-/// Cornell box as above: 6 rounds searching every round 0.0307 at ~2× the time of every
-/// third round, 0.0298; every 4th of 4 rounds, 0.0328.
+/// same neighbours from the same neighbourhood radius): the search is most of the cost
+/// (two searches take ~12 of the ~16 ms 6 rounds cost for 10k photons on 2 cores; the
+/// rounds ~2 ms, the final check against the scene ~1 ms). Cornell box as above,
+/// gain 8: 6 rounds searching every second round 0.0307, every third 0.0302; 8 rounds
+/// every fourth 0.0306, 9 every third 0.0315.
 pub const REFRESH: u32 = 3;
 
 /// Relaxes `photons`, whose surfaces' unit normals (facing where the photon came from)
