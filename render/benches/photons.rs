@@ -1,6 +1,6 @@
 //! Photon kernels on the Cornell box at the paper's budget (10k photons, one batch): tracing
-//! a batch (and relaxing it), packing it (12 and 20 bytes per photon), unpacking it; and tracing a batch on
-//! city:250000, where the BVH no longer fits the caches.
+//! a batch (plain and relaxed), packing it (12 and 20 bytes per photon), unpacking it; and
+//! tracing a batch on city:250000, where the BVH no longer fits the caches.
 //!
 //! `cargo bench -p cloudlight-render --bench photons`
 
