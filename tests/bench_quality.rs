@@ -14,6 +14,7 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
     let o = QualityOptions {
         budgets: vec![4000],
         batch_size: 4000,
+        camera: "0".into(),
         spp: 32,
         width: 32,
         height: 32,
@@ -35,8 +36,14 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
     let rows: Vec<QualityRow> = [1.0f32, 1e-6, 1e6]
         .iter()
         .map(|&k| {
-            let view = QualityView::new(base.with_lights_scaled(k), o.width, o.height, o.spp)
-                .unwrap_or_else(|e| panic!("{e}"));
+            let view = QualityView::new(
+                base.with_lights_scaled(k),
+                &o.camera,
+                o.width,
+                o.height,
+                o.spp,
+            )
+            .unwrap_or_else(|e| panic!("{e}"));
             view.row(&raster, 4000, &o)
                 .unwrap_or_else(|e| panic!("{e}"))
                 .0

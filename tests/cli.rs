@@ -568,6 +568,67 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
 }
 
 #[test]
+fn quality_benchmark_measures_the_view_it_is_given() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |camera: &str, out: &std::path::Path| {
+        cloudlight()
+            .args([
+                "bench",
+                "quality",
+                "--budgets",
+                "1000",
+                "--spp",
+                "16",
+                "--width",
+                "16",
+                "--height",
+                "16",
+                "--camera",
+                camera,
+                "--out",
+            ])
+            .arg(out)
+            .env("CLOUDLIGHT_REFERENCE_CACHE", "off")
+            .output()
+            .unwrap()
+    };
+    // The scene's own camera, and one inside the box looking into a corner.
+    let (own, inside) = (dir.path().join("own"), dir.path().join("inside"));
+    ok(&run("0", &own));
+    let corner = "0.4,0.35,0.2:0.05,0.1,0.5:60";
+    ok(&run(corner, &inside));
+    assert_eq!(
+        read_json(inside.join("quality.json"))["options"]["camera"],
+        corner
+    );
+    let reference = |d: &std::path::Path| {
+        cloudlight::render::image_io::read_exr(&d.join("reference_indirect.exr"))
+            .unwrap()
+            .2
+    };
+    assert_ne!(
+        reference(&own),
+        reference(&inside),
+        "the view made no difference"
+    );
+    // Views that are none are refused before anything is rendered.
+    for (camera, words) in [
+        ("7", "has 1 camera paths"),
+        ("0,1,3:0,1,3", "camera `0,1,3:0,1,3`"),
+        ("1,2:3,4,5", "expected an index"),
+    ] {
+        let out = run(camera, &dir.path().join("bad"));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{camera}");
+        assert!(err.contains(words), "{camera}: {err}");
+        assert!(
+            !err.contains("reference:"),
+            "{camera}: rendered before refusing: {err}"
+        );
+    }
+}
+
+#[test]
 fn table2_puts_the_full_frame_baseline_beside_the_photon_cut() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("baseline.json");

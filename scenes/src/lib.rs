@@ -67,6 +67,47 @@ pub fn load(spec: &str) -> Result<Scene, SceneError> {
     Ok(scene)
 }
 
+/// A view of `scene` at `time_s` from a spec: the index of one of its camera paths, or
+/// `px,py,pz:tx,ty,tz[:fov_deg]` (eye and target in meters, up +y, vertical field of view
+/// in degrees, default 45), checked ([`check::check_camera`]).
+pub fn camera(scene: &Scene, spec: &str, time_s: f64) -> Result<Camera, String> {
+    if let Ok(i) = spec.trim().parse::<usize>() {
+        return scene.cameras.get(i).map(|c| c.at(time_s)).ok_or_else(|| {
+            format!(
+                "scene `{}` has {} camera paths; camera {i} is none of them",
+                scene.name,
+                scene.cameras.len()
+            )
+        });
+    }
+    let err = || format!("camera `{spec}`: expected an index or `px,py,pz:tx,ty,tz[:fov_deg]`");
+    let parts: Vec<&str> = spec.split(':').collect();
+    if !(2..=3).contains(&parts.len()) {
+        return Err(err());
+    }
+    let point = |s: &str| -> Result<glam::Vec3, String> {
+        let v: Vec<f32> = s
+            .split(',')
+            .map(|x| x.trim().parse::<f32>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| err())?;
+        <[f32; 3]>::try_from(v)
+            .map(glam::Vec3::from_array)
+            .map_err(|_| err())
+    };
+    let fov: f32 = parts
+        .get(2)
+        .map_or(Ok(45.0), |f| f.trim().parse().map_err(|_| err()))?;
+    let camera = Camera {
+        position: point(parts[0])?,
+        target: point(parts[1])?,
+        up: glam::Vec3::Y,
+        fov_y_rad: fov.to_radians(),
+    };
+    check::check_camera(&camera).map_err(|e| format!("camera `{spec}`: {e}"))?;
+    Ok(camera)
+}
+
 /// A built-in scene by name: `cornell`, `cornell-animated` or `city:N`.
 pub fn builtin(name: &str) -> Result<Scene, SceneError> {
     match name {
@@ -93,5 +134,39 @@ mod tests {
         assert!(matches!(builtin("city:10"), Err(SceneError::CitySize(_))));
         assert!(matches!(builtin("city:x"), Err(SceneError::CitySize(_))));
         assert!(matches!(builtin("sponza"), Err(SceneError::Unknown(_))));
+    }
+
+    #[test]
+    fn cameras_by_index_or_eye_and_target() {
+        let scene = builtin("cornell").unwrap();
+        assert_eq!(camera(&scene, "0", 0.0).unwrap(), scene.cameras[0].at(0.0));
+        let c = camera(&scene, " 1, 2,3 : 0,2,0 : 60 ", 0.0).unwrap();
+        assert_eq!(c.position, glam::Vec3::new(1.0, 2.0, 3.0));
+        assert_eq!(c.target, glam::Vec3::new(0.0, 2.0, 0.0));
+        assert!((c.fov_y_rad - 60f32.to_radians()).abs() < 1e-6);
+        assert_eq!(
+            camera(&scene, "0,1,3:0,1,0", 0.0).unwrap().fov_y_rad,
+            45f32.to_radians()
+        );
+        for bad in [
+            "7",
+            "",
+            "0,1,3",
+            "0,1,3:0,1",
+            "0,1,3:0,1,0:45:1",
+            "0,1,3:0,1,3",
+            "0,1,3:0,1,0:0",
+            "0,1,3:0,1,0:180",
+            "nan,1,3:0,1,0",
+            "0,0,0:0,5,0",
+            "a,b,c:0,0,0",
+        ] {
+            assert!(camera(&scene, bad, 0.0).is_err(), "{bad:?}");
+        }
+        assert!(
+            camera(&scene, "7", 0.0)
+                .unwrap_err()
+                .contains("has 1 camera paths")
+        );
     }
 }

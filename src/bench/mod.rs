@@ -111,6 +111,9 @@ pub struct Bench<'a> {
 /// The quality sweep's settings every technique shares.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct QualityCommon {
+    /// The view: the index of one of the scene's camera paths or
+    /// `px,py,pz:tx,ty,tz[:fov_deg]` ([`cloudlight_scenes::camera`]).
+    pub camera: String,
     /// Reference samples per pixel.
     pub spp: u32,
     /// Image width.
@@ -861,16 +864,27 @@ pub struct QualityView {
 }
 
 impl QualityView {
-    /// The reference of `scene` at `width × height`, `spp` samples per pixel: rendered, or
-    /// read back from the reference cache ([`reference_cache::dir`]).
-    pub fn new(scene: Scene, width: u32, height: u32, spp: u32) -> anyhow::Result<Self> {
-        let camera = scene
-            .cameras
-            .first()
-            .map(|c| c.at(0.0))
-            .with_context(|| format!("scene `{}` has no camera", scene.name))?;
+    /// The reference of `scene` seen from `camera` (an index into its camera paths or
+    /// `eye:target[:fov_deg]`, [`cloudlight_scenes::camera`]) at `width × height`, `spp`
+    /// samples per pixel: rendered, or read back from the reference cache
+    /// ([`reference_cache::dir`]).
+    pub fn new(
+        scene: Scene,
+        camera: &str,
+        width: u32,
+        height: u32,
+        spp: u32,
+    ) -> anyhow::Result<Self> {
+        let spec = camera;
+        let camera = cloudlight_scenes::camera(&scene, spec, 0.0).map_err(anyhow::Error::msg)?;
         let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
-        eprintln!("reference: {width}x{height}, {spp} spp, indirect only...");
+        eprintln!(
+            "reference: {width}x{height}, {spp} spp, indirect only, camera {spec} (eye {:.2}, target {:.2}, \
+             {:.0}° high)...",
+            camera.position,
+            camera.target,
+            camera.fov_y_rad.to_degrees()
+        );
         let start = Instant::now();
         let settings = cloudlight_render::RenderSettings {
             width,

@@ -276,6 +276,7 @@ impl Technique for Photons {
         let o = QualityOptions {
             budgets,
             batch_size: options.batch_size,
+            camera: common.camera.clone(),
             spp: common.spp,
             width: common.width,
             height: common.height,
@@ -518,6 +519,8 @@ pub struct QualityOptions {
     pub budgets: Vec<u64>,
     /// Photons per batch (at most the budget).
     pub batch_size: u32,
+    /// The view ([`QualityCommon::camera`]).
+    pub camera: String,
     /// Reference samples per pixel.
     pub spp: u32,
     /// Image width.
@@ -855,7 +858,7 @@ pub fn quality(
 ) -> anyhow::Result<Vec<QualityRow>> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let scene = cloudlight_scenes::load(scene_spec)?;
-    let view = QualityView::new(scene, o.width, o.height, o.spp)?;
+    let view = QualityView::new(scene, &o.camera, o.width, o.height, o.spp)?;
     let exr = |name: String, img: &[Vec3]| {
         cloudlight_render::image_io::write_exr(&out.join(name), o.width, o.height, img)
     };

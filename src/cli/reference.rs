@@ -38,52 +38,6 @@ pub struct Args {
     out: PathBuf,
 }
 
-/// A camera from `--camera`: an index into the scene's paths, or `eye:target[:fov_deg]`.
-fn parse_camera(
-    spec: &str,
-    scene: &cloudlight::scenes::Scene,
-    time_s: f64,
-) -> Result<cloudlight::scenes::Camera, String> {
-    use cloudlight::scenes::Camera;
-    use cloudlight::scenes::glam::Vec3;
-    let vec3 = Vec3::from_array;
-    if let Ok(i) = spec.parse::<usize>() {
-        return scene.cameras.get(i).map(|c| c.at(time_s)).ok_or_else(|| {
-            format!(
-                "scene `{}` has {} camera paths; --camera {i} is none of them",
-                scene.name,
-                scene.cameras.len()
-            )
-        });
-    }
-    let parts: Vec<&str> = spec.split(':').collect();
-    let err = || format!("--camera `{spec}`: expected an index or `px,py,pz:tx,ty,tz[:fov_deg]`");
-    if !(2..=3).contains(&parts.len()) {
-        return Err(err());
-    }
-    let point = |s: &str| -> Result<[f32; 3], String> {
-        let v: Vec<f32> = s
-            .split(',')
-            .map(|x| x.trim().parse::<f32>())
-            .collect::<Result<_, _>>()
-            .map_err(|_| err())?;
-        <[f32; 3]>::try_from(v).map_err(|_| err())
-    };
-    let fov: f32 = parts
-        .get(2)
-        .map_or(Ok(45.0), |f| f.parse().map_err(|_| err()))?;
-    let (position, target) = (vec3(point(parts[0])?), vec3(point(parts[1])?));
-    let camera = Camera {
-        position,
-        target,
-        up: vec3([0.0, 1.0, 0.0]),
-        fov_y_rad: fov.to_radians(),
-    };
-    cloudlight::scenes::check::check_camera(&camera)
-        .map_err(|e| format!("--camera `{spec}`: {e}"))?;
-    Ok(camera)
-}
-
 /// Renders `spp` samples per pixel in passes of 4, with a progress bar.
 fn render_with_progress(
     renderer: &cloudlight::render::ReferenceRenderer<'_>,
@@ -146,10 +100,10 @@ pub fn run(args: Args) -> ExitCode {
         Ok(s) => s,
         Err(code) => return code,
     };
-    let camera = match parse_camera(&args.camera, &scene, args.time) {
+    let camera = match cloudlight::scenes::camera(&scene, &args.camera, args.time) {
         Ok(c) => c,
         Err(e) => {
-            eprintln!("error: {e}");
+            eprintln!("error: --camera: {e}");
             return ExitCode::from(2);
         }
     };

@@ -137,6 +137,11 @@ pub struct QualityArgs {
     sweep: Vec<(String, Vec<toml::Value>)>,
     #[command(flatten)]
     knobs: Knobs,
+    /// View: the index of one of the scene's camera paths, or `px,py,pz:tx,ty,tz[:fov_deg]`
+    /// (eye and target in meters, vertical field of view in degrees, default 45). A glTF
+    /// without cameras is seen from outside its bounds; a player's view is inside.
+    #[arg(long, default_value = "0", allow_hyphen_values = true)]
+    camera: String,
     /// Reference samples per pixel.
     #[arg(long, default_value_t = 4096, value_parser = ranges::count::<u32>(1, ranges::MAX_SPP))]
     spp: u32,
@@ -266,6 +271,7 @@ impl Visit for Quality {
         }
         let raster = Raster::new()?;
         let common = QualityCommon {
+            camera: a.camera.clone(),
             spp: a.spp,
             width: a.width,
             height: a.height,
