@@ -727,13 +727,14 @@ pub struct ProgressivePoint {
 impl QualityView {
     /// The scene standing still at time 0, `photons` per iteration: after each pass the
     /// batcher sends (up to `o.passes`), the client's set drawn with its progressive radii
-    /// and compared with the reference; measured after 1, 2, 4, … passes and the last.
+    /// and compared with the reference; measured after 1, 2, 4, … passes and the last:
+    /// each point and the client's image then.
     pub fn progressive(
         &self,
         raster: &Raster,
         photons: u64,
         o: &QualityOptions,
-    ) -> anyhow::Result<Vec<ProgressivePoint>> {
+    ) -> anyhow::Result<Vec<(ProgressivePoint, Vec<Vec3>)>> {
         use cloudlight_render::photon::PhotonSet;
         let settings = PhotonSettings {
             photons_per_disk: o.photons_per_disk,
@@ -765,20 +766,21 @@ impl QualityView {
                 continue;
             }
             let drawn: Vec<Photon> = set.photons().collect();
-            let (errors, _) = self.client_errors(raster, &drawn, o)?;
+            let (errors, image) = self.client_errors(raster, &drawn, o)?;
             eprintln!(
                 "{pass} passes: {} photons, relMSE {:.4}, energy {:.3}",
                 drawn.len(),
                 errors.relmse,
                 errors.energy_ratio
             );
-            points.push(ProgressivePoint {
+            let point = ProgressivePoint {
                 passes: pass,
                 scene_time_s: pass as f64 / o.rate_hz,
                 photons: drawn.len(),
                 kbytes: bytes as f64 / 1e3,
                 errors,
-            });
+            };
+            points.push((point, image));
         }
         Ok(points)
     }
@@ -876,7 +878,14 @@ pub fn quality(
     println!("{}", quality_markdown(&rows, o.rate_hz));
     let progressive = match (o.passes > 1, o.budgets.first()) {
         (true, Some(&photons)) => {
-            let points = view.progressive(raster, photons, o)?;
+            let mut points = Vec::new();
+            for (point, image) in view.progressive(raster, photons, o)? {
+                exr(
+                    format!("progressive_{photons}_{}.exr", point.passes),
+                    &image,
+                )?;
+                points.push(point);
+            }
             println!("{}", progressive_markdown(&points, photons));
             points
         }
