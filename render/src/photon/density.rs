@@ -12,10 +12,12 @@
 
 use std::num::NonZero;
 
+use glam::Vec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 
 use super::Photon;
+use crate::bvh::SceneBvh;
 
 /// Neighbours looked up per photon at most; more are extrapolated from the farthest of
 /// them (a k-nearest radius from 8 neighbours varies by ~18% from photon to photon). On
@@ -59,6 +61,56 @@ pub fn assign(photons: &mut [Photon], k: f32, slots: u32, range: (f32, f32)) {
         });
 }
 
+/// A photon is closed in when every wall around it stands within this fraction of its
+/// radius.
+pub const ENCLOSED: f32 = 0.5;
+
+/// Directions along its surface in which [`enclose`] looks from a photon.
+pub const ENCLOSURE_RAYS: u32 = 8;
+
+/// Keeps each photon's disk inside the space it landed in: a photon closed in on every side
+/// along its surface within [`ENCLOSED`] of its radius (a light inside a fountain's bowl, a lamp in its housing, a pocket
+/// under a stair) gets the radius of the farthest wall around it, so that its disk does
+/// not reach through those walls onto the surfaces outside, which the splat cannot tell
+/// from its own (the client tests plane and facing, not visibility): the dungeon's two
+/// point lights sit inside its fountains, and their light, which the path tracer finds
+/// nowhere, showed as yellow pools around them. [`ENCLOSURE_RAYS`] rays along the
+/// photon's surface (its unit geometric normal `normals[i]`, lifted by a few `eps`), cast
+/// one after the other until one runs free for [`ENCLOSED`] of the radius: an open photon
+/// (nearly all) costs one ray. No radius falls below `least` (meters; a batch's smallest radius sets its
+/// packing's position step). Powers are untouched.
+pub fn enclose(photons: &mut [Photon], normals: &[Vec3], bvh: &SceneBvh, eps: f32, least: f32) {
+    assert_eq!(photons.len(), normals.len(), "a normal per photon");
+    photons
+        .par_iter_mut()
+        .zip(normals.par_iter())
+        .enumerate()
+        .for_each(|(i, (p, &n))| {
+            let r = p.radius;
+            if !(r > least && r > 8.0 * eps && r.is_finite()) || n == Vec3::ZERO {
+                return;
+            }
+            let (a, b) = crate::sampling::basis(n);
+            let origin = p.position + n * (4.0 * eps);
+            // Turned by the photon's index, so that no direction is always left out.
+            let turn = i as f32 * 0.618_034;
+            let mut farthest = 0.0f32;
+            for k in 0..ENCLOSURE_RAYS {
+                let angle = (k as f32 + turn) * std::f32::consts::TAU / ENCLOSURE_RAYS as f32;
+                let dir = a * angle.cos() + b * angle.sin();
+                match bvh.closest_hit(origin, dir, ENCLOSED * r) {
+                    Some(hit) => farthest = farthest.max(hit.t),
+                    None => return,
+                }
+            }
+            // Walls all round but some of them far (a tunnel's, a room's with pillars):
+            // left as it is.
+            if farthest < ENCLOSED * r {
+                p.radius = farthest.max(least).max(4.0 * eps);
+            }
+        });
+}
+
 #[cfg(test)]
 mod tests {
     use glam::Vec3;
@@ -84,6 +136,92 @@ mod tests {
 
     fn mean_radius(p: &[Photon]) -> f32 {
         p.iter().map(|p| p.radius).sum::<f32>() / p.len() as f32
+    }
+
+    /// A floor (y = 0, 20 m square) with a closed box of half-size `h` standing on it at the
+    /// origin (four walls and a lid; the floor is its bottom).
+    fn floor_and_box(h: f32) -> crate::bvh::SceneBvh {
+        let v = Vec3::new;
+        let mut mesh = cloudlight_scenes::Mesh::default();
+        mesh.push_quad(
+            v(-10.0, 0.0, -10.0),
+            v(-10.0, 0.0, 10.0),
+            v(10.0, 0.0, 10.0),
+            v(10.0, 0.0, -10.0),
+        );
+        let c = [v(-h, 0.0, -h), v(h, 0.0, -h), v(h, 0.0, h), v(-h, 0.0, h)];
+        for k in 0..4 {
+            let (a, b) = (c[k], c[(k + 1) % 4]);
+            mesh.push_quad(a, b, b + Vec3::Y * 2.0 * h, a + Vec3::Y * 2.0 * h);
+        }
+        let top = c.map(|p| p + Vec3::Y * 2.0 * h);
+        mesh.push_quad(top[0], top[1], top[2], top[3]);
+        let scene = cloudlight_scenes::Scene {
+            name: "box".into(),
+            materials: vec![cloudlight_scenes::Material::diffuse(
+                "box",
+                Vec3::splat(0.5),
+            )],
+            objects: vec![cloudlight_scenes::Object {
+                name: "box".into(),
+                mesh,
+                material: 0,
+                motion: cloudlight_scenes::Motion::identity(),
+            }],
+            lights: Vec::new(),
+            cameras: Vec::new(),
+        };
+        crate::bvh::SceneBvh::at(&scene, 0.0, crate::bvh::BvhKind::default())
+    }
+
+    #[test]
+    fn a_photon_closed_in_keeps_its_disk_inside_and_an_open_one_keeps_its_own() {
+        // A 0.5 m box on a floor; photons on the floor with disks of 1.5 m: inside the box,
+        // at its outer wall, and in the open.
+        let bvh = floor_and_box(0.25);
+        let at = [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(0.2, 0.0, -0.1),
+            Vec3::new(0.3, 0.0, 0.0),
+            Vec3::new(3.0, 0.0, 2.0),
+        ];
+        let mut p: Vec<Photon> = at
+            .iter()
+            .map(|&x| Photon {
+                radius: 1.5,
+                ..photon(x)
+            })
+            .collect();
+        let normals = vec![Vec3::Y; p.len()];
+        enclose(&mut p, &normals, &bvh, 1e-4, 0.05);
+        // Inside: its farthest wall (≤ the box's half diagonal plus its offset), no more.
+        for q in &p[..2] {
+            let farthest = (q.position.x.abs() + 0.25).hypot(q.position.z.abs() + 0.25);
+            assert!(
+                q.radius >= 0.05 && q.radius <= farthest + 1e-3,
+                "{:?}: {} (walls within {farthest})",
+                q.position,
+                q.radius
+            );
+        }
+        // Against the box's outside and in the open: the way is free on one side at least.
+        assert_eq!(p[2].radius, 1.5);
+        assert_eq!(p[3].radius, 1.5);
+        // The smallest radius is kept to; radii already below it, or a lone degenerate
+        // photon, are left alone.
+        let mut q = vec![
+            Photon {
+                radius: 1.5,
+                ..photon(Vec3::ZERO)
+            },
+            Photon {
+                radius: 0.01,
+                ..photon(Vec3::ZERO)
+            },
+        ];
+        enclose(&mut q, &[Vec3::Y, Vec3::ZERO], &bvh, 1e-4, 0.6);
+        assert_eq!((q[0].radius, q[1].radius), (0.6, 0.01));
+        enclose(&mut [], &[], &bvh, 1e-4, 0.6);
     }
 
     #[test]

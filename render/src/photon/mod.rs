@@ -24,7 +24,9 @@
 //! r = √(k·A / (π·N)) — more photons, smaller disks, less blur (the budget trades bias and
 //! noise together). Each photon's own radius then follows where photons actually landed
 //! ([`density`]): the distance holding `photons_per_disk` of its light's photons, within
-//! [`DENSITY_RADIUS_RANGE`] of the reference. A light's budget is its share of the watts
+//! [`DENSITY_RADIUS_RANGE`] of the reference; a photon walled in on every side along its
+//! surface within half its radius keeps its disk inside those walls ([`density::enclose`]).
+//! A light's budget is its share of the watts
 //! ([`BatchPlan`]); a sun's watts are those falling on its [`footprint`]. Streams are
 //! counter-based per (seed, light, slot, generation, photon), so a batch is the same bytes
 //! on any thread count and any node.
@@ -643,6 +645,12 @@ impl<'a> PhotonTracer<'a> {
                 (self.radius * lo, self.radius * hi),
             );
         }
+        // Not below the batch's smallest radius, which sets its packing's position step.
+        let least = photons
+            .iter()
+            .map(|p| p.radius)
+            .fold(f32::INFINITY, f32::min);
+        density::enclose(&mut photons, &normals, self.bvh, self.eps, least);
         photons
     }
 
