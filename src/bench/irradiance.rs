@@ -585,13 +585,7 @@ pub fn quality(
         rays_per_texel,
         ..options.clone()
     }));
-    let view = QualityView::new(
-        scene,
-        &common.camera,
-        common.width,
-        common.height,
-        common.spp,
-    )?;
+    let view = QualityView::of(scene, common)?;
     let (w, h) = (common.width, common.height);
     let exr = |name: String, img: &[Vec3]| {
         cloudlight_render::image_io::write_exr(&out.join(name), w, h, img)

@@ -864,6 +864,17 @@ pub struct QualityView {
 }
 
 impl QualityView {
+    /// [`Self::new`] with the view, size and samples of `common`.
+    pub fn of(scene: Scene, common: &QualityCommon) -> anyhow::Result<Self> {
+        Self::new(
+            scene,
+            &common.camera,
+            common.width,
+            common.height,
+            common.spp,
+        )
+    }
+
     /// The reference of `scene` seen from `camera` (an index into its camera paths or
     /// `eye:target[:fov_deg]`, [`cloudlight_scenes::camera`]) at `width × height`, `spp`
     /// samples per pixel: rendered, or read back from the reference cache

@@ -576,13 +576,7 @@ pub fn quality(
     let knobs = toml::Table::try_from(options)?;
     let settings = super::expand::<Voxels>(&knobs, &gi_sweep)?;
     let scene = cloudlight_scenes::load(scene_spec)?;
-    let view = QualityView::new(
-        scene,
-        &common.camera,
-        common.width,
-        common.height,
-        common.spp,
-    )?;
+    let view = QualityView::of(scene, common)?;
     let (w, h) = (common.width, common.height);
     let exr = |name: String, img: &[Vec3]| {
         cloudlight_render::image_io::write_exr(&out.join(name), w, h, img)
