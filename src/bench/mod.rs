@@ -875,22 +875,21 @@ impl QualityView {
         )
     }
 
-    /// The reference of `scene` seen from `camera` (an index into its camera paths or
+    /// The reference of `scene` seen from `view` (an index into its camera paths or
     /// `eye:target[:fov_deg]`, [`cloudlight_scenes::camera`]) at `width × height`, `spp`
     /// samples per pixel: rendered, or read back from the reference cache
     /// ([`reference_cache::dir`]).
     pub fn new(
         scene: Scene,
-        camera: &str,
+        view: &str,
         width: u32,
         height: u32,
         spp: u32,
     ) -> anyhow::Result<Self> {
-        let spec = camera;
-        let camera = cloudlight_scenes::camera(&scene, spec, 0.0).map_err(anyhow::Error::msg)?;
+        let camera = cloudlight_scenes::camera(&scene, view, 0.0).map_err(anyhow::Error::msg)?;
         let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
         eprintln!(
-            "reference: {width}x{height}, {spp} spp, indirect only, camera {spec} (eye {:.2}, target {:.2}, \
+            "reference: {width}x{height}, {spp} spp, indirect only, camera {view} (eye {:.2}, target {:.2}, \
              {:.0}° high)...",
             camera.position,
             camera.target,

@@ -68,17 +68,18 @@ pub const ENCLOSED: f32 = 0.5;
 /// Directions along its surface in which [`enclose`] looks from a photon.
 pub const ENCLOSURE_RAYS: u32 = 8;
 
-/// Keeps each photon's disk inside the space it landed in: a photon closed in on every side
-/// along its surface within [`ENCLOSED`] of its radius (a light inside a fountain's bowl, a lamp in its housing, a pocket
-/// under a stair) gets the radius of the farthest wall around it, so that its disk does
-/// not reach through those walls onto the surfaces outside, which the splat cannot tell
-/// from its own (the client tests plane and facing, not visibility): the dungeon's two
-/// point lights sit inside its fountains, and their light, which the path tracer finds
-/// nowhere, showed as yellow pools around them. [`ENCLOSURE_RAYS`] rays along the
-/// photon's surface (its unit geometric normal `normals[i]`, lifted by a few `eps`), cast
-/// one after the other until one runs free for [`ENCLOSED`] of the radius: an open photon
-/// (nearly all) costs one ray. No radius falls below `least` (meters; a batch's smallest radius sets its
-/// packing's position step). Powers are untouched.
+/// Keeps each photon's disk inside the space it landed in: a photon closed in on every
+/// side along its surface within [`ENCLOSED`] of its radius (a light inside a fountain's
+/// bowl, a lamp in its housing, a pocket under a stair) gets the radius of the farthest
+/// wall around it, so that its disk does not reach through those walls onto the surfaces
+/// outside, which the splat cannot tell from its own (the client tests plane and facing,
+/// not visibility): the dungeon's two point lights sit inside its fountains, and their
+/// light, which the path tracer finds nowhere, showed as yellow pools around them.
+/// [`ENCLOSURE_RAYS`] rays along the photon's surface (its unit geometric normal
+/// `normals[i]`, lifted by a few `eps`), cast one after the other until one runs free for
+/// [`ENCLOSED`] of the radius: an open photon (nearly all) costs one ray. No radius falls
+/// below `least` (meters; a batch's smallest radius sets its packing's position step).
+/// Powers are untouched.
 pub fn enclose(photons: &mut [Photon], normals: &[Vec3], bvh: &SceneBvh, eps: f32, least: f32) {
     assert_eq!(photons.len(), normals.len(), "a normal per photon");
     photons

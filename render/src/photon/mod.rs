@@ -26,10 +26,9 @@
 //! ([`density`]): the distance holding `photons_per_disk` of its light's photons, within
 //! [`DENSITY_RADIUS_RANGE`] of the reference; a photon walled in on every side along its
 //! surface within half its radius keeps its disk inside those walls ([`density::enclose`]).
-//! A light's budget is its share of the watts
-//! ([`BatchPlan`]); a sun's watts are those falling on its [`footprint`]. Streams are
-//! counter-based per (seed, light, slot, generation, photon), so a batch is the same bytes
-//! on any thread count and any node.
+//! A light's budget is its share of the watts ([`BatchPlan`]); a sun's watts are those
+//! falling on its [`footprint`]. Streams are counter-based per (seed, light, slot,
+//! generation, photon), so a batch is the same bytes on any thread count and any node.
 
 pub use cloudlight_scenes::View;
 use cloudlight_scenes::{LightState, Scene, WorldTriangle};
