@@ -31,6 +31,7 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
         guide: 0.5,
         guide_reach: 0.05,
         relax: 0,
+        fit: cloudlight::render::photon::PhotonSettings::default().fit,
     };
     let base = cloudlight::scenes::builtin("cornell").unwrap();
     let rows: Vec<QualityRow> = [1.0f32, 1e-6, 1e6]

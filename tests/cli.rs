@@ -629,6 +629,40 @@ fn quality_benchmark_measures_the_view_it_is_given() {
 }
 
 #[test]
+fn photon_quality_refuses_knobs_a_batcher_or_client_would_refuse() {
+    let dir = tempfile::tempdir().unwrap();
+    for (knob, words) in [
+        ("fit=9", "`fit` = 9 is out of range: must be in [0, 8]"),
+        ("passes=5000", "`passes` = 5000 is out of range"),
+        ("levels=0", "`levels` = 0 must be 1 to 4"),
+    ] {
+        let out = cloudlight()
+            .args(["bench", "quality", "--technique", "photons", "--set", knob])
+            .args([
+                "--budgets",
+                "100",
+                "--spp",
+                "4",
+                "--width",
+                "8",
+                "--height",
+                "8",
+            ])
+            .arg("--out")
+            .arg(dir.path())
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{knob}");
+        assert!(err.contains(words), "{knob}: {err}");
+        assert!(
+            !err.contains("reference:"),
+            "{knob}: rendered before refusing: {err}"
+        );
+    }
+}
+
+#[test]
 fn table2_puts_the_full_frame_baseline_beside_the_photon_cut() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("baseline.json");

@@ -1,5 +1,5 @@
 //! Photon kernels on the Cornell box at the paper's budget (10k photons, one batch): tracing
-//! a batch (plain and relaxed), packing it (12 and 20 bytes per photon), unpacking it; and
+//! a batch (plain, relaxed, and with disks not fitted to their surfaces), packing it (12 and 20 bytes per photon), unpacking it; and
 //! tracing a batch on city:250000, where the BVH no longer fits the caches.
 //!
 //! `cargo bench -p cloudlight-render --bench photons`
@@ -69,6 +69,13 @@ fn photons(c: &mut Criterion) {
         c,
         "cornell: trace one 10k-photon batch, 6 rounds of relaxation",
         &tracer_relaxed,
+        &lights,
+    );
+    let unfitted = PhotonSettings { fit: 0, ..settings };
+    trace(
+        c,
+        "cornell: trace one 10k-photon batch, disks not fitted to their surfaces",
+        &PhotonTracer::new(&scene, &bvh, unfitted, &plan, 1),
         &lights,
     );
     let stored = tracer.trace_batch(&lights[0], 0, 1, 0);

@@ -70,6 +70,8 @@ pub struct PhotonOptions {
     pub guide_reach: f32,
     /// Rounds of photon relaxation per batch ([`PhotonSettings::relax`]; 0: none).
     pub relax: u32,
+    /// Halvings of a disk that overhangs its surface at most ([`PhotonSettings::fit`]).
+    pub fit: u32,
 }
 
 impl Default for PhotonOptions {
@@ -90,6 +92,7 @@ impl Default for PhotonOptions {
             guide: PhotonSettings::default().guide_share,
             guide_reach: PhotonSettings::default().guide_reach,
             relax: PhotonSettings::default().relax,
+            fit: PhotonSettings::default().fit,
         }
     }
 }
@@ -102,7 +105,11 @@ impl Photons {
 
     /// The batcher's `params`.
     pub fn server_params(o: &PhotonOptions) -> anyhow::Result<toml::Table> {
-        let params = BatcherParams {
+        Ok(toml::Table::try_from(Self::batcher_params(o))?)
+    }
+
+    fn batcher_params(o: &PhotonOptions) -> BatcherParams {
+        BatcherParams {
             photons: Some(o.photons),
             batch_size: o.batch_size,
             interval_ms: o.interval_ms,
@@ -113,10 +120,25 @@ impl Photons {
             receive: o.receive,
             passes: o.passes,
             relax: o.relax,
+            fit: o.fit,
             format: o.format.name().into(),
             ..BatcherParams::default()
+        }
+    }
+
+    /// Refuses options a batcher or a client would refuse, naming the knob and its range.
+    fn check(o: &PhotonOptions) -> anyhow::Result<()> {
+        use cloudlight_runtime::CheckParams;
+        let client = PhotonClientParams {
+            downsample: o.downsample,
+            levels: o.levels,
+            min_texels: o.min_texels,
+            compute: o.compute,
         };
-        Ok(toml::Table::try_from(params)?)
+        Self::batcher_params(o)
+            .check()
+            .and_then(|()| client.check())
+            .map_err(|e| anyhow::anyhow!("--set: {e}"))
     }
 
     /// A client's `params`: `render` false for a cluster benchmark's clients (they measure,
@@ -256,6 +278,7 @@ impl Technique for Photons {
         sweep: &Sweep,
         out: &Path,
     ) -> anyhow::Result<serde_json::Value> {
+        Self::check(options)?;
         let mut budgets = Vec::new();
         for (key, values) in sweep {
             if key != "photons" {
@@ -293,6 +316,7 @@ impl Technique for Photons {
             guide: options.guide,
             guide_reach: options.guide_reach,
             relax: options.relax,
+            fit: options.fit,
         };
         let rows = quality(raster, scene, &o, out)?;
         Ok(
@@ -554,6 +578,8 @@ pub struct QualityOptions {
     pub guide_reach: f32,
     /// Rounds of photon relaxation per batch.
     pub relax: u32,
+    /// Halvings of a disk that overhangs its surface at most.
+    pub fit: u32,
 }
 
 /// One point of the trade: a budget in one packing.
@@ -615,6 +641,7 @@ impl QualityView {
             guide_share: o.guide,
             guide_reach: o.guide_reach,
             relax: o.relax,
+            fit: o.fit,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,
@@ -744,6 +771,7 @@ impl QualityView {
             guide_share: o.guide,
             guide_reach: o.guide_reach,
             relax: o.relax,
+            fit: o.fit,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,
