@@ -629,6 +629,72 @@ fn quality_benchmark_measures_the_view_it_is_given() {
 }
 
 #[test]
+fn photon_quality_sweeps_a_knob_and_draws_each_combination_s_front() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |sweep: &str, out: &std::path::Path| {
+        cloudlight()
+            .args([
+                "bench",
+                "quality",
+                "--technique",
+                "photons",
+                "--sweep",
+                sweep,
+            ])
+            .args([
+                "--budgets",
+                "300,600",
+                "--spp",
+                "4",
+                "--width",
+                "8",
+                "--height",
+                "8",
+            ])
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    let out = run("fit=0,3", dir.path());
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("quality.json")).unwrap()).unwrap();
+    assert_eq!(report["swept"], serde_json::json!(["fit"]));
+    let variants = report["variants"].as_array().unwrap();
+    assert_eq!(variants.len(), 2);
+    for (v, (label, fit)) in variants.iter().zip([("fit=0", 0), ("fit=3", 3)]) {
+        assert_eq!(v["label"], label);
+        assert_eq!(v["options"]["fit"], fit);
+        let budgets: Vec<u64> = v["rows"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["photons"].as_u64().unwrap())
+            .collect();
+        assert_eq!(budgets, [300, 600]);
+        // Each combination's own table, images and plot in its folder.
+        for file in ["quality.json", "quality.png", "indirect_600.exr"] {
+            assert!(
+                dir.path().join(label).join(file).is_file(),
+                "{label}/{file}"
+            );
+        }
+    }
+    assert!(dir.path().join("quality.png").is_file());
+    // A combination a batcher would refuse stops the run before anything renders.
+    let out = run("fit=3,9", &dir.path().join("bad"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("`fit` = 9 is out of range"), "{err}");
+    assert!(!dir.path().join("bad").join("fit=3").exists(), "{err}");
+}
+
+#[test]
 fn photon_quality_refuses_knobs_a_batcher_or_client_would_refuse() {
     let dir = tempfile::tempdir().unwrap();
     for (knob, words) in [

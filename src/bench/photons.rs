@@ -278,13 +278,12 @@ impl Technique for Photons {
         sweep: &Sweep,
         out: &Path,
     ) -> anyhow::Result<serde_json::Value> {
-        Self::check(options)?;
         let mut budgets = Vec::new();
+        let mut knobs = Sweep::new();
         for (key, values) in sweep {
             if key != "photons" {
-                anyhow::bail!(
-                    "the photon quality sweep varies `photons` only (each budget in 8-, 12- and 20-byte packings), not `{key}`"
-                );
+                knobs.push((key.clone(), values.clone()));
+                continue;
             }
             for v in values {
                 let n = v.as_integer().filter(|&n| n >= 1).with_context(|| {
@@ -294,10 +293,19 @@ impl Technique for Photons {
             }
         }
         if budgets.is_empty() {
-            budgets.push(options.photons);
+            // A knob sweep alone: `--set photons=N`'s budget, else the default budgets.
+            budgets = if options.photons != PhotonOptions::default().photons {
+                vec![options.photons]
+            } else {
+                Self::default_sweep()[0]
+                    .1
+                    .iter()
+                    .filter_map(|v| v.as_integer().map(|n| n as u64))
+                    .collect()
+            };
         }
-        let o = QualityOptions {
-            budgets,
+        let quality_options = |options: &PhotonOptions| QualityOptions {
+            budgets: budgets.clone(),
             batch_size: options.batch_size,
             camera: common.camera.clone(),
             spp: common.spp,
@@ -318,10 +326,59 @@ impl Technique for Photons {
             relax: options.relax,
             fit: options.fit,
         };
-        let rows = quality(raster, scene, &o, out)?;
-        Ok(
-            serde_json::json!({ "technique": Self::NAME, "scene": scene, "options": o, "rows": rows }),
-        )
+        if knobs.is_empty() {
+            Self::check(options)?;
+            let o = quality_options(options);
+            let rows = quality(raster, scene, &o, out)?;
+            return Ok(
+                serde_json::json!({ "technique": Self::NAME, "scene": scene, "options": o, "rows": rows }),
+            );
+        }
+        // Every combination of the swept knobs over the others, each checked before any
+        // renders, measured into its own folder, and their fronts drawn together.
+        let table = toml::Table::try_from(options)?;
+        let variants = super::expand::<Self>(&table, &knobs)?;
+        let mut labelled = Vec::new();
+        for v in &variants {
+            Self::check(v)?;
+            let t = toml::Table::try_from(v)?;
+            let label = knobs
+                .iter()
+                .map(|(key, _)| format!("{key}={}", t.get(key).map_or(String::new(), show_knob)))
+                .collect::<Vec<_>>()
+                .join(",");
+            labelled.push((label, quality_options(v)));
+        }
+        let mut fronts = Vec::new();
+        for (label, o) in &labelled {
+            println!("## {label}\n");
+            fronts.push((label.clone(), quality(raster, scene, o, &out.join(label))?));
+        }
+        let results: Vec<serde_json::Value> = labelled
+            .iter()
+            .zip(&fronts)
+            .map(|((label, o), (_, rows))| serde_json::json!({ "label": label, "options": o, "rows": rows }))
+            .collect();
+        let report = serde_json::json!({ "technique": Self::NAME, "scene": scene,
+            "swept": knobs.iter().map(|(k, _)| k.clone()).collect::<Vec<_>>(), "variants": results });
+        let json = out.join("quality.json");
+        std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("writing {}", json.display()))?;
+        let png = variants_plot(&out.join("quality.png"), scene, &fronts)?;
+        println!(
+            "wrote {}, {} (the 8-byte fronts of every combination) and a folder per combination",
+            json.display(),
+            png.display()
+        );
+        Ok(report)
+    }
+}
+
+/// A knob's value as `--sweep` takes it (strings bare).
+fn show_knob(v: &toml::Value) -> String {
+    match v {
+        toml::Value::String(s) => s.clone(),
+        other => other.to_string(),
     }
 }
 
@@ -938,6 +995,53 @@ pub fn quality(
     let png = quality_plot(&out.join("quality.png"), scene_spec, &rows)?;
     println!("wrote {} and {}", json.display(), png.display());
     Ok(rows)
+}
+
+/// The Pareto plot of a knob sweep: each combination's 8-byte photons, relMSE against Mbps
+/// and against update time, the paper's operating point marked.
+fn variants_plot(
+    path: &Path,
+    scene: &str,
+    fronts: &[(String, Vec<QualityRow>)],
+) -> anyhow::Result<std::path::PathBuf> {
+    use crate::plot::{Marker, ParetoPanel, Series};
+    let series = |x: fn(&QualityPoint) -> f64| -> Vec<Series> {
+        fronts
+            .iter()
+            .map(|(label, rows)| Series {
+                label: label.clone(),
+                points: rows
+                    .iter()
+                    .map(|r| (x(&r.eight), r.eight.errors.relmse, short(r.photons as f64)))
+                    .collect(),
+            })
+            .collect()
+    };
+    let (mbps, ms) = paper::PHOTON_OPERATING_POINT;
+    crate::plot::pareto(
+        path,
+        &format!("Photons, {scene}: error against bandwidth and update time (8-byte photons)"),
+        &[
+            ParetoPanel {
+                x_label: "server-to-client Mbps".into(),
+                y_label: "relMSE (scale-invariant)".into(),
+                series: series(|p| p.mbps),
+                marker: Some(Marker {
+                    x: mbps,
+                    label: format!("paper: {mbps} Mbps (10k photons)"),
+                }),
+            },
+            ParetoPanel {
+                x_label: "update ms (trace + pack)".into(),
+                y_label: "relMSE (scale-invariant)".into(),
+                series: series(|p| p.update_ms),
+                marker: Some(Marker {
+                    x: ms,
+                    label: format!("paper: {ms} ms per iteration"),
+                }),
+            },
+        ],
+    )
 }
 
 /// The Pareto plot: relMSE against Mbps and against update time, per packing, with the

@@ -130,6 +130,7 @@ pub struct QualityArgs {
     #[arg(long, value_delimiter = ',', value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     budgets: Vec<u64>,
     /// Sweeps a knob, `key=v1,v2,...` (repeatable; the technique says how sweeps combine;
+    /// photons: any knob, every combination over the budgets, fronts drawn together;
     /// irradiance: `texels_per_basis`, `rays_per_basis`, `qp`; voxels: `max_depth`,
     /// `levels_above_leaves`, `mantissa_bits`, `qp`; every combination) [default:
     /// the technique's own sweep].
