@@ -628,33 +628,25 @@ fn quality_benchmark_measures_the_view_it_is_given() {
     }
 }
 
+/// `bench quality --technique photons` at a tiny size (8², 4 spp, no reference cache) with
+/// `args`, into `out`.
+fn photon_quality(args: &[&str], out: &std::path::Path) -> std::process::Output {
+    cloudlight()
+        .args(["bench", "quality", "--technique", "photons"])
+        .args(["--spp", "4", "--width", "8", "--height", "8"])
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .env("CLOUDLIGHT_REFERENCE_CACHE", "off")
+        .output()
+        .unwrap()
+}
+
 #[test]
 fn photon_quality_sweeps_a_knob_and_draws_each_combination_s_front() {
     let dir = tempfile::tempdir().unwrap();
     let run = |sweep: &str, out: &std::path::Path| {
-        cloudlight()
-            .args([
-                "bench",
-                "quality",
-                "--technique",
-                "photons",
-                "--sweep",
-                sweep,
-            ])
-            .args([
-                "--budgets",
-                "300,600",
-                "--spp",
-                "4",
-                "--width",
-                "8",
-                "--height",
-                "8",
-            ])
-            .arg("--out")
-            .arg(out)
-            .output()
-            .unwrap()
+        photon_quality(&["--sweep", sweep, "--budgets", "300,600"], out)
     };
     let out = run("fit=0,3", dir.path());
     assert!(
@@ -702,22 +694,7 @@ fn photon_quality_refuses_knobs_a_batcher_or_client_would_refuse() {
         ("passes=5000", "`passes` = 5000 is out of range"),
         ("levels=0", "`levels` = 0 must be 1 to 4"),
     ] {
-        let out = cloudlight()
-            .args(["bench", "quality", "--technique", "photons", "--set", knob])
-            .args([
-                "--budgets",
-                "100",
-                "--spp",
-                "4",
-                "--width",
-                "8",
-                "--height",
-                "8",
-            ])
-            .arg("--out")
-            .arg(dir.path())
-            .output()
-            .unwrap();
+        let out = photon_quality(&["--set", knob, "--budgets", "100"], dir.path());
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success(), "{knob}");
         assert!(err.contains(words), "{knob}: {err}");

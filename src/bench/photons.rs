@@ -997,77 +997,61 @@ pub fn quality(
     Ok(rows)
 }
 
-/// The Pareto plot of a knob sweep: each combination's 8-byte photons, relMSE against Mbps
-/// and against update time, the paper's operating point marked.
+/// The Pareto plot of a knob sweep: each combination's 8-byte photons.
 fn variants_plot(
     path: &Path,
     scene: &str,
     fronts: &[(String, Vec<QualityRow>)],
 ) -> anyhow::Result<std::path::PathBuf> {
-    use crate::plot::{Marker, ParetoPanel, Series};
-    let series = |x: fn(&QualityPoint) -> f64| -> Vec<Series> {
-        fronts
-            .iter()
-            .map(|(label, rows)| Series {
-                label: label.clone(),
-                points: rows
-                    .iter()
-                    .map(|r| (x(&r.eight), r.eight.errors.relmse, short(r.photons as f64)))
-                    .collect(),
-            })
-            .collect()
-    };
-    let (mbps, ms) = paper::PHOTON_OPERATING_POINT;
-    crate::plot::pareto(
+    let sets: Vec<(String, Vec<&QualityPoint>)> = fronts
+        .iter()
+        .map(|(label, rows)| (label.clone(), rows.iter().map(|r| &r.eight).collect()))
+        .collect();
+    fronts_plot(
         path,
         &format!("Photons, {scene}: error against bandwidth and update time (8-byte photons)"),
-        &[
-            ParetoPanel {
-                x_label: "server-to-client Mbps".into(),
-                y_label: "relMSE (scale-invariant)".into(),
-                series: series(|p| p.mbps),
-                marker: Some(Marker {
-                    x: mbps,
-                    label: format!("paper: {mbps} Mbps (10k photons)"),
-                }),
-            },
-            ParetoPanel {
-                x_label: "update ms (trace + pack)".into(),
-                y_label: "relMSE (scale-invariant)".into(),
-                series: series(|p| p.update_ms),
-                marker: Some(Marker {
-                    x: ms,
-                    label: format!("paper: {ms} ms per iteration"),
-                }),
-            },
-        ],
+        &sets,
     )
 }
 
-/// The Pareto plot: relMSE against Mbps and against update time, per packing, with the
-/// paper's operating point marked.
+/// The Pareto plot of one run: each packing's points.
 fn quality_plot(
     path: &Path,
     scene: &str,
     rows: &[QualityRow],
 ) -> anyhow::Result<std::path::PathBuf> {
+    type Pick = fn(&QualityRow) -> &QualityPoint;
+    let pick: [(&str, Pick); 3] = [
+        ("8-byte photons (Morton gaps)", |r| &r.eight),
+        ("12-byte photons", |r| &r.twelve),
+        ("20-byte photons", |r| &r.twenty),
+    ];
+    let sets: Vec<(String, Vec<&QualityPoint>)> = pick
+        .iter()
+        .map(|(label, f)| (label.to_string(), rows.iter().map(f).collect()))
+        .collect();
+    fronts_plot(
+        path,
+        &format!("Photons, {scene}: error against bandwidth and update time"),
+        &sets,
+    )
+}
+
+/// relMSE against Mbps and against update time, a series per labelled set of points, with
+/// the paper's operating point marked.
+fn fronts_plot(
+    path: &Path,
+    title: &str,
+    sets: &[(String, Vec<&QualityPoint>)],
+) -> anyhow::Result<std::path::PathBuf> {
     use crate::plot::{Marker, ParetoPanel, Series};
     let series = |x: fn(&QualityPoint) -> f64| -> Vec<Series> {
-        type Pick = fn(&QualityRow) -> &QualityPoint;
-        let pick: [(&str, Pick); 3] = [
-            ("8-byte photons (Morton gaps)", |r| &r.eight),
-            ("12-byte photons", |r| &r.twelve),
-            ("20-byte photons", |r| &r.twenty),
-        ];
-        pick.iter()
-            .map(|(label, f)| Series {
-                label: label.to_string(),
-                points: rows
+        sets.iter()
+            .map(|(label, points)| Series {
+                label: label.clone(),
+                points: points
                     .iter()
-                    .map(|r| {
-                        let p = f(r);
-                        (x(p), p.errors.relmse, short(p.photons as f64))
-                    })
+                    .map(|p| (x(p), p.errors.relmse, short(p.photons as f64)))
                     .collect(),
             })
             .collect()
@@ -1075,7 +1059,7 @@ fn quality_plot(
     let (mbps, ms) = paper::PHOTON_OPERATING_POINT;
     crate::plot::pareto(
         path,
-        &format!("Photons, {scene}: error against bandwidth and update time"),
+        title,
         &[
             ParetoPanel {
                 x_label: "server-to-client Mbps".into(),
