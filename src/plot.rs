@@ -371,9 +371,119 @@ pub fn linear(
     Ok(path.to_path_buf())
 }
 
+/// Decades of the error map of [`comparison`]: a pixel's relMSE term from 10⁻³ (darkest) to
+/// 10 (brightest), log scale.
+pub const ERROR_MAP_DECADES: (f64, f64) = (-3.0, 1.0);
+
+/// Draws `test` and `reference` (`width × height`, linear radiance, both tone-mapped at the
+/// reference's exposure) and `map` (each pixel's relMSE term, [`cloudlight_render::metrics::relmse_map`];
+/// viridis over [`ERROR_MAP_DECADES`], black where it is 0) side by side, each panel under
+/// its title and enlarged to at least 256 pixels wide, and writes `path`.
+pub fn comparison(
+    path: &Path,
+    (width, height): (u32, u32),
+    test: &[cloudlight_scenes::glam::Vec3],
+    reference: &[cloudlight_scenes::glam::Vec3],
+    map: &[f64],
+    titles: [&str; 3],
+) -> anyhow::Result<PathBuf> {
+    use cloudlight_render::{image_io, metrics};
+    use plotters::style::colors::colormaps::ViridisRGB;
+    let n = (width * height) as usize;
+    anyhow::ensure!(
+        test.len() == n && reference.len() == n && map.len() == n,
+        "images of a comparison are not {width}x{height}"
+    );
+    font()?;
+    let zoom = 256u32.div_ceil(width.max(1)).clamp(1, 8);
+    let (pw, ph, title_h, gap) = (width * zoom, height * zoom, 28u32, 8u32);
+    let size = (3 * pw + 4 * gap, ph + title_h + gap);
+    let stops = image_io::auto_exposure(reference);
+    let tone = |img: &[cloudlight_scenes::glam::Vec3]| -> Vec<RGBColor> {
+        metrics::tonemap(img, stops)
+            .chunks_exact(3)
+            .map(|c| RGBColor(c[0], c[1], c[2]))
+            .collect()
+    };
+    let (lo, hi) = ERROR_MAP_DECADES;
+    let errors: Vec<RGBColor> = map
+        .iter()
+        .map(|&e| {
+            if e > 0.0 {
+                ViridisRGB::get_color_normalized(e.log10().clamp(lo, hi), lo, hi)
+            } else {
+                BLACK
+            }
+        })
+        .collect();
+    let panels = [tone(test), tone(reference), errors];
+    {
+        let root = BitMapBackend::new(path, size).into_drawing_area();
+        let err = draw_error(path);
+        root.fill(&WHITE).map_err(|e| err(Box::new(e)))?;
+        for (k, (pixels, title)) in panels.iter().zip(titles).enumerate() {
+            let x0 = gap + k as u32 * (pw + gap);
+            root.draw_text(
+                title,
+                &("sans-serif", 16).into_font().color(&BLACK),
+                (x0 as i32, 6),
+            )
+            .map_err(|e| err(Box::new(e)))?;
+            for (i, c) in pixels.iter().enumerate() {
+                let (x, y) = ((i as u32 % width) * zoom, (i as u32 / width) * zoom);
+                for dy in 0..zoom {
+                    for dx in 0..zoom {
+                        root.draw_pixel(((x0 + x + dx) as i32, (title_h + y + dy) as i32), c)
+                            .map_err(|e| err(Box::new(e)))?;
+                    }
+                }
+            }
+        }
+        root.present().map_err(|e| err(Box::new(e)))?;
+    }
+    Ok(path.to_path_buf())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_comparison_draws_three_enlarged_panels_and_refuses_images_of_another_size() {
+        use cloudlight_scenes::glam::Vec3;
+        let (w, h) = (32u32, 16u32);
+        let n = (w * h) as usize;
+        let reference: Vec<Vec3> = (0..n).map(|i| Vec3::splat(0.1 + (i % 9) as f32)).collect();
+        let mut test = reference.clone();
+        test[5] = Vec3::splat(100.0);
+        let map = cloudlight_render::metrics::relmse_map(&test, &reference, &vec![true; n]);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.png");
+        comparison(
+            &path,
+            (w, h),
+            &test,
+            &reference,
+            &map,
+            ["ours", "reference", "error"],
+        )
+        .unwrap();
+        let img = image::open(&path).unwrap().to_rgb8();
+        // Panels enlarged 8× (to 256 wide), under a title row.
+        assert_eq!(img.dimensions(), (3 * 256 + 4 * 8, 128 + 28 + 8));
+        // The bad pixel is bright in the error map, a good one black (its term is 0).
+        let at = |panel: u32, x: u32, y: u32| {
+            *img.get_pixel(8 + panel * (256 + 8) + x * 8 + 3, 28 + y * 8 + 3)
+        };
+        let bad = at(2, 5, 0);
+        assert!(
+            bad.0.iter().map(|c| *c as u32).sum::<u32>() > 300,
+            "{bad:?}"
+        );
+        assert_eq!(at(2, 6, 0).0, [0, 0, 0]);
+        assert_eq!(at(0, 6, 0), at(1, 6, 0));
+        assert!(comparison(&path, (w, h + 1), &test, &reference, &map, ["a", "b", "c"]).is_err());
+    }
 
     #[test]
     fn the_pareto_front_keeps_only_undominated_points() {

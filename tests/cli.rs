@@ -670,7 +670,12 @@ fn photon_quality_sweeps_a_knob_and_draws_each_combination_s_front() {
             .collect();
         assert_eq!(budgets, [300, 600]);
         // Each combination's own table, images and plot in its folder.
-        for file in ["quality.json", "quality.png", "indirect_600.exr"] {
+        for file in [
+            "quality.json",
+            "quality.png",
+            "indirect_600.exr",
+            "indirect_600.png",
+        ] {
             assert!(
                 dir.path().join(label).join(file).is_file(),
                 "{label}/{file}"

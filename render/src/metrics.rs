@@ -181,6 +181,11 @@ pub struct ImageErrors {
     pub energy_ratio: f64,
     /// Pixels that see geometry.
     pub pixels: usize,
+    /// Share of the relMSE held by the worst [`WORST_PIXELS`] (1%) of those pixels
+    /// ([`worst_share`]): near 0.01 where the error is spread (noise, bias), large where a few
+    /// pixels hold it.
+    #[serde(default)]
+    pub worst_share: f64,
 }
 
 /// Mean luminance of `image` over the pixels `mask` keeps.
@@ -200,29 +205,82 @@ fn masked_mean_luminance(image: &[Vec3], mask: &[bool]) -> (f64, usize) {
 /// the reference is black there (nothing to be relative to) and the test is too; infinite
 /// when only the test has light.
 pub fn relmse_normalized(test: &[Vec3], reference: &[Vec3], mask: &[bool]) -> f64 {
+    relmse_of_map(&relmse_map(test, reference, mask), mask)
+}
+
+/// The relMSE a [`relmse_map`] stands for: its mean over the pixels `mask` keeps (0 when it
+/// keeps none).
+pub fn relmse_of_map(map: &[f64], mask: &[bool]) -> f64 {
+    let n = mask.iter().filter(|m| **m).count();
+    if n == 0 {
+        return 0.0;
+    }
+    map.iter().sum::<f64>() / n as f64
+}
+
+/// Each pixel's term of [`relmse_normalized`]: the mean over its channels of
+/// (x − y)² / (y² + ε), both divided by the reference's mean luminance over the pixels `mask`
+/// keeps; 0 for the pixels it leaves out. Their mean over the kept pixels is the relMSE.
+/// Where the reference is black over the whole mask, a kept pixel with light in the test
+/// reads infinite, any other 0.
+pub fn relmse_map(test: &[Vec3], reference: &[Vec3], mask: &[bool]) -> Vec<f64> {
     assert!(
         test.len() == reference.len() && mask.len() == reference.len(),
         "images and mask differ in size"
     );
-    let (mean, n) = masked_mean_luminance(reference, mask);
-    if n == 0 {
-        return 0.0;
-    }
-    if mean <= 0.0 || !mean.is_finite() {
-        let (t, _) = masked_mean_luminance(test, mask);
-        return if t > 0.0 { f64::INFINITY } else { 0.0 };
-    }
-    let k = 1.0 / mean;
-    let sum: f64 = test
-        .iter()
+    let (mean, _) = masked_mean_luminance(reference, mask);
+    let black = mean <= 0.0 || !mean.is_finite();
+    let k = if black { 0.0 } else { 1.0 / mean };
+    test.iter()
         .zip(reference)
         .zip(mask)
-        .filter(|(_, m)| **m)
-        .flat_map(|((a, b), _)| (0..3).map(move |c| (a[c] as f64 * k, b[c] as f64 * k)))
-        .map(|(x, y)| (x - y).powi(2) / (y * y + REL_MSE_EPSILON))
-        .sum();
-    sum / (n * 3) as f64
+        .map(|((a, b), &kept)| {
+            if !kept {
+                0.0
+            } else if black {
+                if luminance(*a) > 0.0 {
+                    f64::INFINITY
+                } else {
+                    0.0
+                }
+            } else {
+                (0..3)
+                    .map(|c| {
+                        let (x, y) = (a[c] as f64 * k, b[c] as f64 * k);
+                        (x - y).powi(2) / (y * y + REL_MSE_EPSILON)
+                    })
+                    .sum::<f64>()
+                    / 3.0
+            }
+        })
+        .collect()
 }
+
+/// Share (0–1) of a [`relmse_map`]'s sum that its largest `fraction` of the kept pixels hold
+/// (at least one pixel): about `fraction` where the error is spread evenly (noise, a
+/// uniform bias), near 1 where a few pixels hold it (light leaking onto a hidden face,
+/// fireflies, edges). 0 when there is no error.
+pub fn worst_share(map: &[f64], mask: &[bool], fraction: f64) -> f64 {
+    let mut kept: Vec<f64> = map
+        .iter()
+        .zip(mask)
+        .filter(|(_, m)| **m)
+        .map(|(e, _)| *e)
+        .collect();
+    let total: f64 = kept.iter().sum();
+    if kept.is_empty() || total <= 0.0 {
+        return 0.0;
+    }
+    if !total.is_finite() {
+        return 1.0;
+    }
+    let count = ((kept.len() as f64 * fraction).ceil() as usize).clamp(1, kept.len());
+    kept.sort_unstable_by(|a, b| b.total_cmp(a));
+    kept[..count].iter().sum::<f64>() / total
+}
+
+/// The share of the pixels [`ImageErrors::worst_share`] is about.
+pub const WORST_PIXELS: f64 = 0.01;
 
 /// Mean luminance of `test` over that of `reference`, over the pixels `mask` keeps (1 when
 /// both are black).
@@ -247,11 +305,13 @@ pub fn compare(
     width: u32,
     height: u32,
 ) -> ImageErrors {
+    let map = relmse_map(test, reference, mask);
     ImageErrors {
-        relmse: relmse_normalized(test, reference, mask),
+        relmse: relmse_of_map(&map, mask),
         flip: flip_hdr(test, reference, width, height, PIXELS_PER_DEGREE).mean,
         energy_ratio: energy_ratio(test, reference, mask),
         pixels: mask.iter().filter(|m| **m).count(),
+        worst_share: worst_share(&map, mask, WORST_PIXELS),
     }
 }
 
@@ -399,6 +459,54 @@ mod tests {
         assert_eq!(relmse_normalized(&black, &black, &mask), 0.0);
         assert_eq!(energy_ratio(&black, &black, &mask), 1.0);
         assert!(relmse_normalized(&test, &black, &mask).is_infinite());
+    }
+
+    #[test]
+    fn the_error_map_sums_to_the_relmse_and_tells_spread_error_from_a_few_bad_pixels() {
+        let (w, h) = (20u32, 10u32);
+        let n = (w * h) as usize;
+        let reference: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(0.5 + (i % 5) as f32 * 0.1, 0.4, 0.3))
+            .collect();
+        let mask: Vec<bool> = (0..n).map(|i| i % 7 != 0).collect();
+        let kept = mask.iter().filter(|m| **m).count();
+        // Every pixel 10% too bright: the error is spread, the worst 1% hold about 1%.
+        let spread: Vec<Vec3> = reference.iter().map(|v| *v * 1.1).collect();
+        let map = relmse_map(&spread, &reference, &mask);
+        let mean = map.iter().sum::<f64>() / kept as f64;
+        assert!((mean / relmse_normalized(&spread, &reference, &mask) - 1.0).abs() < 1e-12);
+        assert!(map.iter().zip(&mask).all(|(e, m)| *m || *e == 0.0));
+        let share = worst_share(&map, &mask, WORST_PIXELS);
+        assert!(share > 0.005 && share < 0.03, "{share}");
+        // One pixel lit where the reference is dark holds nearly all of it.
+        let mut leak = reference.clone();
+        leak[1] = Vec3::splat(40.0);
+        let errors = compare(&leak, &reference, &mask, w, h);
+        assert!(errors.worst_share > 0.99, "{errors:?}");
+        let map = relmse_map(&leak, &reference, &mask);
+        assert_eq!(
+            map.iter()
+                .enumerate()
+                .max_by(|a, b| a.1.total_cmp(b.1))
+                .unwrap()
+                .0,
+            1
+        );
+        assert!((map.iter().sum::<f64>() / kept as f64 / errors.relmse - 1.0).abs() < 1e-12);
+        // The same under any scale of the lights; nothing wrong, nothing to share.
+        let s = |img: &[Vec3]| img.iter().map(|v| *v * 1e-5).collect::<Vec<_>>();
+        let scaled = relmse_map(&s(&leak), &s(&reference), &mask);
+        assert!(
+            scaled
+                .iter()
+                .zip(&map)
+                .all(|(a, b)| (a - b).abs() <= 1e-3 * b.max(1e-9))
+        );
+        assert_eq!(
+            worst_share(&relmse_map(&reference, &reference, &mask), &mask, 0.01),
+            0.0
+        );
+        assert_eq!(worst_share(&map, &[false; 200], 0.01), 0.0);
     }
 
     #[test]

@@ -513,7 +513,7 @@ pub struct IrradiancePoint {
 /// converged map of `scene` at time 0; every `qp` codes it; each is shown by the client's
 /// pass and compared with the reference's indirect image. One per-texel point (the paper's
 /// naive server) beside them. Prints the table, writes `quality.json`, `quality.png` and the
-/// EXRs to `out`.
+/// images to `out` (EXR, and a PNG beside the reference with its error map).
 pub fn quality(
     raster: &Raster,
     scene_spec: &str,
@@ -587,10 +587,7 @@ pub fn quality(
     }));
     let view = QualityView::of(scene, common)?;
     let (w, h) = (common.width, common.height);
-    let exr = |name: String, img: &[Vec3]| {
-        cloudlight_render::image_io::write_exr(&out.join(name), w, h, img)
-    };
-    exr("reference_indirect.exr".into(), &view.reference)?;
+    view.write_reference(out)?;
     let shadows = ShadowSettings {
         size: 16,
         ..Default::default()
@@ -632,7 +629,12 @@ pub fn quality(
             ),
             GatherMode::Texels => format!("texels_r{per_point}"),
         };
-        exr(format!("indirect_{tag}_raw.exr"), &raw_image)?;
+        view.write_image(
+            out,
+            &format!("indirect_{tag}_raw"),
+            &raw_image,
+            &format!("{tag}, raw"),
+        )?;
         let update_ms = cost.seconds * 1000.0 / f64::from(cost.updates.max(1));
         let rate = common.rate_hz.min(1000.0 / update_ms.max(1e-3));
         let qp_list: &[u8] = if o.mode == GatherMode::Texels {
@@ -643,7 +645,12 @@ pub fn quality(
         for &qp in qp_list {
             let (coded, key_bytes) = through_h264(&raw, qp)?;
             let (h264, image) = show(&coded)?;
-            exr(format!("indirect_{tag}_qp{qp}.exr"), &image)?;
+            view.write_image(
+                out,
+                &format!("indirect_{tag}_qp{qp}"),
+                &image,
+                &format!("{tag}, H.264 QP {qp}"),
+            )?;
             points.push(IrradiancePoint {
                 mode: mode.into(),
                 fit: match o.mode {

@@ -181,7 +181,8 @@ pub trait Technique: 'static {
     }
 
     /// The speed/accuracy sweep on `scene`: prints its table and writes `quality.json`,
-    /// `quality.png` and the EXRs to `out`; returns the JSON report.
+    /// `quality.png` and the images (EXR, and a PNG beside the reference with its error map)
+    /// to `out`; returns the JSON report.
     fn quality(
         raster: &Raster,
         scene: &str,
@@ -861,6 +862,8 @@ pub struct QualityView {
     pub reference_s: f64,
     /// Whether it came from the cache.
     pub reference_cached: bool,
+    /// Image width and height, pixels.
+    pub size: (u32, u32),
 }
 
 impl QualityView {
@@ -922,7 +925,52 @@ impl QualityView {
             reference: reference.indirect,
             reference_s,
             reference_cached: reference.cached,
+            size: (width, height),
         })
+    }
+}
+
+impl QualityView {
+    /// Writes the reference as `out/reference_indirect.exr`.
+    pub fn write_reference(&self, out: &Path) -> anyhow::Result<()> {
+        let (w, h) = self.size;
+        cloudlight_render::image_io::write_exr(
+            &out.join("reference_indirect.exr"),
+            w,
+            h,
+            &self.reference,
+        )?;
+        Ok(())
+    }
+
+    /// Writes a technique's indirect image of this view as `out/NAME.exr`, and `out/NAME.png`:
+    /// it beside the reference, and where its error lies (each pixel's relMSE term over the
+    /// pixels where either image has light — those that see geometry, but for the ones
+    /// dark in both, which add nothing; [`crate::plot::comparison`]). `title` heads its panel.
+    pub fn write_image(
+        &self,
+        out: &Path,
+        name: &str,
+        image: &[Vec3],
+        title: &str,
+    ) -> anyhow::Result<()> {
+        let (w, h) = self.size;
+        cloudlight_render::image_io::write_exr(&out.join(format!("{name}.exr")), w, h, image)?;
+        let lit: Vec<bool> = image
+            .iter()
+            .zip(&self.reference)
+            .map(|(a, b)| a.max_element() > 0.0 || b.max_element() > 0.0)
+            .collect();
+        let map = cloudlight_render::metrics::relmse_map(image, &self.reference, &lit);
+        crate::plot::comparison(
+            &out.join(format!("{name}.png")),
+            self.size,
+            image,
+            &self.reference,
+            &map,
+            [title, "reference", "relMSE per pixel, 0.001 to 10 (log)"],
+        )?;
+        Ok(())
     }
 }
 

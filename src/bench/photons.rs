@@ -853,10 +853,11 @@ impl QualityView {
             let drawn: Vec<Photon> = set.photons().collect();
             let (errors, image) = self.client_errors(raster, &drawn, o)?;
             eprintln!(
-                "{pass} passes: {} photons, relMSE {:.4}, energy {:.3}",
+                "{pass} passes: {} photons, relMSE {:.4}, energy {:.3}, worst 1% of pixels {:.0}% of it",
                 drawn.len(),
                 errors.relmse,
-                errors.energy_ratio
+                errors.energy_ratio,
+                errors.worst_share * 100.0
             );
             let point = ProgressivePoint {
                 passes: pass,
@@ -881,6 +882,7 @@ pub fn progressive_markdown(points: &[ProgressivePoint], photons: u64) -> String
         "relMSE",
         "HDR-FLIP",
         "energy ours / reference",
+        "worst 1% of pixels' share",
     ]);
     for p in points {
         t.row(vec![
@@ -891,6 +893,7 @@ pub fn progressive_markdown(points: &[ProgressivePoint], photons: u64) -> String
             format!("{:.4}", p.errors.relmse),
             format!("{:.3}", p.errors.flip),
             format!("{:.3}", p.errors.energy_ratio),
+            format!("{:.2}", p.errors.worst_share),
         ]);
     }
     format!(
@@ -936,7 +939,8 @@ pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
 }
 
 /// `cloudlight bench quality --technique photons`: the sweep over budgets on `scene`, with
-/// the table, `quality.json`, the Pareto plot `quality.png` and EXRs written to `out`.
+/// the table, `quality.json`, the Pareto plot `quality.png` and each image (EXR, and a PNG beside the
+/// reference with its error map: [`QualityView::write_image`]) written to `out`.
 pub fn quality(
     raster: &Raster,
     scene_spec: &str,
@@ -946,18 +950,23 @@ pub fn quality(
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let scene = cloudlight_scenes::load(scene_spec)?;
     let view = QualityView::new(scene, &o.camera, o.width, o.height, o.spp)?;
-    let exr = |name: String, img: &[Vec3]| {
-        cloudlight_render::image_io::write_exr(&out.join(name), o.width, o.height, img)
-    };
-    exr("reference_indirect.exr".into(), &view.reference)?;
+    view.write_reference(out)?;
     let mut rows = Vec::new();
     for &budget in &o.budgets {
         let (row, image) = view.row(raster, budget, o)?;
         eprintln!(
-            "{budget} photons: relMSE {:.4}, FLIP {:.3}, energy {:.3}",
-            row.eight.errors.relmse, row.eight.errors.flip, row.eight.errors.energy_ratio
+            "{budget} photons: relMSE {:.4}, FLIP {:.3}, energy {:.3}, worst 1% of pixels {:.0}% of it",
+            row.eight.errors.relmse,
+            row.eight.errors.flip,
+            row.eight.errors.energy_ratio,
+            row.eight.errors.worst_share * 100.0
         );
-        exr(format!("indirect_{budget}.exr"), &image)?;
+        view.write_image(
+            out,
+            &format!("indirect_{budget}"),
+            &image,
+            &format!("{budget} photons, 8 B"),
+        )?;
         rows.push(row);
     }
     println!("{}", quality_markdown(&rows, o.rate_hz));
@@ -965,9 +974,11 @@ pub fn quality(
         (true, Some(&photons)) => {
             let mut points = Vec::new();
             for (point, image) in view.progressive(raster, photons, o)? {
-                exr(
-                    format!("progressive_{photons}_{}.exr", point.passes),
+                view.write_image(
+                    out,
+                    &format!("progressive_{photons}_{}", point.passes),
                     &image,
+                    &format!("{photons} photons, {} passes", point.passes),
                 )?;
                 points.push(point);
             }

@@ -578,10 +578,7 @@ pub fn quality(
     let scene = cloudlight_scenes::load(scene_spec)?;
     let view = QualityView::of(scene, common)?;
     let (w, h) = (common.width, common.height);
-    let exr = |name: String, img: &[Vec3]| {
-        cloudlight_render::image_io::write_exr(&out.join(name), w, h, img)
-    };
-    exr("reference_indirect.exr".into(), &view.reference)?;
+    view.write_reference(out)?;
     let walled = leak::thin_wall_scene(0.004);
     let walled_bvh = SceneBvh::at(&walled, 0.0, BvhKind::default());
     let shadows = ShadowSettings {
@@ -620,7 +617,7 @@ pub fn quality(
             o.cones,
             o.mantissa_bits
         );
-        exr(format!("indirect_{tag}.exr"), &f.indirect)?;
+        view.write_image(out, &format!("indirect_{tag}"), &f.indirect, &tag)?;
         let rate = common.rate_hz.min(1000.0 / update_ms.max(1e-3));
         let picture = HdrMap::new(w, h, &f.indirect, &mask)?;
         for video in &videos {
@@ -635,7 +632,12 @@ pub fn quality(
                 )?,
             };
             let image: Vec<Vec3> = coded.texels();
-            exr(format!("indirect_{tag}_{}.exr", video.tag()), &image)?;
+            view.write_image(
+                out,
+                &format!("indirect_{tag}_{}", video.tag()),
+                &image,
+                &format!("{tag}, {}", video.tag()),
+            )?;
             points.push(VoxelPoint {
                 depth: octree.depth(),
                 levels_above_leaves: o.levels_above_leaves,

@@ -234,11 +234,13 @@ impl References {
                 seen[3 * i..3 * i + 3].copy_from_slice(&frame.rgb[3 * i..3 * i + 3]);
             }
         }
+        let map = metrics::relmse_map(&shown, &frame.hdr, &mask);
         Ok(ImageErrors {
-            relmse: metrics::relmse_normalized(&shown, &frame.hdr, &mask),
+            relmse: metrics::relmse_of_map(&map, &mask),
             flip: metrics::flip_ldr(&seen, &frame.rgb, w, h, PIXELS_PER_DEGREE).mean,
             energy_ratio: metrics::energy_ratio(&shown, &frame.hdr, &mask),
             pixels: mask.iter().filter(|m| **m).count(),
+            worst_share: metrics::worst_share(&map, &mask, metrics::WORST_PIXELS),
         })
     }
 
