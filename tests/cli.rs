@@ -562,7 +562,24 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
             ] {
                 assert!(value.as_f64().unwrap().is_finite(), "{packing}: {row}");
             }
+            let worst = p["errors"]["worst_share"].as_f64().unwrap();
+            assert!((0.0..=1.0).contains(&worst), "{packing}: {row}");
         }
+    }
+    // The reference's own noise (64 spp: small, but not nothing), and each image beside it.
+    let noise = report["reference_noise"].as_f64().unwrap();
+    assert!(noise > 0.0 && noise < 0.5, "{noise}");
+    for image in ["indirect_8000", "progressive_1000_3"] {
+        assert!(quality.join(format!("{image}.exr")).is_file(), "{image}");
+        assert!(
+            quality
+                .join(format!("{image}.png"))
+                .metadata()
+                .unwrap()
+                .len()
+                > 1000,
+            "{image}"
+        );
     }
     assert!(quality.join("quality.png").metadata().unwrap().len() > 1000);
 }

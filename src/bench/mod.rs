@@ -862,6 +862,9 @@ pub struct QualityView {
     pub reference_s: f64,
     /// Whether it came from the cache.
     pub reference_cached: bool,
+    /// The reference's own noise: the relMSE a noiseless technique would show against it
+    /// ([`reference_cache::Reference::noise`]).
+    pub reference_noise: f64,
     /// Image width and height, pixels.
     pub size: (u32, u32),
 }
@@ -910,8 +913,10 @@ impl QualityView {
         let cache = reference_cache::dir();
         let reference = reference_cache::reference(&scene, &bvh, settings, spp, cache.as_deref());
         let reference_s = start.elapsed().as_secs_f64();
+        let reference_noise = reference.noise();
         eprintln!(
-            "reference {} in {reference_s:.1} s",
+            "reference {} in {reference_s:.1} s; its own noise, relMSE {reference_noise:.4} (what a noiseless \
+             technique would show against it)",
             if reference.cached {
                 "read from the cache"
             } else {
@@ -925,6 +930,7 @@ impl QualityView {
             reference: reference.indirect,
             reference_s,
             reference_cached: reference.cached,
+            reference_noise,
             size: (width, height),
         })
     }

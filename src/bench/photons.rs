@@ -990,16 +990,18 @@ pub fn quality(
     println!(
         "relMSE of the client's indirect radiance ({}x{}) against the path tracer's indirect image ({} spp) of the same \
          view and time, both divided by the reference's mean luminance over pixels that see geometry (ε = 0.01 of that \
-         mean); Mbps if updated at {} Hz or as fast as the update allows. Paper's operating point: 10k photons, {} Mbps, {} ms.",
+         mean; the reference's own noise: {:.4}); Mbps if updated at {} Hz or as fast as the update allows. Paper's \
+         operating point: 10k photons, {} Mbps, {} ms.",
         o.width,
         o.height,
         o.spp,
+        view.reference_noise,
         o.rate_hz,
         paper::PHOTON_OPERATING_POINT.0,
         paper::PHOTON_OPERATING_POINT.1
     );
     let report = serde_json::json!({ "technique": "photons", "scene": scene_spec, "options": o,
-        "reference_seconds": view.reference_s, "rows": rows, "progressive": progressive });
+        "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "rows": rows, "progressive": progressive });
     let json = out.join("quality.json");
     std::fs::write(&json, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("writing {}", json.display()))?;

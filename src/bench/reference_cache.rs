@@ -7,8 +7,9 @@
 //!
 //! Where: `$CLOUDLIGHT_REFERENCE_CACHE` if set (`off` turns the cache off), else
 //! `$XDG_CACHE_HOME/cloudlight/reference`, else `~/.cache/cloudlight/reference`. Each entry
-//! is `<key>.direct.exr`, `<key>.indirect.exr` and `<key>.json` (what the key stands for, for
-//! people). An entry that cannot be read, or holds another size, is rendered again and
+//! is `<key>.direct.exr`, `<key>.indirect.exr`, `<key>.indirect_half.exr` (the indirect
+//! image of the first half of the samples, which tells the reference's own noise:
+//! [`Reference::noise`]) and `<key>.json` (what the key stands for, for people). An entry that cannot be read, or holds another size, is rendered again and
 //! overwritten; one that cannot be written is a warning, never a failure.
 
 use std::fmt::Write as _;
@@ -30,6 +31,8 @@ pub struct Reference {
     pub direct: Vec<Vec3>,
     /// Indirect light only.
     pub indirect: Vec<Vec3>,
+    /// Indirect light of the first half of the samples (of all of them at 1 spp).
+    pub indirect_half: Vec<Vec3>,
     /// Whether it came from the cache.
     pub cached: bool,
 }
@@ -42,6 +45,21 @@ impl Reference {
             .zip(&self.indirect)
             .map(|(d, i)| *d + *i)
             .collect()
+    }
+
+    /// The indirect image's own noise as the error a noiseless technique would show against
+    /// it: relMSE of its first half of samples against the whole (their difference is half
+    /// the two halves', whose variance is twice the half's, so its expected square is the
+    /// whole's variance), over the pixels with light in either. A technique's relMSE cannot
+    /// be trusted much below this.
+    pub fn noise(&self) -> f64 {
+        let lit: Vec<bool> = self
+            .indirect
+            .iter()
+            .zip(&self.indirect_half)
+            .map(|(a, b)| a.max_element() > 0.0 || b.max_element() > 0.0)
+            .collect();
+        cloudlight_render::metrics::relmse_normalized(&self.indirect_half, &self.indirect, &lit)
     }
 }
 
@@ -116,18 +134,33 @@ pub fn reference(
                 })
                 .map(|(_, _, img)| img)
         };
-        if let (Some(direct), Some(indirect)) = (read("direct.exr"), read("indirect.exr")) {
+        if let (Some(direct), Some(indirect), Some(indirect_half)) = (
+            read("direct.exr"),
+            read("indirect.exr"),
+            read("indirect_half.exr"),
+        ) {
             return Reference {
                 direct,
                 indirect,
+                indirect_half,
                 cached: true,
             };
         }
     }
-    let images = cloudlight_render::render(scene, bvh, settings, spp);
+    // The first half of the samples, kept, then the rest added: every sample has its own
+    // random stream, so the whole is the image of one pass of `spp`.
+    let renderer = cloudlight_render::ReferenceRenderer::new(scene, bvh, settings);
+    let mut images = cloudlight_render::ReferenceImages::new(settings.width, settings.height);
+    let half = (spp / 2).max(1);
+    renderer.render_pass(&mut images, 0, half);
+    let indirect_half = images.indirect();
+    if spp > half {
+        renderer.render_pass(&mut images, half, spp - half);
+    }
     let out = Reference {
         direct: images.direct(),
         indirect: images.indirect(),
+        indirect_half,
         cached: false,
     };
     if let Some(dir) = dir {
@@ -150,6 +183,7 @@ pub fn reference(
             .map_err(|e| e.to_string())
             .and_then(|()| store("direct.exr", &out.direct))
             .and_then(|()| store("indirect.exr", &out.indirect))
+            .and_then(|()| store("indirect_half.exr", &out.indirect_half))
             .and_then(|()| {
                 std::fs::write(path(dir, "json"), about.to_string()).map_err(|e| e.to_string())
             });
@@ -228,5 +262,40 @@ mod tests {
         assert!(reference(&scene, &bvh, s, 4, Some(dir.path())).cached);
         // Without a folder nothing is kept.
         assert!(!reference(&scene, &bvh, s, 4, None).cached);
+    }
+
+    #[test]
+    fn the_reference_tells_its_own_noise_which_falls_as_samples_grow() {
+        let dir = tempfile::tempdir().unwrap();
+        let scene = cloudlight_scenes::load("cornell").unwrap();
+        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+        let s = RenderSettings {
+            width: 16,
+            height: 16,
+            ..settings(&scene)
+        };
+        // Rendered in two halves, the whole is the image of one pass.
+        let r = reference(&scene, &bvh, s, 8, Some(dir.path()));
+        let whole = cloudlight_render::render(&scene, &bvh, s, 8);
+        assert_eq!(r.indirect, whole.indirect());
+        assert_eq!(r.direct, whole.direct());
+        assert_eq!(
+            r.indirect_half,
+            cloudlight_render::render(&scene, &bvh, s, 4).indirect()
+        );
+        let again = reference(&scene, &bvh, s, 8, Some(dir.path()));
+        assert!(again.cached);
+        assert_eq!(again.noise(), r.noise());
+        // Noise variance goes as 1/spp: 8× the samples, several times less noise.
+        let more = reference(&scene, &bvh, s, 64, None);
+        assert!(r.noise() > 0.0 && more.noise() > 0.0);
+        assert!(
+            more.noise() < r.noise() / 3.0,
+            "{} vs {}",
+            more.noise(),
+            r.noise()
+        );
+        // At one sample the half is the whole: no noise can be told.
+        assert_eq!(reference(&scene, &bvh, s, 1, None).noise(), 0.0);
     }
 }

@@ -679,7 +679,7 @@ pub fn quality(
         common.spp, common.rate_hz
     );
     let report = serde_json::json!({ "technique": Voxels::NAME, "scene": scene_spec, "common": common,
-        "options": options, "reference_seconds": view.reference_s, "points": points });
+        "options": options, "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "points": points });
     let json = out.join("quality.json");
     std::fs::write(&json, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("writing {}", json.display()))?;
