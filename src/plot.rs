@@ -376,9 +376,10 @@ pub fn linear(
 pub const ERROR_MAP_DECADES: (f64, f64) = (-3.0, 1.0);
 
 /// Draws `test` and `reference` (`width × height`, linear radiance, both tone-mapped at the
-/// reference's exposure) and `map` (each pixel's relMSE term, [`cloudlight_render::metrics::relmse_map`];
-/// viridis over [`ERROR_MAP_DECADES`], black where it is 0) side by side, each panel under
-/// its title and enlarged to at least 256 pixels wide, and writes `path`.
+/// reference's exposure) and `map` (each pixel's relMSE term,
+/// [`cloudlight_render::metrics::relmse_map`]; viridis over [`ERROR_MAP_DECADES`], black where
+/// it is 0) side by side, each panel under its title and enlarged to at least 256 pixels
+/// wide (8× at most), and writes `path`.
 pub fn comparison(
     path: &Path,
     (width, height): (u32, u32),

@@ -939,8 +939,8 @@ pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
 }
 
 /// `cloudlight bench quality --technique photons`: the sweep over budgets on `scene`, with
-/// the table, `quality.json`, the Pareto plot `quality.png` and each image (EXR, and a PNG beside the
-/// reference with its error map: [`QualityView::write_image`]) written to `out`.
+/// the table, `quality.json`, the Pareto plot `quality.png` and each image (EXR, and a PNG
+/// beside the reference with its error map: [`QualityView::write_image`]) written to `out`.
 pub fn quality(
     raster: &Raster,
     scene_spec: &str,

@@ -9,7 +9,8 @@
 //! `$XDG_CACHE_HOME/cloudlight/reference`, else `~/.cache/cloudlight/reference`. Each entry
 //! is `<key>.direct.exr`, `<key>.indirect.exr`, `<key>.indirect_half.exr` (the indirect
 //! image of the first half of the samples, which tells the reference's own noise:
-//! [`Reference::noise`]) and `<key>.json` (what the key stands for, for people). An entry that cannot be read, or holds another size, is rendered again and
+//! [`Reference::noise`]) and `<key>.json` (what the key stands for, for people). An entry
+//! that cannot be read, lacks a part, or holds another size, is rendered again and
 //! overwritten; one that cannot be written is a warning, never a failure.
 
 use std::fmt::Write as _;
