@@ -202,7 +202,11 @@ pub fn coherent_samples(n: u32) -> Vec<[f32; 3]> {
 
 /// What one basis gathered: irradiance over its texels as a polynomial in the centre's
 /// tangent-plane coordinates (u, v) in units of `scale_m` (its radius of influence):
-/// coefficients of 1, u, v, u², uv, v² ([`BasisFit::terms`] of them non-zero).
+/// coefficients of 1, u, v, u², uv, v² ([`BasisFit::terms`] of them non-zero). `span` is
+/// the (u, v) box of the texels the fit was sampled over, [u_lo, u_hi, v_lo, v_hi]: a point
+/// outside it is read at the nearest point inside, so a neighbouring texel never
+/// extrapolates a slope the samples could not see (a thin strip of texels fits its cross
+/// direction from nothing).
 #[derive(Clone, Copy, Debug, Default)]
 struct BasisLight {
     centre: Vec3,
@@ -210,6 +214,7 @@ struct BasisLight {
     bitangent: Vec3,
     scale_m: f32,
     c: [Vec3; 6],
+    span: [f32; 4],
 }
 
 fn features(u: f32, v: f32) -> [f32; 6] {
@@ -220,7 +225,10 @@ impl BasisLight {
     /// Irradiance the basis predicts at `x`, never negative.
     fn at(&self, x: Vec3) -> Vec3 {
         let d = (x - self.centre) / self.scale_m;
-        let f = features(d.dot(self.tangent), d.dot(self.bitangent));
+        let [u_lo, u_hi, v_lo, v_hi] = self.span;
+        let u = d.dot(self.tangent).clamp(u_lo, u_hi);
+        let v = d.dot(self.bitangent).clamp(v_lo, v_hi);
+        let f = features(u, v);
         f.iter()
             .zip(&self.c)
             .map(|(f, c)| *c * *f)
@@ -261,17 +269,19 @@ impl<const K: usize> SurfaceFit<K> {
         }
     }
 
-    /// The coefficients; a ridge of 10⁻⁴ of each term's second moment keeps a degenerate
-    /// spread of samples (on a line, at a point) from dividing by zero: the terms it cannot
-    /// see come out 0.
+    /// The coefficients, with a ridge of 10⁻⁴ of the sample count on every term but the
+    /// constant: a term the samples barely spread over (u on a strip one texel wide, where
+    /// every u is nearly the same) comes out near 0 instead of a slope fitted to noise, and
+    /// a degenerate spread (on a line, at a point) never divides by zero.
     fn solve(&self) -> [Vec3; 6] {
         let mut a = self.a;
         let mut b = self.b;
         for (i, j) in (0..K).flat_map(|i| (0..i).map(move |j| (i, j))) {
             a[i][j] = a[j][i];
         }
+        let ridge = 1e-4 * a[0][0] + 1e-12;
         for (i, row) in a.iter_mut().enumerate().skip(1) {
-            row[i] += 1e-4 * row[i] + 1e-12;
+            row[i] += ridge;
         }
         // Gaussian elimination with partial pivoting.
         for col in 0..K {
@@ -636,10 +646,26 @@ impl Gatherer {
                             let sum: Vec3 = found.map(|(f, x)| note(f, x)).sum();
                             light.c[0] = sum / n.max(1) as f32;
                         } else {
+                            let uv = |t: usize| {
+                                let d = (pos[t] - light.centre) / light.scale_m;
+                                (d.dot(tangent), d.dot(bitangent))
+                            };
+                            let mut span = [f32::MAX, f32::MIN, f32::MAX, f32::MIN];
+                            for &m in members {
+                                let (u, v) = uv(m as usize);
+                                span = [
+                                    span[0].min(u),
+                                    span[1].max(u),
+                                    span[2].min(v),
+                                    span[3].max(v),
+                                ];
+                            }
+                            if span[0] <= span[1] && span[2] <= span[3] {
+                                light.span = span;
+                            }
                             let samples = found.map(|(f, x)| {
-                                let d = (pos[f] - light.centre) / light.scale_m;
-                                let e = note(f, x);
-                                (d.dot(tangent), d.dot(bitangent), e)
+                                let (u, v) = uv(f);
+                                (u, v, note(f, x))
                             });
                             light.c = match self.settings.fit {
                                 BasisFit::Linear => SurfaceFit::<3>::fit(samples),
@@ -792,4 +818,72 @@ pub(super) fn direct_map(
     };
     let lights = lm.scene.lights.len() as u64 + 1;
     (e, computed as u64 * samples as u64 * lights, computed)
+}
+
+#[cfg(test)]
+mod fit_tests {
+    use super::*;
+
+    /// Noisy samples of a constant 1 on a strip that is long in u and 2·10⁻⁴ of the basis's
+    /// radius wide in v, as a basis over one row of texels sees it.
+    fn strip(n: u64) -> Vec<(f32, f32, Vec3)> {
+        let mut rng = Rng::new(7, 0);
+        (0..n)
+            .map(|i| {
+                let u = 2.0 * (i as f32 + 0.5) / n as f32 - 1.0;
+                let v = if rng.next_f32() < 0.5 { 1e-4 } else { -1e-4 };
+                let y = 1.0 + 0.2 * (rng.next_f32() - 0.5);
+                (u, v, Vec3::splat(y))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_fit_on_a_thin_strip_does_not_turn_noise_into_a_slope_across_it() {
+        for c in [
+            SurfaceFit::<3>::fit(strip(256).into_iter()),
+            SurfaceFit::<6>::fit(strip(256).into_iter()),
+        ] {
+            // Noise of ±0.1 over a width of 2e-4 fits a slope of ~40 without the ridge.
+            assert!(c[2].abs().max_element() < 1.0, "v slope {}", c[2]);
+            assert!(
+                (c[0] - Vec3::ONE).abs().max_element() < 0.05,
+                "mean {}",
+                c[0]
+            );
+        }
+    }
+
+    #[test]
+    fn a_basis_predicts_within_its_samples_everywhere_it_is_read() {
+        let light = BasisLight {
+            centre: Vec3::ZERO,
+            tangent: Vec3::X,
+            bitangent: Vec3::Y,
+            scale_m: 1.0,
+            // A fit with a steep cross slope and curvature, as noise on a strip can give.
+            c: [
+                Vec3::ONE,
+                Vec3::ZERO,
+                Vec3::splat(100.0),
+                Vec3::ZERO,
+                Vec3::ZERO,
+                Vec3::splat(-50.0),
+            ],
+            span: [-1.0, 1.0, -1e-3, 1e-3],
+        };
+        let (lo, hi) = (0.8, 1.2);
+        for (u, v) in [
+            (0.0, 0.0),
+            (0.5, 1.0),
+            (-0.5, -1.0),
+            (2.0, 0.3),
+            (0.0, -3.0),
+        ] {
+            let e = light.at(Vec3::new(u, v, 0.0)).x;
+            assert!((lo..=hi).contains(&e), "at ({u}, {v}): {e}");
+        }
+        // Inside its span it reads the fit itself.
+        assert!((light.at(Vec3::new(0.0, 1e-3, 0.0)).x - 1.1).abs() < 1e-3);
+    }
 }
