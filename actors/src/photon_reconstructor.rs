@@ -41,6 +41,11 @@ pub struct PhotonClientParams {
     /// photon as a quad (false; the way before, kept to compare).
     #[serde(default = "default_compute")]
     pub compute: bool,
+    /// With the compute splat, pixels no accumulation level stands for (a ledge a pixel
+    /// wide, the top row of a wall seen from afar) get every photon at full resolution
+    /// instead of a neighbouring surface's light (true), or the upsample alone (false).
+    #[serde(default = "default_edges")]
+    pub edges: bool,
 }
 
 fn default_downsample() -> u32 {
@@ -59,6 +64,10 @@ fn default_compute() -> bool {
     SplatSettings::default().compute
 }
 
+fn default_edges() -> bool {
+    SplatSettings::default().edges
+}
+
 impl Default for PhotonClientParams {
     fn default() -> Self {
         PhotonClientParams {
@@ -66,6 +75,7 @@ impl Default for PhotonClientParams {
             levels: default_levels(),
             min_texels: default_min_texels(),
             compute: default_compute(),
+            edges: default_edges(),
         }
     }
 }
@@ -166,6 +176,7 @@ impl ClientTechnique for PhotonClient {
                 levels: params.levels,
                 min_texels: params.min_texels,
                 compute: params.compute,
+                edges: params.edges,
                 ..Default::default()
             },
         )

@@ -59,6 +59,9 @@ pub struct PhotonOptions {
     pub min_texels: f32,
     /// The client splats with a compute shader where it can ([`SplatSettings::compute`]).
     pub compute: bool,
+    /// The compute splat adds every photon to edge pixels at full resolution
+    /// ([`SplatSettings::edges`]).
+    pub edges: bool,
     /// Refinement passes of a still light (progressive photon mapping); `bench quality`
     /// measures the error pass by pass when above 1.
     pub passes: u32,
@@ -88,6 +91,7 @@ impl Default for PhotonOptions {
             levels: SplatSettings::default().levels,
             min_texels: SplatSettings::default().min_texels,
             compute: SplatSettings::default().compute,
+            edges: SplatSettings::default().edges,
             passes: PhotonSettings::default().passes,
             guide: PhotonSettings::default().guide_share,
             guide_reach: PhotonSettings::default().guide_reach,
@@ -134,6 +138,7 @@ impl Photons {
             levels: o.levels,
             min_texels: o.min_texels,
             compute: o.compute,
+            edges: o.edges,
         };
         Self::batcher_params(o)
             .check()
@@ -151,6 +156,7 @@ impl Photons {
                 levels: o.levels,
                 min_texels: o.min_texels,
                 compute: o.compute,
+                edges: o.edges,
             },
         };
         Ok(params.to_table()?)
@@ -253,6 +259,7 @@ impl Technique for Photons {
             levels: o.levels,
             min_texels: o.min_texels,
             compute: o.compute,
+            edges: o.edges,
             ..SplatSettings::default()
         };
         let mut bench = client_frame_with(raster, scene, &photons, splat, frame)?;
@@ -320,6 +327,7 @@ impl Technique for Photons {
             levels: options.levels,
             min_texels: options.min_texels,
             compute: options.compute,
+            edges: options.edges,
             passes: options.passes,
             guide: options.guide,
             guide_reach: options.guide_reach,
@@ -626,6 +634,8 @@ pub struct QualityOptions {
     pub min_texels: f32,
     /// The client's splat is a compute shader (where the device runs them).
     pub compute: bool,
+    /// Its edge pixels splatted at full resolution.
+    pub edges: bool,
     /// Above 1: the first budget is also measured pass by pass while its lights stand
     /// still, up to this many passes (progressive photon mapping).
     pub passes: u32,
@@ -761,6 +771,7 @@ impl QualityView {
                 levels: o.levels,
                 min_texels: o.min_texels,
                 compute: o.compute,
+                edges: o.edges,
                 ..SplatSettings::default()
             },
         )?;

@@ -59,11 +59,15 @@ struct SplatPipelines {
 }
 
 /// The compute splat (photons added in fixed point into one storage buffer, one dispatch
-/// for every level) and the resolve of each level into its accumulation buffer.
+/// for every level), the resolve of each level into its accumulation buffer, and the edges:
+/// marking the pixels no level's upsample stands for, and the upsample that reads their
+/// full-resolution sums.
 struct ComputePipelines {
     layout: wgpu::BindGroupLayout,
     splat: wgpu::ComputePipeline,
     resolve: wgpu::RenderPipeline,
+    edges: wgpu::ComputePipeline,
+    upsample: wgpu::RenderPipeline,
 }
 
 impl SplatPipelines {
@@ -85,7 +89,11 @@ impl SplatPipelines {
             texture_entry(6, FRAGMENT, UINT, D2),
         ];
         if compute {
-            entries.push(buffer_entry(7, FRAGMENT, READ_ONLY));
+            entries.extend([
+                buffer_entry(7, FRAGMENT, READ_ONLY),
+                texture_entry(10, FRAGMENT, ACCUM, D2),
+                texture_entry(11, FRAGMENT, UINT, D2),
+            ]);
         }
         let layout = layout(device, "splat", &entries);
         let pipeline_layout = pipeline_layout(device, "splat", &layout);
@@ -171,18 +179,28 @@ impl SplatPipelines {
                     buffer_entry(9, cs, wgpu::BufferBindingType::Storage { read_only: false }),
                 ],
             );
-            let splat = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("compute splat"),
-                layout: Some(&crate::raster::pipelines::pipeline_layout(
-                    device,
-                    "compute splat",
-                    &compute_layout,
-                )),
-                module: &shader,
-                entry_point: Some("cs_splat"),
-                compilation_options: Default::default(),
-                cache: None,
-            });
+            let compute_pipeline_layout =
+                crate::raster::pipelines::pipeline_layout(device, "compute splat", &compute_layout);
+            let compute_pipeline = |label, entry_point| {
+                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(label),
+                    layout: Some(&compute_pipeline_layout),
+                    module: &shader,
+                    entry_point: Some(entry_point),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+            };
+            let splat = compute_pipeline("compute splat", "cs_splat");
+            let edges = compute_pipeline("splat edges", "cs_edges");
+            let upsample = fullscreen_pipeline(
+                device,
+                "upsample with edges",
+                &pipeline_layout,
+                &shader,
+                ("vs_full", "fs_upsample_edges"),
+                formats.exact4,
+            );
             let resolve = fullscreen_pipeline(
                 device,
                 "splat resolve",
@@ -195,6 +213,8 @@ impl SplatPipelines {
                 layout: compute_layout,
                 splat,
                 resolve,
+                edges,
+                upsample,
             }
         });
         SplatPipelines {
@@ -263,6 +283,12 @@ pub struct SplatSettings {
     /// buffer); `None`: as many as one storage binding of the device holds (128 MiB, 2.8M
     /// photons, on lavapipe and llvmpipe — a long progressive set holds more).
     pub chunk_photons: Option<u32>,
+    /// With the compute splat: pixels whose surface no level's upsample taps stand for
+    /// (a ledge a pixel wide between faces that turn from it, the top row of a wall seen
+    /// from afar) get every photon added at full resolution, instead of borrowing another
+    /// surface's light through the bilateral weights. Where a level's taps weigh the
+    /// pixel's surface at less than half (`EDGE_MATCH` in splat.wgsl), it is an edge.
+    pub edges: bool,
 }
 
 impl Default for SplatSettings {
@@ -277,6 +303,7 @@ impl Default for SplatSettings {
             facing: 0.8,
             compute: true,
             chunk_photons: None,
+            edges: true,
         }
     }
 }
@@ -322,7 +349,8 @@ struct SplatTargets {
     upsample: wgpu::BindGroup,
     low: (u32, u32),
     levels: u32,
-    /// The compute splat's fixed-point sums (three per texel of every level), where the
+    /// The compute splat's fixed-point sums (three per texel of every level; with edges,
+    /// then three per pixel, a mark per pixel and a mark per texel of level 0), where the
     /// device runs compute shaders.
     fixed: Option<wgpu::Buffer>,
 }
@@ -485,10 +513,12 @@ impl PhotonSplatPass {
                             * u64::from(ctx.height.div_ceil(f).max(1))
                     })
                     .sum();
-                let size = if self.settings.compute {
-                    texels * 12
-                } else {
-                    16
+                let pixels = u64::from(ctx.width) * u64::from(ctx.height);
+                let level0 = u64::from(low.0) * u64::from(low.1);
+                let size = match (self.settings.compute, self.settings.edges) {
+                    (true, true) => (texels * 3 + pixels * 4 + level0) * 4,
+                    (true, false) => texels * 12,
+                    _ => 16,
                 };
                 raster.device.create_buffer(&wgpu::BufferDescriptor {
                     label: Some("photon fixed-point sums"),
@@ -497,51 +527,72 @@ impl PhotonSplatPass {
                     mapped_at_creation: false,
                 })
             });
-            // (the level read: buffer, guide; the guide of the level written)
-            let bind = |src_accum: &wgpu::TextureView,
-                        src_guide: &wgpu::TextureView,
-                        dst_guide: &wgpu::TextureView| {
-                let tex = |binding, view| wgpu::BindGroupEntry {
-                    binding,
-                    resource: wgpu::BindingResource::TextureView(view),
+            // (the level read: buffer, guide; the guide of the level written; level 1's
+            // buffer and guide for the edges' upsample)
+            let bind =
+                |src_accum: &wgpu::TextureView,
+                 src_guide: &wgpu::TextureView,
+                 dst_guide: &wgpu::TextureView,
+                 coarse: Option<(&wgpu::TextureView, &wgpu::TextureView)>| {
+                    let tex = |binding, view| wgpu::BindGroupEntry {
+                        binding,
+                        resource: wgpu::BindingResource::TextureView(view),
+                    };
+                    let mut entries = vec![
+                        wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: self.params.as_entire_binding(),
+                        },
+                        tex(1, &g.position.view),
+                        tex(2, &g.normal.view),
+                        tex(3, &g.albedo.view),
+                        tex(4, src_accum),
+                        tex(5, src_guide),
+                        tex(6, dst_guide),
+                    ];
+                    if let Some(sums) = &fixed {
+                        let (coarse_accum, coarse_guide) =
+                            coarse.unwrap_or((&stand_in.view, &guide_stand_in.view));
+                        entries.extend([
+                            wgpu::BindGroupEntry {
+                                binding: 7,
+                                resource: sums.as_entire_binding(),
+                            },
+                            tex(10, coarse_accum),
+                            tex(11, coarse_guide),
+                        ]);
+                    }
+                    raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("splat"),
+                        layout: &self.pipelines.layout,
+                        entries: &entries,
+                    })
                 };
-                let mut entries = vec![
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: self.params.as_entire_binding(),
-                    },
-                    tex(1, &g.position.view),
-                    tex(2, &g.normal.view),
-                    tex(3, &g.albedo.view),
-                    tex(4, src_accum),
-                    tex(5, src_guide),
-                    tex(6, dst_guide),
-                ];
-                if let Some(sums) = &fixed {
-                    entries.push(wgpu::BindGroupEntry {
-                        binding: 7,
-                        resource: sums.as_entire_binding(),
-                    });
-                }
-                raster.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("splat"),
-                    layout: &self.pipelines.layout,
-                    entries: &entries,
-                })
-            };
             let (none, no_guide) = (&stand_in.view, &guide_stand_in.view);
             let splat = (0..MAX_LEVELS as usize)
-                .map(|l| bind(none, no_guide, &guides[l].view))
+                .map(|l| bind(none, no_guide, &guides[l].view, None))
                 .collect();
             let collapse = (0..MAX_LEVELS as usize - 1)
-                .map(|l| bind(&accum[l + 1].view, &guides[l + 1].view, &guides[l].view))
+                .map(|l| {
+                    bind(
+                        &accum[l + 1].view,
+                        &guides[l + 1].view,
+                        &guides[l].view,
+                        None,
+                    )
+                })
                 .collect();
             self.targets = Some(SplatTargets {
                 renderer_id: ctx.renderer_id,
-                guide: bind(none, no_guide, no_guide),
+                guide: bind(none, no_guide, no_guide, None),
                 splat,
                 collapse,
-                upsample: bind(&accum[0].view, &guides[0].view, no_guide),
+                upsample: bind(
+                    &accum[0].view,
+                    &guides[0].view,
+                    no_guide,
+                    Some((&accum[1].view, &guides[1].view)),
+                ),
                 accum,
                 guides,
                 low,
@@ -585,10 +636,12 @@ impl PhotonSplatPass {
                 .collect(),
             _ => Vec::new(),
         };
-        for (photons, first, count) in chunks {
-            let groups = count.div_ceil(WORKGROUP);
-            let max = limits.max_compute_workgroups_per_dimension.max(1);
-            let (x, y) = (groups.min(max), groups.div_ceil(max));
+        let max = limits.max_compute_workgroups_per_dimension.max(1);
+        let grid = |invocations: u32| {
+            let groups = invocations.div_ceil(WORKGROUP);
+            (groups.min(max), groups.div_ceil(max))
+        };
+        for (k, (photons, first, count)) in chunks.into_iter().enumerate() {
             let tex = |binding, view| wgpu::BindGroupEntry {
                 binding,
                 resource: wgpu::BindingResource::TextureView(view),
@@ -617,12 +670,25 @@ impl PhotonSplatPass {
                     },
                 ],
             });
+            // The edges are marked before the first chunk splats (a pass of their own: the
+            // splat reads the marks).
+            if k == 0 && self.settings.edges {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("splat edges"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&compute.edges);
+                pass.set_bind_group(0, &group, &[]);
+                let (x, y) = grid(ctx.width * ctx.height);
+                pass.dispatch_workgroups(x, y, 1);
+            }
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("compute splat"),
                 timestamp_writes: None,
             });
             pass.set_pipeline(&compute.splat);
             pass.set_bind_group(0, &group, &[]);
+            let (x, y) = grid(count);
             pass.dispatch_workgroups(x, y, 1);
         }
         for level in (0..t.levels).rev() {
@@ -699,6 +765,12 @@ impl IndirectPass for PhotonSplatPass {
         };
         let (count, settings) = (self.count, self.settings);
         let low = self.targets(raster, ctx).low;
+        let t = self.targets.as_ref().expect("made above");
+        let compute = match (&self.pipelines.compute, &t.fixed, settings.compute) {
+            (Some(compute), Some(sums), true) => Some((compute, sums)),
+            _ => None,
+        };
+        let edges = compute.is_some() && settings.edges;
         let params = SplatParams {
             clip_from_world: ctx.clip_from_world.to_cols_array(),
             view_from_world: ctx.view_from_world.to_cols_array(),
@@ -727,12 +799,11 @@ impl IndirectPass for PhotonSplatPass {
                 settings.facing.clamp(-1.0, 1.0),
                 0.0,
             ],
-            counts: [count, 0, 0, 0],
+            counts: [count, u32::from(edges), 0, 0],
         };
         raster
             .queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
-        let t = self.targets.as_ref().expect("made above");
         // Vertices 3·l .. 3·l + 3 of a full-screen pass (4·l .. 4·l + 4 of a splat) tell the
         // shader which level it works on.
         for level in 0..t.levels {
@@ -741,14 +812,15 @@ impl IndirectPass for PhotonSplatPass {
             pass.set_bind_group(0, &t.guide, &[]);
             pass.draw(3 * level..3 * level + 3, 0..1);
         }
-        match (&self.pipelines.compute, &t.fixed, settings.compute) {
-            (Some(compute), Some(sums), true) => {
-                self.splat_compute(raster, ctx, compute, sums, enc)
-            }
-            _ => self.splat_raster(enc),
+        match compute {
+            Some((compute, sums)) => self.splat_compute(raster, ctx, compute, sums, enc),
+            None => self.splat_raster(enc),
         }
         let mut pass = clear_pass(enc, "upsample", ctx.indirect);
-        pass.set_pipeline(&self.pipelines.upsample);
+        pass.set_pipeline(match compute {
+            Some((compute, _)) if edges => &compute.upsample,
+            _ => &self.pipelines.upsample,
+        });
         pass.set_bind_group(0, &t.upsample, &[]);
         pass.draw(0..3, 0..1);
         Ok(())

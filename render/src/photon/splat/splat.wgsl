@@ -27,7 +27,8 @@ struct SplatParams {
     // x: levels, y: least projected radius in texels of a photon's level, z: least cosine
     // between a receiver's normal and a photon's (photons that carry their normal).
     levels: vec4<f32>,
-    // x: photons (the compute splat's).
+    // x: photons (the compute splat's); y: 1 when edge pixels are splatted at full
+    // resolution (`cs_edges`), else 0.
     counts: vec4<u32>,
 };
 
@@ -42,6 +43,10 @@ struct SplatParams {
 @group(0) @binding(4) var src_accum: texture_2d<f32>;
 @group(0) @binding(5) var src_guide: texture_2d<u32>;
 @group(0) @binding(6) var dst_guide: texture_2d<u32>;
+// After a compute splat with edges, the upsample's view of level 1 (its buffer, the coarser
+// levels folded in, and its guide): what an edge pixel adds to its own level-0 sums.
+@group(0) @binding(10) var coarse_accum: texture_2d<f32>;
+@group(0) @binding(11) var coarse_guide: texture_2d<u32>;
 
 // The compute splat (see `cs_splat`): the photons, and the levels' fixed-point sums (three
 // per texel, level after level) written atomically by the splat and read by the resolve.
@@ -270,6 +275,18 @@ fn cosine_power(c: f32) -> f32 {
 // weighted bilinearly × exp(−|plane distance| / σ) × max(0, n·n')^p; the nearest tap in
 // plane distance is the fallback when every weight vanishes.
 fn upsample_level(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    return upsample_from(src_accum, src_guide, level, frag, g, n);
+}
+
+// `upsample_level` from the given level's buffer and guide.
+fn upsample_from(
+    accum: texture_2d<f32>,
+    guide: texture_2d<u32>,
+    level: u32,
+    frag: vec2<f32>,
+    g: vec3<f32>,
+    n: vec3<f32>,
+) -> vec3<f32> {
     let ds = params.settings.x * f32(1u << level);
     let low = vec2<i32>(ceil(params.sizes.xy / ds)) - vec2<i32>(1);
     let lp = frag / ds - vec2<f32>(0.5);
@@ -282,11 +299,11 @@ fn upsample_level(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> ve
     for (var k = 0u; k < 4u; k = k + 1u) {
         let o = vec2<i32>(i32(k & 1u), i32(k >> 1u));
         let t = clamp(base + o, vec2<i32>(0), low);
-        let tap = surface_of(textureLoad(src_guide, t, 0));
+        let tap = surface_of(textureLoad(guide, t, 0));
         if (!tap.covered) {
             continue;
         }
-        let e = textureLoad(src_accum, t, 0).rgb;
+        let e = textureLoad(accum, t, 0).rgb;
         let plane = abs(dot(tap.position - g, n));
         let cosine = max(dot(n, tap.normal), 0.0);
         let bw = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1);
@@ -335,7 +352,35 @@ fn fs_upsample(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
         return vec4<u32>(0u);
     }
     let irradiance = upsample_level(0u, frag.xy, g.xyz, normal_at(px));
+    return radiance_bits(px, irradiance);
+}
+
+// Accumulated irradiance (× `scale.x`) at pixel `px` as the upsample writes it: ρ/π × E.
+fn radiance_bits(px: vec2<i32>, irradiance: vec3<f32>) -> vec4<u32> {
     return bitcast<vec4<u32>>(vec4<f32>(albedo_at(px) / 3.14159265 * irradiance / params.scale.x, 1.0));
+}
+
+// `fs_upsample` after a compute splat with edges: an edge pixel (`cs_edges`) reads its own
+// full-resolution sums of the level-0 photons instead of level 0, plus level 1 (the coarser
+// photons) upsampled.
+@fragment
+fn fs_upsample_edges(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
+    let px = vec2<i32>(frag.xy);
+    let g = position_at(px);
+    if (g.w < 0.5) {
+        return vec4<u32>(0u);
+    }
+    let i = pixel_index(px);
+    if (params.counts.y != 0u && fixed_sums[edge_mask_offset() + i] != 0u) {
+        let e = edge_sums_offset() + 3u * i;
+        let sums = vec3<f32>(f32(fixed_sums[e]), f32(fixed_sums[e + 1u]), f32(fixed_sums[e + 2u]));
+        var irradiance = sums * (params.scale.x / params.scale.y);
+        if (params.levels.x > 1.0) {
+            irradiance += upsample_from(coarse_accum, coarse_guide, 1u, frag.xy, g.xyz, normal_at(px));
+        }
+        return radiance_bits(px, irradiance);
+    }
+    return radiance_bits(px, upsample_level(0u, frag.xy, g.xyz, normal_at(px)));
 }
 
 // Texels of level `l` (per axis).
@@ -353,6 +398,115 @@ fn level_offset(l: u32) -> u32 {
     return o;
 }
 
+// Edges: a pixel whose surface none of level 0's upsample taps stands for (a ledge one
+// pixel wide between faces that turn away from it, a pole seen edge-on, the top row of a
+// wall) would borrow another surface's light through the bilateral weights, whatever its
+// own. `cs_edges` marks those pixels; the compute splat then adds the photons of level 0
+// to them at full resolution too, and the upsample reads those sums there (the coarser
+// levels' photons, spanning a few texels of level 1 or more and so smooth there, still
+// come through level 1's upsample: testing every level marked a band as wide as a coarse
+// texel along every crease, and put each coarse photon on thousands of pixels — Cornell at
+// 640×360: frame 43 → 530 ms). Their sums follow the
+// levels' in the same buffer: three words per pixel, then a mark per pixel, then a mark
+// per texel of level 0 (whether any of its pixels is an edge).
+fn pixel_index(px: vec2<i32>) -> u32 {
+    return u32(px.y) * u32(params.sizes.x) + u32(px.x);
+}
+
+fn edge_sums_offset() -> u32 {
+    return 3u * level_offset(u32(params.levels.x));
+}
+
+fn edge_mask_offset() -> u32 {
+    return edge_sums_offset() + 3u * u32(params.sizes.x) * u32(params.sizes.y);
+}
+
+fn edge_block_offset() -> u32 {
+    return edge_mask_offset() + u32(params.sizes.x) * u32(params.sizes.y);
+}
+
+// Least weighted similarity (the upsample's exp(−plane/σ)·cos^p, averaged with its own
+// weights) of a pixel's surface to the level's taps for the upsample to stand for it.
+const EDGE_MATCH: f32 = 0.5;
+
+// Whether level `level`'s upsample stands for the surface (`g`, `n`) at `frag` (as
+// `upsample_level` weighs its taps, each tap's surface read from the G-buffer as its guide
+// holds it).
+fn represented(level: u32, frag: vec2<f32>, g: vec3<f32>, n: vec3<f32>) -> bool {
+    let ds = params.settings.x * f32(1u << level);
+    let low = vec2<i32>(ceil(params.sizes.xy / ds)) - vec2<i32>(1);
+    let lp = frag / ds - vec2<f32>(0.5);
+    let base = vec2<i32>(floor(lp));
+    let f = lp - floor(lp);
+    var wsum = 0.0;
+    var msum = 0.0;
+    for (var k = 0u; k < 4u; k = k + 1u) {
+        let o = vec2<i32>(i32(k & 1u), i32(k >> 1u));
+        let t = clamp(base + o, vec2<i32>(0), low);
+        let px = full_texel(t, i32(ds));
+        let tap = position_at(px);
+        if (tap.w < 0.5) {
+            continue;
+        }
+        let plane = abs(dot(tap.xyz - g, n));
+        let m = exp(-plane / params.settings.z) * cosine_power(max(dot(n, normal_at(px)), 0.0));
+        let bw = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1);
+        wsum += bw * m;
+        msum += bw * m * m;
+    }
+    return wsum > 1e-4 && msum >= EDGE_MATCH * wsum;
+}
+
+// Marks the edge pixels of level 0 (and its texels holding one) for the compute splat: one
+// invocation per pixel.
+@compute @workgroup_size(64)
+fn cs_edges(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = id.x + id.y * groups.x * 64u;
+    let w = u32(params.sizes.x);
+    if (i >= w * u32(params.sizes.y)) {
+        return;
+    }
+    let px = vec2<i32>(i32(i % w), i32(i / w));
+    let g = position_at(px);
+    if (g.w < 0.5) {
+        return;
+    }
+    let n = normal_at(px);
+    // Most pixels lie on the surface of their own texel of level 0, whose bilinear weight
+    // (at least 0.75² with a factor of 2) then carries the upsample: no need to weigh all
+    // four taps.
+    let ds = i32(params.settings.x);
+    let own = full_texel(px / ds, ds);
+    let own_g = position_at(own);
+    if (ds <= 2 && own_g.w >= 0.5 && dot(n, normal_at(own)) > 0.99
+        && abs(dot(own_g.xyz - g.xyz, n)) < 0.05 * params.settings.z) {
+        return;
+    }
+    let frag = vec2<f32>(px) + vec2<f32>(0.5);
+    if (!represented(0u, frag, g.xyz, n)) {
+        atomicStore(&fixed_accum[edge_mask_offset() + i], 1u);
+        let t = px / i32(params.settings.x);
+        let block = u32(t.y) * level_size(0u).x + u32(t.x);
+        atomicStore(&fixed_accum[edge_block_offset() + block], 1u);
+    }
+}
+
+// Adds `power` × kernel `k` (W/m² per W, fixed point) to word `first` on: one texel's sums.
+fn add_units(first: u32, power: vec3<f32>, k: f32, i: u32) {
+    let u = hash01(i, first);
+    let e = min(power * k + vec3<f32>(u), vec3<f32>(MAX_UNITS));
+    let units = vec3<u32>(e);
+    if (units.r != 0u) {
+        atomicAdd(&fixed_accum[first], units.r);
+    }
+    if (units.g != 0u) {
+        atomicAdd(&fixed_accum[first + 1u], units.g);
+    }
+    if (units.b != 0u) {
+        atomicAdd(&fixed_accum[first + 2u], units.b);
+    }
+}
+
 // A uniform number in [0, 1) from two words (PCG hash; Jarzynski & Olano 2020).
 fn hash01(a: u32, b: u32) -> f32 {
     var v = a * 747796405u + b * 2891336453u + 2654435769u;
@@ -363,6 +517,36 @@ fn hash01(a: u32, b: u32) -> f32 {
 // Fixed-point units one photon may add to one texel (keeps a pathological photon from
 // overflowing a sum: ~2^12 units is a typical photon's peak).
 const MAX_UNITS: f32 = 16777216.0;
+
+// Adds photon `p` (number `i`) at full resolution to the edge pixels of level-0 texel `t`
+// (`cs_edges`' marks), if it holds any.
+fn splat_edges(t: vec2<i32>, p: PhotonStored, power: vec3<f32>, i: u32) {
+    if (atomicLoad(&fixed_accum[edge_block_offset() + u32(t.y) * level_size(0u).x + u32(t.x)]) == 0u) {
+        return;
+    }
+    let ds = i32(params.settings.x);
+    let last = vec2<i32>(params.sizes.xy) - vec2<i32>(1);
+    let marks = edge_mask_offset();
+    let sums = edge_sums_offset();
+    for (var y = t.y * ds; y <= min(t.y * ds + ds - 1, last.y); y = y + 1) {
+        for (var x = t.x * ds; x <= min(t.x * ds + ds - 1, last.x); x = x + 1) {
+            let px = vec2<i32>(x, y);
+            let pi = pixel_index(px);
+            if (atomicLoad(&fixed_accum[marks + pi]) == 0u) {
+                continue;
+            }
+            let g = position_at(px);
+            var surface: Surface;
+            surface.covered = g.w >= 0.5;
+            surface.position = g.xyz;
+            surface.normal = normal_at(px);
+            let k = kernel_at(surface, p.position_radius, p.direction);
+            if (k >= 0.0) {
+                add_units(sums + 3u * pi, power, k, i);
+            }
+        }
+    }
+}
 
 // The compute splat: one invocation per photon, at the photon's level. Each covered texel
 // of its padded bounds gets Φ · κ(s) / N_κ(r) — the same test and kernel as `fs_splat` —
@@ -393,8 +577,12 @@ fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroup
     let offset = level_offset(f.level);
     let ds = i32(f.level_ds);
     let power = p.power.rgb * params.scale.y;
+    let edges = params.counts.y != 0u && f.level == 0u;
     for (var y = max(y0, 0); y <= min(y1, last.y); y = y + 1) {
         for (var x = max(x0, 0); x <= min(x1, last.x); x = x + 1) {
+            if (edges) {
+                splat_edges(vec2<i32>(x, y), p, power, i);
+            }
             // The texel's surface: the G-buffer at its centre texel (what its guide holds;
             // one dispatch serves every level).
             let px = full_texel(vec2<i32>(x, y), ds);
@@ -408,18 +596,7 @@ fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroup
                 continue;
             }
             let texel = offset + u32(y) * size.x + u32(x);
-            let u = hash01(i, texel);
-            let e = min(power * k + vec3<f32>(u), vec3<f32>(MAX_UNITS));
-            let units = vec3<u32>(e);
-            if (units.r != 0u) {
-                atomicAdd(&fixed_accum[3u * texel], units.r);
-            }
-            if (units.g != 0u) {
-                atomicAdd(&fixed_accum[3u * texel + 1u], units.g);
-            }
-            if (units.b != 0u) {
-                atomicAdd(&fixed_accum[3u * texel + 2u], units.b);
-            }
+            add_units(3u * texel, power, k, i);
         }
     }
 }

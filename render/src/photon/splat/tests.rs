@@ -162,6 +162,134 @@ fn no_light_rounds_a_convex_edge_onto_a_surface_facing_elsewhere() {
 }
 
 #[test]
+fn a_ledge_a_pixel_high_gets_its_own_light_not_its_neighbours() {
+    // Steps seen from above and in front: tops (facing up) 20 cm deep and risers (facing
+    // the camera) 3 cm high, about one pixel of a 96² frame, so the level-0 buffer (half the
+    // resolution) stands for few of their rows. Red photons lie on the tops, carrying their
+    // normal; blue ones on the risers. A riser's pixels must show blue alone, as splatting
+    // every photon at full resolution (one level, no downsampling) shows it — without
+    // edges, the upsample gives them the tops' red through the bilateral weights.
+    use crate::photon::{Photon, Receive};
+    on_every_backend(|raster| {
+        if !raster.supports_compute() {
+            eprintln!("edges need the compute splat: {}", raster.describe());
+            return;
+        }
+        let (steps, rise, depth) = (5, 0.03f32, 0.2f32);
+        let mut faces = Vec::new();
+        let mut photons = Vec::new();
+        let mut rng = crate::sampling::Rng::new(3, 0);
+        for k in 0..steps {
+            let (y, z0) = (-rise * k as f32, depth * k as f32 - 1.0);
+            let z1 = z0 + depth;
+            faces.push([
+                Vec3::new(-1.0, y, z0),
+                Vec3::new(-1.0, y, z1),
+                Vec3::new(1.0, y, z1),
+                Vec3::new(1.0, y, z0),
+            ]);
+            faces.push([
+                Vec3::new(-1.0, y - rise, z1),
+                Vec3::new(1.0, y - rise, z1),
+                Vec3::new(1.0, y, z1),
+                Vec3::new(-1.0, y, z1),
+            ]);
+            for _ in 0..400 {
+                let x = 2.0 * rng.next_f32() - 1.0;
+                photons.push(Photon {
+                    position: Vec3::new(x, y, z0 + depth * rng.next_f32()),
+                    direction: Vec3::NEG_Y,
+                    power: Vec3::new(1e-3, 0.0, 0.0),
+                    radius: 0.1,
+                    receive: Receive::Normal,
+                });
+                photons.push(Photon {
+                    position: Vec3::new(x, y - rise * rng.next_f32(), z1),
+                    direction: Vec3::NEG_Z,
+                    power: Vec3::new(0.0, 0.0, 1e-4),
+                    radius: 0.1,
+                    receive: Receive::Normal,
+                });
+            }
+        }
+        let scene = quads("steps", &faces);
+        let tris = scene.triangles_at(0.0);
+        let camera = cloudlight_scenes::Camera {
+            position: Vec3::new(0.0, 0.8, 2.0),
+            target: Vec3::new(0.0, -0.2, -0.4),
+            up: Vec3::Y,
+            fov_y_rad: 1.0,
+        };
+        let size = (96u32, 96u32);
+        let frame = |splat| unlit_frame(raster, &scene, &tris, &camera, size, &photons, splat);
+        let exact = frame(SplatSettings {
+            downsample: 1,
+            levels: 1,
+            edges: false,
+            ..Default::default()
+        });
+        let with_edges = frame(SplatSettings::default());
+        let without = frame(SplatSettings {
+            edges: false,
+            ..Default::default()
+        });
+        let risers: Vec<usize> = exact
+            .gbuffer
+            .covered_pixels()
+            .into_iter()
+            .filter(|&i| exact.gbuffer.normal[i].z > 0.9)
+            .collect();
+        assert!(
+            risers.len() >= 40,
+            "risers in view: {} pixels",
+            risers.len()
+        );
+        let tops_red = {
+            let tops: Vec<usize> = exact
+                .gbuffer
+                .covered_pixels()
+                .into_iter()
+                .filter(|&i| exact.gbuffer.normal[i].y > 0.9)
+                .collect();
+            tops.iter().map(|&i| exact.indirect[i].x).sum::<f32>() / tops.len() as f32
+        };
+        let riser_sums =
+            |f: &super::PhotonFrame| risers.iter().fold(Vec3::ZERO, |a, &i| a + f.indirect[i]);
+        let (exact_sum, edges_sum, without_sum) = (
+            riser_sums(&exact),
+            riser_sums(&with_edges),
+            riser_sums(&without),
+        );
+        let n = risers.len() as f32;
+        eprintln!(
+            "risers ({n} pixels), mean red / blue: exact {:.3e} / {:.3e}, edges {:.3e} / {:.3e}, \
+             without {:.3e} / {:.3e}; tops' red {tops_red:.3e}",
+            exact_sum.x / n,
+            exact_sum.z / n,
+            edges_sum.x / n,
+            edges_sum.z / n,
+            without_sum.x / n,
+            without_sum.z / n
+        );
+        assert!(tops_red > 0.0 && exact_sum.x == 0.0 && exact_sum.z > 0.0);
+        // The risers' pixels that no level stands for take the tops' red without edges...
+        assert!(
+            without_sum.x / n > 0.05 * tops_red,
+            "without edges the risers should borrow red: the test does not see the defect"
+        );
+        // ... and none with them, their blue as the exact splat's (the few pixels that
+        // a level does stand for come through the upsample, within its blur).
+        assert!(edges_sum.x / n < 0.01 * tops_red, "red on the risers");
+        assert!(
+            (edges_sum.z / exact_sum.z - 1.0).abs() < 0.15,
+            "blue on the risers: {} against {}",
+            edges_sum.z,
+            exact_sum.z
+        );
+    });
+}
+
+#[test]
 fn splatting_a_uniform_field_gives_its_irradiance() {
     // Photons on a jittered grid over a floor carry a uniform irradiance E0; the splat must
     // return ρ/π·E0 (a kernel/normalisation mismatch — πr² with a cone — is a 3× error).
@@ -377,11 +505,14 @@ fn the_compute_splat_draws_what_the_raster_splat_draws() {
         // At 64² every disk spans under 3 texels of the finest level: half a texel puts
         // photons on all four.
         for (levels, min_texels) in [(1, 3.0), (4, 0.5)] {
+            // Edges (full-resolution sums where no level stands for a pixel) are the
+            // compute splat's alone: off here, where the two are compared.
             let image = |compute| {
                 let splat = SplatSettings {
                     levels,
                     min_texels,
                     compute,
+                    edges: false,
                     ..Default::default()
                 };
                 view.errors_with(raster, &photons, splat)
@@ -396,6 +527,7 @@ fn the_compute_splat_draws_what_the_raster_splat_draws() {
                     levels,
                     min_texels,
                     chunk_photons: Some(1024),
+                    edges: false,
                     ..Default::default()
                 },
             );
