@@ -41,9 +41,10 @@ pub struct PhotonClientParams {
     /// photon as a quad (false; the way before, kept to compare).
     #[serde(default = "default_compute")]
     pub compute: bool,
-    /// With the compute splat, pixels no accumulation level stands for (a ledge a pixel
-    /// wide, the top row of a wall seen from afar) get every photon at full resolution
-    /// instead of a neighbouring surface's light (true), or the upsample alone (false).
+    /// With the compute splat, pixels the finest accumulation level does not stand for (a
+    /// ledge a pixel wide, the top row of a wall seen from afar) get its photons at full
+    /// resolution instead of a neighbouring surface's light (true), or the upsample alone (false, the
+    /// default: see the README's "Edges").
     #[serde(default = "default_edges")]
     pub edges: bool,
 }

@@ -283,11 +283,12 @@ pub struct SplatSettings {
     /// buffer); `None`: as many as one storage binding of the device holds (128 MiB, 2.8M
     /// photons, on lavapipe and llvmpipe — a long progressive set holds more).
     pub chunk_photons: Option<u32>,
-    /// With the compute splat: pixels whose surface no level's upsample taps stand for
-    /// (a ledge a pixel wide between faces that turn from it, the top row of a wall seen
-    /// from afar) get every photon added at full resolution, instead of borrowing another
-    /// surface's light through the bilateral weights. Where a level's taps weigh the
-    /// pixel's surface at less than half (`EDGE_MATCH` in splat.wgsl), it is an edge.
+    /// With the compute splat: pixels whose surface none of the finest level's upsample
+    /// taps stands for (a ledge a pixel wide between faces that turn from it, the top row
+    /// of a wall seen from afar) get that level's photons added at full resolution (and the
+    /// coarser levels' light from level 1), instead of borrowing another surface's light through the bilateral weights. Where the finest level's taps weigh
+    /// the pixel's surface at less than half (`EDGE_MATCH` in splat.wgsl), it is an edge.
+    /// Off by default: it did not move the error enough for its cost (README, "Edges").
     pub edges: bool,
 }
 
@@ -303,7 +304,7 @@ impl Default for SplatSettings {
             facing: 0.8,
             compute: true,
             chunk_photons: None,
-            edges: true,
+            edges: false,
         }
     }
 }

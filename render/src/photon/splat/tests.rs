@@ -228,11 +228,11 @@ fn a_ledge_a_pixel_high_gets_its_own_light_not_its_neighbours() {
             edges: false,
             ..Default::default()
         });
-        let with_edges = frame(SplatSettings::default());
-        let without = frame(SplatSettings {
-            edges: false,
+        let with_edges = frame(SplatSettings {
+            edges: true,
             ..Default::default()
         });
+        let without = frame(SplatSettings::default());
         let risers: Vec<usize> = exact
             .gbuffer
             .covered_pixels()
