@@ -286,8 +286,9 @@ pub struct SplatSettings {
     /// With the compute splat: pixels whose surface none of the finest level's upsample
     /// taps stands for (a ledge a pixel wide between faces that turn from it, the top row
     /// of a wall seen from afar) get that level's photons added at full resolution (and the
-    /// coarser levels' light from level 1), instead of borrowing another surface's light through the bilateral weights. Where the finest level's taps weigh
-    /// the pixel's surface at less than half (`EDGE_MATCH` in splat.wgsl), it is an edge.
+    /// coarser levels' light from level 1), instead of borrowing another surface's light
+    /// through the bilateral weights. Where the finest level's taps weigh the pixel's
+    /// surface at less than half (`EDGE_MATCH` in splat.wgsl), it is an edge.
     /// Off by default: it did not move the error enough for its cost (README, "Edges").
     pub edges: bool,
 }
