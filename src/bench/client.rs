@@ -44,8 +44,8 @@ impl Default for ClientBenchOptions {
 /// One pass's times.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct PassStat {
-    /// Pass name.
-    pub pass: &'static str,
+    /// Pass name (a step of the technique's pass: `indirect: <step>`).
+    pub pass: String,
     /// Median, ms.
     pub p50_ms: f64,
     /// 99th percentile, ms.
@@ -79,7 +79,7 @@ pub struct ClientBench {
     pub frames_with_shadows: usize,
 }
 
-fn stat(pass: &'static str, mut ms: Vec<f64>) -> PassStat {
+fn stat(pass: impl Into<String>, mut ms: Vec<f64>) -> PassStat {
     ms.sort_by(f64::total_cmp);
     let q = |p: f64| {
         ms.get(((ms.len() as f64 - 1.0) * p).round() as usize)
@@ -87,7 +87,7 @@ fn stat(pass: &'static str, mut ms: Vec<f64>) -> PassStat {
             .unwrap_or(0.0)
     };
     PassStat {
-        pass,
+        pass: pass.into(),
         p50_ms: q(0.5),
         p99_ms: q(0.99),
         mean_ms: ms.iter().sum::<f64>() / ms.len().max(1) as f64,
@@ -161,6 +161,27 @@ pub fn measure(
     }
     let pick = |f: fn(&PassTimes) -> Duration| split.iter().map(|p| ms(f(p))).collect::<Vec<_>>();
     let whole_stat = stat("frame", whole);
+    // The technique's steps, in the order its pass ran them.
+    let mut step_names: Vec<&'static str> = Vec::new();
+    for (name, _) in split.iter().flat_map(|p| &p.indirect_steps) {
+        if !step_names.contains(name) {
+            step_names.push(name);
+        }
+    }
+    let steps = step_names.into_iter().map(|name| {
+        let times = split
+            .iter()
+            .map(|p| {
+                let d = p
+                    .indirect_steps
+                    .iter()
+                    .filter(|(n, _)| *n == name)
+                    .map(|(_, d)| *d);
+                ms(d.sum())
+            })
+            .collect();
+        stat(format!("indirect: {name}"), times)
+    });
     Ok(ClientBench {
         scene: scene.name.clone(),
         triangles: triangles.len(),
@@ -175,10 +196,15 @@ pub fn measure(
             stat("shadows", pick(|p| p.shadows)),
             stat("direct", pick(|p| p.direct)),
             stat("indirect", pick(|p| p.indirect)),
+        ]
+        .into_iter()
+        .chain(steps)
+        .chain([
             stat("compose", pick(|p| p.compose)),
             stat("readback", pick(|p| p.readback)),
             stat("total (split)", pick(|p| p.total)),
-        ],
+        ])
+        .collect(),
         frames_with_shadows: split.iter().filter(|p| p.shadows_rendered).count(),
     })
 }

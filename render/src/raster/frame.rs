@@ -24,7 +24,7 @@ use wgpu::util::DeviceExt;
 use super::compose::ComposePass;
 use super::direct::DirectPass;
 use super::gbuffer::{Chunks, GBufferPass, Geometry};
-use super::pass::{IndirectContext, IndirectPass, NoIndirect};
+use super::pass::{IndirectContext, IndirectPass, NoIndirect, StepTimer};
 use super::pipelines::GBufferVertex;
 use super::readback::{Layout, read_planes, rgb};
 use super::shadow::ShadowMaps;
@@ -80,7 +80,7 @@ pub struct FrameImages {
 }
 
 /// Wall time of each pass of one frame (a submit and a wait after each when timed).
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
 pub struct PassTimes {
     /// G-buffer.
     pub gbuffer: Duration,
@@ -90,6 +90,9 @@ pub struct PassTimes {
     pub direct: Duration,
     /// The technique's indirect pass.
     pub indirect: Duration,
+    /// Its steps, as the pass names them ([`IndirectContext::step_done`]; none where it
+    /// names none).
+    pub indirect_steps: Vec<(&'static str, Duration)>,
     /// Compose.
     pub compose: Duration,
     /// Read-back (or the final wait when nothing is read).
@@ -175,11 +178,7 @@ impl PassTimer {
         slot: &mut Duration,
     ) -> Result<(), RasterError> {
         if self.timed {
-            let done = std::mem::replace(
-                enc,
-                raster.device.create_command_encoder(&Default::default()),
-            );
-            raster.submit_and_wait(done)?;
+            raster.submit_so_far(enc)?;
             *slot = self.mark.elapsed();
             self.mark = Instant::now();
         }
@@ -399,6 +398,7 @@ impl FrameRenderer {
             );
             timer.lap(raster, &mut enc, &mut times.direct)?;
             let (lo, hi) = self.geometry.bounds;
+            let steps = timed.then(StepTimer::start);
             let ctx = IndirectContext {
                 renderer_id: self.id,
                 width: self.width,
@@ -409,9 +409,11 @@ impl FrameRenderer {
                 scene_extent_m: (hi - lo).length(),
                 gbuffer: &self.targets.gbuffer,
                 indirect: &self.targets.indirect.view,
+                steps: steps.as_ref(),
             };
             indirect.encode(raster, &ctx, &mut enc)?;
             timer.lap(raster, &mut enc, &mut times.indirect)?;
+            times.indirect_steps = steps.map(StepTimer::finish).unwrap_or_default();
             self.compose
                 .encode(raster, &mut enc, &self.targets.composed.view);
             timer.lap(raster, &mut enc, &mut times.compose)?;

@@ -30,7 +30,7 @@ pub use device::Formats;
 pub use frame::{
     FrameImages, FrameInputs, FrameRenderer, OneFrame, PassTimes, ReadFrame, Readback,
 };
-pub use pass::{IndirectContext, IndirectPass, NoIndirect};
+pub use pass::{IndirectContext, IndirectPass, NoIndirect, StepTimer};
 pub use shadow::{MAX_LIGHTS, ShadowSettings};
 pub use targets::{GBufferTargets, Target};
 
@@ -311,6 +311,12 @@ impl Raster {
     }
 
     /// Submits `enc` and waits until the device has done it.
+    /// Submits what `enc` holds and waits for it, leaving `enc` a new, empty encoder.
+    pub(crate) fn submit_so_far(&self, enc: &mut wgpu::CommandEncoder) -> Result<(), RasterError> {
+        let done = std::mem::replace(enc, self.device.create_command_encoder(&Default::default()));
+        self.submit_and_wait(done)
+    }
+
     pub(crate) fn submit_and_wait(&self, enc: wgpu::CommandEncoder) -> Result<(), RasterError> {
         self.queue.submit([enc.finish()]);
         self.device

@@ -2,6 +2,9 @@
 //! and implements ([`IndirectPass`]). Each technique's pass lives beside its kernels (the
 //! photon splat in `photon::splat`) and owns its pipelines; the raster names none of them.
 
+use std::cell::RefCell;
+use std::time::{Duration, Instant};
+
 use glam::Mat4;
 
 use super::targets::{GBufferTargets, clear_pass};
@@ -27,6 +30,45 @@ pub struct IndirectContext<'a> {
     pub gbuffer: &'a GBufferTargets,
     /// The target to write indirect radiance to (`f32` bits, cleared by the pass).
     pub indirect: &'a wgpu::TextureView,
+    /// In a timed frame, the timer of the pass's steps ([`IndirectContext::step_done`]).
+    pub steps: Option<&'a StepTimer>,
+}
+
+impl IndirectContext<'_> {
+    /// Ends a step of the pass named `name`: in a timed frame, submits what `enc` holds,
+    /// waits for it and records its wall time (`bench client` shows each step); else
+    /// nothing.
+    pub fn step_done(
+        &self,
+        raster: &Raster,
+        enc: &mut wgpu::CommandEncoder,
+        name: &'static str,
+    ) -> Result<(), RasterError> {
+        if let Some(timer) = self.steps {
+            raster.submit_so_far(enc)?;
+            let mut t = timer.0.borrow_mut();
+            let now = Instant::now();
+            let elapsed = now - t.0;
+            t.0 = now;
+            t.1.push((name, elapsed));
+        }
+        Ok(())
+    }
+}
+
+/// Wall times of the steps of a technique's pass in one timed frame, from when it began.
+pub struct StepTimer(RefCell<(Instant, Vec<(&'static str, Duration)>)>);
+
+impl StepTimer {
+    /// A timer whose first step begins now.
+    pub(crate) fn start() -> Self {
+        StepTimer(RefCell::new((Instant::now(), Vec::new())))
+    }
+
+    /// The steps recorded, in order.
+    pub(crate) fn finish(self) -> Vec<(&'static str, Duration)> {
+        self.0.into_inner().1
+    }
 }
 
 /// A technique's pass producing indirect radiance ρ/π · E_indirect for each pixel.

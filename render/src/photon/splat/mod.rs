@@ -65,6 +65,8 @@ struct SplatPipelines {
 struct ComputePipelines {
     layout: wgpu::BindGroupLayout,
     splat: wgpu::ComputePipeline,
+    /// The splat that also adds level 0's photons to the edge pixels.
+    splat_edges: wgpu::ComputePipeline,
     resolve: wgpu::RenderPipeline,
     edges: wgpu::ComputePipeline,
     upsample: wgpu::RenderPipeline,
@@ -181,17 +183,24 @@ impl SplatPipelines {
             );
             let compute_pipeline_layout =
                 crate::raster::pipelines::pipeline_layout(device, "compute splat", &compute_layout);
-            let compute_pipeline = |label, entry_point| {
+            let compute_pipeline_with = |label, entry_point, constants: &[(&str, f64)]| {
                 device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                     label: Some(label),
                     layout: Some(&compute_pipeline_layout),
                     module: &shader,
                     entry_point: Some(entry_point),
-                    compilation_options: Default::default(),
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        constants,
+                        ..Default::default()
+                    },
                     cache: None,
                 })
             };
+            let compute_pipeline =
+                |label, entry_point| compute_pipeline_with(label, entry_point, &[]);
             let splat = compute_pipeline("compute splat", "cs_splat");
+            let splat_edges =
+                compute_pipeline_with("compute splat with edges", "cs_splat", &[("EDGES", 1.0)]);
             let edges = compute_pipeline("splat edges", "cs_edges");
             let upsample = fullscreen_pipeline(
                 device,
@@ -212,6 +221,7 @@ impl SplatPipelines {
             ComputePipelines {
                 layout: compute_layout,
                 splat,
+                splat_edges,
                 resolve,
                 edges,
                 upsample,
@@ -617,7 +627,7 @@ impl PhotonSplatPass {
         compute: &ComputePipelines,
         sums: &wgpu::Buffer,
         enc: &mut wgpu::CommandEncoder,
-    ) {
+    ) -> Result<(), RasterError> {
         let t = self.targets.as_ref().expect("made by encode");
         enc.clear_buffer(sums, 0, None);
         // A set larger than one storage binding may hold goes in chunks, each a range of
@@ -688,11 +698,16 @@ impl PhotonSplatPass {
                 label: Some("compute splat"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(&compute.splat);
+            pass.set_pipeline(if self.settings.edges {
+                &compute.splat_edges
+            } else {
+                &compute.splat
+            });
             pass.set_bind_group(0, &group, &[]);
             let (x, y) = grid(count);
             pass.dispatch_workgroups(x, y, 1);
         }
+        ctx.step_done(raster, enc, "splat")?;
         for level in (0..t.levels).rev() {
             let l = level as usize;
             let mut pass = clear_pass(enc, "splat resolve", &t.accum[l].view);
@@ -702,11 +717,17 @@ impl PhotonSplatPass {
             pass.set_bind_group(0, group, &[]);
             pass.draw(3 * level..3 * level + 3, 0..1);
         }
+        Ok(())
     }
 
     /// The raster splat: each photon a quad drawn additively into its level, then the
     /// levels folded into the next finer one, coarsest first.
-    fn splat_raster(&self, enc: &mut wgpu::CommandEncoder) {
+    fn splat_raster(
+        &self,
+        raster: &Raster,
+        ctx: &IndirectContext<'_>,
+        enc: &mut wgpu::CommandEncoder,
+    ) -> Result<(), RasterError> {
         let t = self.targets.as_ref().expect("made by encode");
         for level in 0..t.levels {
             let mut pass = clear_pass(enc, "splat", &t.accum[level as usize].view);
@@ -717,6 +738,7 @@ impl PhotonSplatPass {
                 pass.draw(4 * level..4 * level + 4, 0..self.count);
             }
         }
+        ctx.step_done(raster, enc, "splat")?;
         for into in (0..t.levels - 1).rev() {
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("splat collapse"),
@@ -738,6 +760,7 @@ impl PhotonSplatPass {
             pass.set_bind_group(0, &t.collapse[into as usize], &[]);
             pass.draw(3 * into..3 * into + 3, 0..1);
         }
+        Ok(())
     }
 }
 
@@ -814,10 +837,12 @@ impl IndirectPass for PhotonSplatPass {
             pass.set_bind_group(0, &t.guide, &[]);
             pass.draw(3 * level..3 * level + 3, 0..1);
         }
+        ctx.step_done(raster, enc, "guides")?;
         match compute {
-            Some((compute, sums)) => self.splat_compute(raster, ctx, compute, sums, enc),
-            None => self.splat_raster(enc),
+            Some((compute, sums)) => self.splat_compute(raster, ctx, compute, sums, enc)?,
+            None => self.splat_raster(raster, ctx, enc)?,
         }
+        ctx.step_done(raster, enc, "resolve")?;
         let mut pass = clear_pass(enc, "upsample", ctx.indirect);
         pass.set_pipeline(match compute {
             Some((compute, _)) if edges => &compute.upsample,
@@ -825,6 +850,8 @@ impl IndirectPass for PhotonSplatPass {
         });
         pass.set_bind_group(0, &t.upsample, &[]);
         pass.draw(0..3, 0..1);
+        drop(pass);
+        ctx.step_done(raster, enc, "upsample")?;
         Ok(())
     }
 }

@@ -535,12 +535,7 @@ fn splat_edges(t: vec2<i32>, p: PhotonStored, power: vec3<f32>, i: u32) {
             if (atomicLoad(&fixed_accum[marks + pi]) == 0u) {
                 continue;
             }
-            let g = position_at(px);
-            var surface: Surface;
-            surface.covered = g.w >= 0.5;
-            surface.position = g.xyz;
-            surface.normal = normal_at(px);
-            let k = kernel_at(surface, p.position_radius, p.direction);
+            let k = kernel_at(texel_surface(px, 1), p.position_radius, p.direction);
             if (k >= 0.0) {
                 add_units(sums + 3u * pi, power, k, i);
             }
@@ -548,12 +543,61 @@ fn splat_edges(t: vec2<i32>, p: PhotonStored, power: vec3<f32>, i: u32) {
     }
 }
 
+// The texels of a photon's level whose centre lies in its padded bounds (NDC y up, texel
+// rows down), clamped to the level; empty (`lo > hi`) where the photon splats nowhere.
+struct Span {
+    lo: vec2<i32>,
+    hi: vec2<i32>,
+    level: u32,
+};
+
+fn texel_span(position_radius: vec4<f32>) -> Span {
+    let f = footprint(position_radius);
+    var s: Span;
+    s.level = f.level;
+    s.lo = vec2<i32>(0);
+    s.hi = vec2<i32>(-1);
+    if (!f.visible) {
+        return s;
+    }
+    let size = level_size(f.level);
+    let sizef = vec2<f32>(size);
+    let x0 = i32(ceil((f.lo.x * 0.5 + 0.5) * sizef.x - 0.5));
+    let x1 = i32(floor((f.hi.x * 0.5 + 0.5) * sizef.x - 0.5));
+    let y0 = i32(ceil((0.5 - f.hi.y * 0.5) * sizef.y - 0.5));
+    let y1 = i32(floor((0.5 - f.lo.y * 0.5) * sizef.y - 0.5));
+    s.lo = max(vec2<i32>(x0, y0), vec2<i32>(0));
+    s.hi = min(vec2<i32>(x1, y1), vec2<i32>(size) - vec2<i32>(1));
+    return s;
+}
+
+// The surface a texel of a level `ds` times smaller than the frame receives at: the
+// G-buffer at its centre pixel (what its guide holds; ds = 1: the pixel's own).
+fn texel_surface(t: vec2<i32>, ds: i32) -> Surface {
+    let px = full_texel(t, ds);
+    let g = position_at(px);
+    var surface: Surface;
+    surface.covered = g.w >= 0.5;
+    surface.position = g.xyz;
+    surface.normal = normal_at(px);
+    return surface;
+}
+
+// Whether the compute splat also adds level 0's photons to edge pixels (`splat_edges`): a
+// pipeline constant, not a uniform, because llvmpipe runs a branch's code for every lane
+// with the lanes masked, whether or not any lane takes it — a uniform `if` around the
+// edges' loop cost the splat 17 of its 27 ms with edges off (Cornell, 10k photons, 640×360).
+override EDGES: bool = false;
+
 // The compute splat: one invocation per photon, at the photon's level. Each covered texel
 // of its padded bounds gets Φ · κ(s) / N_κ(r) — the same test and kernel as `fs_splat` —
 // added in fixed point (`scale.y` units per W/m², rounded stochastically so that small
 // additions stay unbiased). The cost is the texels a disk covers, with no per-triangle
 // set-up (Cornell, 10k photons, 640×360 on lavapipe: one dispatch per level instead of one
-// in all cost ~4 ms more, 8 invocations sharing a photon's texels no less).
+// in all cost ~4 ms more, 8 invocations sharing a photon's texels no less). Binning the
+// photons into tiles of 8 × 8 texels and gathering each tile's photons per texel (a
+// surface read and one addition per texel) was slower on llvmpipe: 36 ms against the
+// walk's 10, each photon's disk covering a small part of the 4–9 tiles it touches.
 @compute @workgroup_size(64)
 fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = id.x + id.y * groups.x * 64u;
@@ -562,36 +606,17 @@ fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroup
         return;
     }
     let p = photons[i];
-    let f = footprint(p.position_radius);
-    if (!f.visible) {
-        return;
-    }
-    let size = level_size(f.level);
-    let sizef = vec2<f32>(size);
-    // Texels whose centre lies in the bounds (NDC y up, texel rows down).
-    let x0 = i32(ceil((f.lo.x * 0.5 + 0.5) * sizef.x - 0.5));
-    let x1 = i32(floor((f.hi.x * 0.5 + 0.5) * sizef.x - 0.5));
-    let y0 = i32(ceil((0.5 - f.hi.y * 0.5) * sizef.y - 0.5));
-    let y1 = i32(floor((0.5 - f.lo.y * 0.5) * sizef.y - 0.5));
-    let last = vec2<i32>(size) - vec2<i32>(1);
-    let offset = level_offset(f.level);
-    let ds = i32(f.level_ds);
+    let s = texel_span(p.position_radius);
+    let size = level_size(s.level);
+    let offset = level_offset(s.level);
+    let ds = i32(params.settings.x) << s.level;
     let power = p.power.rgb * params.scale.y;
-    let edges = params.counts.y != 0u && f.level == 0u;
-    for (var y = max(y0, 0); y <= min(y1, last.y); y = y + 1) {
-        for (var x = max(x0, 0); x <= min(x1, last.x); x = x + 1) {
-            if (edges) {
+    for (var y = s.lo.y; y <= s.hi.y; y = y + 1) {
+        for (var x = s.lo.x; x <= s.hi.x; x = x + 1) {
+            if (EDGES && s.level == 0u) {
                 splat_edges(vec2<i32>(x, y), p, power, i);
             }
-            // The texel's surface: the G-buffer at its centre texel (what its guide holds;
-            // one dispatch serves every level).
-            let px = full_texel(vec2<i32>(x, y), ds);
-            let g = position_at(px);
-            var surface: Surface;
-            surface.covered = g.w >= 0.5;
-            surface.position = g.xyz;
-            surface.normal = normal_at(px);
-            let k = kernel_at(surface, p.position_radius, p.direction);
+            let k = kernel_at(texel_surface(vec2<i32>(x, y), ds), p.position_radius, p.direction);
             if (k < 0.0) {
                 continue;
             }

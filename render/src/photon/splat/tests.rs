@@ -679,3 +679,71 @@ fn progressive_passes_converge_while_the_light_stands_still() {
         }
     });
 }
+
+#[test]
+fn a_timed_frame_names_the_splats_steps_and_draws_the_same_image() {
+    // `bench client` splits the indirect pass by the steps the pass names: each step is
+    // submitted and waited for on its own, which must not change what is drawn; the steps
+    // run in order and take no longer, together, than the pass.
+    use crate::raster::{FrameInputs, FrameRenderer, Readback};
+    on_every_backend(|raster| {
+        let (a, b) = (Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, 2.0));
+        let scene = quads(
+            "floor",
+            &[[a, Vec3::new(a.x, 0.0, b.z), b, Vec3::new(b.x, 0.0, a.z)]],
+        );
+        let tris = scene.triangles_at(0.0);
+        let camera = cloudlight_scenes::Camera {
+            position: Vec3::new(0.0, 1.5, 1.0),
+            target: Vec3::ZERO,
+            up: Vec3::Y,
+            fov_y_rad: 1.0,
+        };
+        for settings in [
+            SplatSettings::default(),
+            SplatSettings {
+                edges: true,
+                ..Default::default()
+            },
+            SplatSettings {
+                compute: false,
+                ..Default::default()
+            },
+        ] {
+            let mut pass = super::PhotonSplatPass::new(raster, settings).unwrap();
+            pass.set_photons(raster, &uniform_field(2.0, 0.02)).unwrap();
+            let mut frame = FrameRenderer::new(raster, 96, 64, ShadowSettings::default()).unwrap();
+            frame.set_geometry(raster, &scene, &tris).unwrap();
+            let inputs = FrameInputs {
+                camera,
+                lights: &[],
+            };
+            let mut render = |timed| {
+                frame
+                    .render(raster, &inputs, &mut pass, Readback::Everything, timed)
+                    .unwrap()
+            };
+            let whole = render(false);
+            let split = render(true);
+            assert!(whole.times.indirect_steps.is_empty(), "{settings:?}");
+            let names: Vec<&str> = split.times.indirect_steps.iter().map(|s| s.0).collect();
+            assert_eq!(
+                names,
+                ["guides", "splat", "resolve", "upsample"],
+                "{settings:?}"
+            );
+            let sum: std::time::Duration = split.times.indirect_steps.iter().map(|s| s.1).sum();
+            assert!(
+                sum <= split.times.indirect,
+                "{settings:?}: {sum:?} > {:?}",
+                split.times.indirect
+            );
+            let (lit, again) = (whole.indirect.unwrap(), split.indirect.unwrap());
+            assert!(
+                lit.iter().any(|p| p.max_element() > 0.0),
+                "{settings:?}: unlit"
+            );
+            assert_eq!(lit, again, "{settings:?}");
+        }
+    });
+}
