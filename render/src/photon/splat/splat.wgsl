@@ -611,18 +611,23 @@ fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroup
     let offset = level_offset(s.level);
     let ds = i32(params.settings.x) << s.level;
     let power = p.power.rgb * params.scale.y;
-    for (var y = s.lo.y; y <= s.hi.y; y = y + 1) {
-        for (var x = s.lo.x; x <= s.hi.x; x = x + 1) {
-            if (EDGES && s.level == 0u) {
-                splat_edges(vec2<i32>(x, y), p, power, i);
-            }
-            let k = kernel_at(texel_surface(vec2<i32>(x, y), ds), p.position_radius, p.direction);
-            if (k < 0.0) {
-                continue;
-            }
-            let texel = offset + u32(y) * size.x + u32(x);
+    // One loop over the span's texels, row after row: lanes (photons) whose spans differ in
+    // shape then wait only for the largest span, not for the widest row times the most rows
+    // (splat 9.6 → 9.2 ms, two runs each).
+    let extent = max(s.hi - s.lo + vec2<i32>(1), vec2<i32>(0));
+    let count = extent.x * extent.y;
+    var t = s.lo;
+    for (var n = 0; n < count; n = n + 1) {
+        if (EDGES && s.level == 0u) {
+            splat_edges(t, p, power, i);
+        }
+        let k = kernel_at(texel_surface(t, ds), p.position_radius, p.direction);
+        if (k >= 0.0) {
+            let texel = offset + u32(t.y) * size.x + u32(t.x);
             add_units(3u * texel, power, k, i);
         }
+        let wrap = t.x >= s.hi.x;
+        t = vec2<i32>(select(t.x + 1, s.lo.x, wrap), select(t.y, t.y + 1, wrap));
     }
 }
 
