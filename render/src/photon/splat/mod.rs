@@ -65,7 +65,7 @@ struct SplatPipelines {
 struct ComputePipelines {
     layout: wgpu::BindGroupLayout,
     splat: wgpu::ComputePipeline,
-    /// The splat that also adds level 0's photons to the edge pixels.
+    /// Level 0's photons added to the edge pixels (after `edges`, beside `splat`).
     splat_edges: wgpu::ComputePipeline,
     resolve: wgpu::RenderPipeline,
     edges: wgpu::ComputePipeline,
@@ -183,24 +183,18 @@ impl SplatPipelines {
             );
             let compute_pipeline_layout =
                 crate::raster::pipelines::pipeline_layout(device, "compute splat", &compute_layout);
-            let compute_pipeline_with = |label, entry_point, constants: &[(&str, f64)]| {
+            let compute_pipeline = |label, entry_point| {
                 device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                     label: Some(label),
                     layout: Some(&compute_pipeline_layout),
                     module: &shader,
                     entry_point: Some(entry_point),
-                    compilation_options: wgpu::PipelineCompilationOptions {
-                        constants,
-                        ..Default::default()
-                    },
+                    compilation_options: Default::default(),
                     cache: None,
                 })
             };
-            let compute_pipeline =
-                |label, entry_point| compute_pipeline_with(label, entry_point, &[]);
             let splat = compute_pipeline("compute splat", "cs_splat");
-            let splat_edges =
-                compute_pipeline_with("compute splat with edges", "cs_splat", &[("EDGES", 1.0)]);
+            let splat_edges = compute_pipeline("compute splat of edges", "cs_splat_edges");
             let edges = compute_pipeline("splat edges", "cs_edges");
             let upsample = fullscreen_pipeline(
                 device,
@@ -298,7 +292,8 @@ pub struct SplatSettings {
     /// of a wall seen from afar) get that level's photons added at full resolution (and the
     /// coarser levels' light from level 1), instead of borrowing another surface's light
     /// through the bilateral weights. Where the finest level's taps weigh the pixel's
-    /// surface at less than half (`EDGE_MATCH` in splat.wgsl), it is an edge.
+    /// surface at less than half (`EDGE_MATCH` in splat.wgsl), it is an edge. Downsample 4
+    /// at most (ignored beyond).
     /// Off by default: it did not move the error enough for its cost (README, "Edges").
     pub edges: bool,
 }
@@ -362,7 +357,7 @@ struct SplatTargets {
     low: (u32, u32),
     levels: u32,
     /// The compute splat's fixed-point sums (three per texel of every level; with edges,
-    /// then three per pixel, a mark per pixel and a mark per texel of level 0), where the
+    /// then three per pixel, a mark per pixel and a bit mask per texel of level 0), where the
     /// device runs compute shaders.
     fixed: Option<wgpu::Buffer>,
 }
@@ -476,6 +471,13 @@ impl PhotonSplatPass {
             }
             Ok(())
         })
+    }
+
+    /// Whether the compute splat adds the finest level's photons to edge pixels (the
+    /// settings' `edges`, with a downsample of 4 at most: a texel's edge pixels are the bits
+    /// of one word).
+    fn edges(&self) -> bool {
+        self.settings.edges && self.settings.downsample.clamp(1, 8) <= 4
     }
 
     /// Photons uploaded.
@@ -684,7 +686,7 @@ impl PhotonSplatPass {
             });
             // The edges are marked before the first chunk splats (a pass of their own: the
             // splat reads the marks).
-            if k == 0 && self.settings.edges {
+            if k == 0 && self.edges() {
                 let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("splat edges"),
                     timestamp_writes: None,
@@ -693,19 +695,21 @@ impl PhotonSplatPass {
                 pass.set_bind_group(0, &group, &[]);
                 let (x, y) = grid(ctx.width * ctx.height);
                 pass.dispatch_workgroups(x, y, 1);
+                drop(pass);
+                ctx.step_done(raster, enc, "edges")?;
             }
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("compute splat"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(if self.settings.edges {
-                &compute.splat_edges
-            } else {
-                &compute.splat
-            });
+            pass.set_pipeline(&compute.splat);
             pass.set_bind_group(0, &group, &[]);
             let (x, y) = grid(count);
             pass.dispatch_workgroups(x, y, 1);
+            if self.edges() {
+                pass.set_pipeline(&compute.splat_edges);
+                pass.dispatch_workgroups(x, y, 1);
+            }
         }
         ctx.step_done(raster, enc, "splat")?;
         for level in (0..t.levels).rev() {
@@ -795,7 +799,7 @@ impl IndirectPass for PhotonSplatPass {
             (Some(compute), Some(sums), true) => Some((compute, sums)),
             _ => None,
         };
-        let edges = compute.is_some() && settings.edges;
+        let edges = compute.is_some() && self.edges();
         let params = SplatParams {
             clip_from_world: ctx.clip_from_world.to_cols_array(),
             view_from_world: ctx.view_from_world.to_cols_array(),

@@ -408,7 +408,8 @@ fn level_offset(l: u32) -> u32 {
 // texel along every crease, and put each coarse photon on thousands of pixels — Cornell at
 // 640×360: frame 43 → 530 ms). Their sums follow the
 // levels' in the same buffer: three words per pixel, then a mark per pixel, then a mark
-// per texel of level 0 (whether any of its pixels is an edge).
+// per texel of level 0 (a bit per pixel of it that is an edge, row after row: downsample
+// 4 at most).
 fn pixel_index(px: vec2<i32>) -> u32 {
     return u32(px.y) * u32(params.sizes.x) + u32(px.x);
 }
@@ -485,9 +486,11 @@ fn cs_edges(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroup
     let frag = vec2<f32>(px) + vec2<f32>(0.5);
     if (!represented(0u, frag, g.xyz, n)) {
         atomicStore(&fixed_accum[edge_mask_offset() + i], 1u);
-        let t = px / i32(params.settings.x);
+        let ds = i32(params.settings.x);
+        let t = px / ds;
         let block = u32(t.y) * level_size(0u).x + u32(t.x);
-        atomicStore(&fixed_accum[edge_block_offset() + block], 1u);
+        let bit = u32((px.y - t.y * ds) * ds + px.x - t.x * ds);
+        atomicOr(&fixed_accum[edge_block_offset() + block], 1u << bit);
     }
 }
 
@@ -521,24 +524,17 @@ const MAX_UNITS: f32 = 16777216.0;
 // Adds photon `p` (number `i`) at full resolution to the edge pixels of level-0 texel `t`
 // (`cs_edges`' marks), if it holds any.
 fn splat_edges(t: vec2<i32>, p: PhotonStored, power: vec3<f32>, i: u32) {
-    if (atomicLoad(&fixed_accum[edge_block_offset() + u32(t.y) * level_size(0u).x + u32(t.x)]) == 0u) {
-        return;
-    }
+    // One iteration per edge pixel of the texel (its mark's bits), none for a texel without.
+    var bits = atomicLoad(&fixed_accum[edge_block_offset() + u32(t.y) * level_size(0u).x + u32(t.x)]);
     let ds = i32(params.settings.x);
-    let last = vec2<i32>(params.sizes.xy) - vec2<i32>(1);
-    let marks = edge_mask_offset();
     let sums = edge_sums_offset();
-    for (var y = t.y * ds; y <= min(t.y * ds + ds - 1, last.y); y = y + 1) {
-        for (var x = t.x * ds; x <= min(t.x * ds + ds - 1, last.x); x = x + 1) {
-            let px = vec2<i32>(x, y);
-            let pi = pixel_index(px);
-            if (atomicLoad(&fixed_accum[marks + pi]) == 0u) {
-                continue;
-            }
-            let k = kernel_at(texel_surface(px, 1), p.position_radius, p.direction);
-            if (k >= 0.0) {
-                add_units(sums + 3u * pi, power, k, i);
-            }
+    while (bits != 0u) {
+        let k = i32(firstTrailingBit(bits));
+        bits = bits & (bits - 1u);
+        let px = t * ds + vec2<i32>(k % ds, k / ds);
+        let kernel = kernel_at(texel_surface(px, 1), p.position_radius, p.direction);
+        if (kernel >= 0.0) {
+            add_units(sums + 3u * pixel_index(px), power, kernel, i);
         }
     }
 }
@@ -583,12 +579,6 @@ fn texel_surface(t: vec2<i32>, ds: i32) -> Surface {
     return surface;
 }
 
-// Whether the compute splat also adds level 0's photons to edge pixels (`splat_edges`): a
-// pipeline constant, not a uniform, because llvmpipe runs a branch's code for every lane
-// with the lanes masked, whether or not any lane takes it — a uniform `if` around the
-// edges' loop cost the splat 17 of its 27 ms with edges off (Cornell, 10k photons, 640×360).
-override EDGES: bool = false;
-
 // The compute splat: one invocation per photon, at the photon's level. Each covered texel
 // of its padded bounds gets Φ · κ(s) / N_κ(r) — the same test and kernel as `fs_splat` —
 // added in fixed point (`scale.y` units per W/m², rounded stochastically so that small
@@ -618,14 +608,35 @@ fn cs_splat(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroup
     let count = extent.x * extent.y;
     var t = s.lo;
     for (var n = 0; n < count; n = n + 1) {
-        if (EDGES && s.level == 0u) {
-            splat_edges(t, p, power, i);
-        }
         let k = kernel_at(texel_surface(t, ds), p.position_radius, p.direction);
         if (k >= 0.0) {
             let texel = offset + u32(t.y) * size.x + u32(t.x);
             add_units(3u * texel, power, k, i);
         }
+        let wrap = t.x >= s.hi.x;
+        t = vec2<i32>(select(t.x + 1, s.lo.x, wrap), select(t.y, t.y + 1, wrap));
+    }
+}
+
+// The edges' splat (after `cs_edges`, beside `cs_splat`): each photon of level 0 added to
+// the edge pixels of its span's texels at full resolution. A dispatch of its own: with this
+// code inside `cs_splat`'s loop, llvmpipe ran that splat at 27 ms instead of 10 with edges
+// off (behind a uniform `if`), and at 20 ms with edges on where no texel held an edge pixel
+// (Cornell, 10k photons, 640×360); this dispatch takes ~0.3 ms.
+@compute @workgroup_size(64)
+fn cs_splat_edges(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = id.x + id.y * groups.x * 64u;
+    if (i >= min(params.counts.x, arrayLength(&photons))) {
+        return;
+    }
+    let p = photons[i];
+    let s = texel_span(p.position_radius);
+    let extent = max(s.hi - s.lo + vec2<i32>(1), vec2<i32>(0));
+    let count = select(0, extent.x * extent.y, s.level == 0u);
+    let power = p.power.rgb * params.scale.y;
+    var t = s.lo;
+    for (var n = 0; n < count; n = n + 1) {
+        splat_edges(t, p, power, i);
         let wrap = t.x >= s.hi.x;
         t = vec2<i32>(select(t.x + 1, s.lo.x, wrap), select(t.y, t.y + 1, wrap));
     }
