@@ -53,6 +53,15 @@ fn quads(name: &str, quads: &[[Vec3; 4]]) -> cloudlight_scenes::Scene {
     }
 }
 
+/// A floor 4 m square at y = 0, facing up.
+fn floor() -> cloudlight_scenes::Scene {
+    let (a, b) = (Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, 2.0));
+    quads(
+        "floor",
+        &[[a, Vec3::new(a.x, 0.0, b.z), b, Vec3::new(b.x, 0.0, a.z)]],
+    )
+}
+
 /// The photon client's frame of `photons` alone (no direct light, default shadows).
 #[allow(clippy::too_many_arguments)]
 fn unlit_frame(
@@ -297,11 +306,7 @@ fn splatting_a_uniform_field_gives_its_irradiance() {
     // ~12 px: with levels, photons go to the buffer 4× smaller than the frame (3 texels),
     // which must give the same irradiance.
     on_every_backend(|raster| {
-        let (a, b) = (Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, 2.0));
-        let scene = quads(
-            "floor",
-            &[[a, Vec3::new(a.x, 0.0, b.z), b, Vec3::new(b.x, 0.0, a.z)]],
-        );
+        let scene = floor();
         let tris = scene.triangles_at(0.0);
         assert!(tris[0].n[0].y > 0.9, "floor faces up");
         let camera = cloudlight_scenes::Camera {
@@ -687,11 +692,7 @@ fn a_timed_frame_names_the_splats_steps_and_draws_the_same_image() {
     // run in order and take no longer, together, than the pass.
     use crate::raster::{FrameInputs, FrameRenderer, Readback};
     on_every_backend(|raster| {
-        let (a, b) = (Vec3::new(-2.0, 0.0, -2.0), Vec3::new(2.0, 0.0, 2.0));
-        let scene = quads(
-            "floor",
-            &[[a, Vec3::new(a.x, 0.0, b.z), b, Vec3::new(b.x, 0.0, a.z)]],
-        );
+        let scene = floor();
         let tris = scene.triangles_at(0.0);
         let camera = cloudlight_scenes::Camera {
             position: Vec3::new(0.0, 1.5, 1.0),
