@@ -1186,13 +1186,31 @@ fn bench_client_splits_the_frame_by_pass() {
         .unwrap();
     ok(&out);
     let text = String::from_utf8_lossy(&out.stdout);
-    for pass in [
-        "gbuffer", "shadows", "direct", "indirect", "compose", "readback",
-    ] {
+    // The passes, then the photon pass's own steps.
+    let passes = [
+        "gbuffer",
+        "shadows",
+        "direct",
+        "indirect",
+        "indirect: guides",
+        "indirect: splat",
+        "indirect: resolve",
+        "indirect: upsample",
+        "compose",
+        "readback",
+        "total (split)",
+    ];
+    for pass in passes {
         assert!(text.contains(&format!("| {pass} |")), "{pass}: {text}");
     }
     let report = read_json(&json);
-    assert_eq!(report["passes"].as_array().unwrap().len(), 7);
+    let names: Vec<&str> = report["passes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["pass"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, passes);
     assert!(report["frame_p50_ms"].as_f64().unwrap() > 0.0);
     // The light of cornell-animated moves every frame: every split frame re-renders shadows.
     assert_eq!(report["frames_with_shadows"], 3);
