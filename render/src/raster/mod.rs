@@ -310,13 +310,13 @@ impl Raster {
         result
     }
 
-    /// Submits `enc` and waits until the device has done it.
     /// Submits what `enc` holds and waits for it, leaving `enc` a new, empty encoder.
     pub(crate) fn submit_so_far(&self, enc: &mut wgpu::CommandEncoder) -> Result<(), RasterError> {
         let done = std::mem::replace(enc, self.device.create_command_encoder(&Default::default()));
         self.submit_and_wait(done)
     }
 
+    /// Submits `enc` and waits until the device has done it.
     pub(crate) fn submit_and_wait(&self, enc: wgpu::CommandEncoder) -> Result<(), RasterError> {
         self.queue.submit([enc.finish()]);
         self.device
