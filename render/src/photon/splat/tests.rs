@@ -242,24 +242,23 @@ fn a_ledge_a_pixel_high_gets_its_own_light_not_its_neighbours() {
             ..Default::default()
         });
         let without = frame(SplatSettings::default());
-        let risers: Vec<usize> = exact
-            .gbuffer
-            .covered_pixels()
-            .into_iter()
-            .filter(|&i| exact.gbuffer.normal[i].z > 0.9)
-            .collect();
+        // The pixels whose surface faces along `axis` (within 26°).
+        let facing = |axis: Vec3| -> Vec<usize> {
+            exact
+                .gbuffer
+                .covered_pixels()
+                .into_iter()
+                .filter(|&i| exact.gbuffer.normal[i].dot(axis) > 0.9)
+                .collect()
+        };
+        let risers = facing(Vec3::Z);
         assert!(
             risers.len() >= 40,
             "risers in view: {} pixels",
             risers.len()
         );
         let tops_red = {
-            let tops: Vec<usize> = exact
-                .gbuffer
-                .covered_pixels()
-                .into_iter()
-                .filter(|&i| exact.gbuffer.normal[i].y > 0.9)
-                .collect();
+            let tops = facing(Vec3::Y);
             tops.iter().map(|&i| exact.indirect[i].x).sum::<f32>() / tops.len() as f32
         };
         let riser_sums =
