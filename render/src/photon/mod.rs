@@ -25,8 +25,10 @@
 //! noise together). Each photon's own radius then follows where photons actually landed
 //! ([`density`]): the distance holding `photons_per_disk` of its light's photons, within
 //! [`DENSITY_RADIUS_RANGE`] of the reference; a photon walled in on every side along its
-//! surface within half its radius keeps its disk inside those walls ([`density::enclose`]),
-//! and a disk that overhangs its surface's edge or curve is halved ([`density::fit`]).
+//! surface within half its radius keeps its disk inside those walls, a disk that would reach
+//! through a wall onto ground a client sees beyond it stops at the wall
+//! ([`density::enclose`]), and a disk that overhangs its surface's edge or curve is halved
+//! ([`density::fit`]).
 //! A light's budget is its share of the watts ([`BatchPlan`]); a sun's watts are those
 //! falling on its [`footprint`]. Streams are counter-based per (seed, light, slot,
 //! generation, photon), so a batch is the same bytes on any thread count and any node.
@@ -529,6 +531,7 @@ pub struct PhotonTracer<'a> {
     radius: f32,
     plan: BatchPlan,
     guides: &'a std::collections::BTreeMap<u32, std::sync::Arc<Guide>>,
+    views: &'a [View],
 }
 
 /// No guides.
@@ -570,6 +573,7 @@ impl<'a> PhotonTracer<'a> {
             radius,
             plan: plan.clone(),
             guides: &NO_GUIDES,
+            views: &[],
         }
     }
 
@@ -579,6 +583,12 @@ impl<'a> PhotonTracer<'a> {
         guides: &'a std::collections::BTreeMap<u32, std::sync::Arc<Guide>>,
     ) -> Self {
         PhotonTracer { guides, ..self }
+    }
+
+    /// This tracer with disks that stop at walls beyond which one of `views` would see
+    /// their light ([`density::enclose`]).
+    pub fn seen_from(self, views: &'a [View]) -> Self {
+        PhotonTracer { views, ..self }
     }
 
     /// The splat radius of this iteration's photons, meters.
@@ -658,7 +668,14 @@ impl<'a> PhotonTracer<'a> {
             .iter()
             .map(|p| p.radius)
             .fold(f32::INFINITY, f32::min);
-        density::enclose(&mut photons, &normals, self.bvh, self.eps, least);
+        density::enclose(
+            &mut photons,
+            &normals,
+            self.bvh,
+            self.eps,
+            least,
+            self.views,
+        );
         density::fit(
             &mut photons,
             &normals,

@@ -94,6 +94,10 @@ pub struct IterationPlan {
     /// Directional lights' emission toward what clients see, by light id (empty while
     /// the stream knows no view, [`PhotonStream::set_views`]).
     pub guides: BTreeMap<u32, Arc<Guide>>,
+    /// The clients' views: disks stop at walls beyond which one of them would see their
+    /// light ([`super::density::enclose`]). A set traced before a view moved keeps its
+    /// radii until its light is traced again.
+    pub views: Vec<View>,
 }
 
 impl IterationPlan {
@@ -245,6 +249,7 @@ impl PhotonStream {
             settings,
             jobs,
             guides,
+            views: self.views.clone(),
         }
     }
 
@@ -295,8 +300,9 @@ impl PhotonStream {
         format: PackFormat,
     ) -> TracedBatch {
         let light = &plan.lights[job.light];
-        let tracer =
-            PhotonTracer::new(scene, bvh, plan.settings, &plan.plan, seed).guided(&plan.guides);
+        let tracer = PhotonTracer::new(scene, bvh, plan.settings, &plan.plan, seed)
+            .guided(&plan.guides)
+            .seen_from(&plan.views);
         let start = Instant::now();
         let photons: Vec<Photon> =
             tracer.trace_pass(light, job.slot, job.slots, job.generation, job.pass);

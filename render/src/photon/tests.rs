@@ -1219,3 +1219,68 @@ fn relaxation_of_few_photons_or_none_changes_nothing() {
     assert_eq!(photons, before);
     relax::relax(&mut [], &[], &bvh, 6, 1e-5);
 }
+
+#[test]
+fn a_stream_stops_disks_at_a_wall_past_which_its_client_sees_darkness() {
+    use super::stream::{PhotonStream, Retrace};
+    // A lamp on one side of a 3 m wall standing on a floor that runs on under it: the far
+    // side's floor gets no light. A client looks at that floor from the far side.
+    let mut mesh = Mesh::default();
+    mesh.push_box(Vec3::new(-6.0, -0.1, -6.0), Vec3::new(6.0, 0.0, 6.0));
+    mesh.push_box(Vec3::new(0.0, 0.0, -6.0), Vec3::new(0.02, 3.0, 6.0));
+    let scene = Scene {
+        name: "wall".into(),
+        materials: vec![Material::diffuse("grey", Vec3::splat(0.6))],
+        objects: vec![Object {
+            name: "floor and wall".into(),
+            mesh,
+            material: 0,
+            motion: Motion::identity(),
+        }],
+        lights: vec![Light {
+            name: "lamp".into(),
+            kind: LightKind::Point,
+            power_w: Vec3::splat(10.0),
+            motion: Motion::Static(glam::Affine3A::from_translation(Vec3::new(-1.0, 1.0, 0.0))),
+            sun_path: None,
+        }],
+        cameras: Vec::new(),
+    };
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let view = View {
+        camera: cloudlight_scenes::Camera {
+            position: Vec3::new(4.0, 2.0, 0.0),
+            target: Vec3::new(0.5, 0.0, 0.0),
+            up: Vec3::Y,
+            fov_y_rad: 1.0,
+        },
+        aspect: 1.0,
+    };
+    let settings = PhotonSettings::for_budget(&scene, 20_000, 20_000);
+    // Floor photons within 20 cm of the wall's lit face, in the client's view: their radii
+    // above what reaches the wall (the nearest of 8 rays along the floor is within 22.5°
+    // of the wall's normal) or the batch's smallest radius (the packing's floor).
+    let overreach = |views: Vec<View>| {
+        let mut stream = PhotonStream::new(settings, PackFormat::Compact12, Retrace::Always, 5);
+        stream.set_views(views);
+        let photons = stream.iterate(&scene, &bvh, 0.0).unpacked();
+        let least = photons
+            .iter()
+            .map(|p| p.radius)
+            .fold(f32::INFINITY, f32::min);
+        let near: Vec<f32> = photons
+            .iter()
+            .filter(|p| p.position.y.abs() < 0.01 && p.position.z.abs() < 1.0)
+            .filter(|p| p.position.x > -0.2 && p.position.x < 0.0)
+            .map(|p| p.radius - (-p.position.x / 22.5f32.to_radians().cos()).max(least))
+            .collect();
+        assert!(near.len() > 10, "{} photons by the wall", near.len());
+        near.into_iter().fold(f32::NEG_INFINITY, f32::max)
+    };
+    let (unseen, seen) = (overreach(Vec::new()), overreach(vec![view]));
+    assert!(
+        unseen > 0.1,
+        "without a view, disks overreach by {unseen} m"
+    );
+    assert!(seen < 1e-3, "seen, disks overreach by {seen} m");
+}
