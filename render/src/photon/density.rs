@@ -94,9 +94,8 @@ pub const WALL_LIFT: f32 = 0.05;
 /// [`ENCLOSURE_RAYS`] rays along the photon's surface (its unit geometric normal
 /// `normals[i]`), lifted by [`WALL_LIFT`] of its radius: without views, cast until one runs
 /// free for [`ENCLOSED`] of the radius (an open photon costs one ray); with views, all of
-/// them over the whole radius. No radius falls below `least`
-/// (meters; a batch's smallest radius sets its packing's position step). Powers are
-/// untouched.
+/// them over the whole radius. No radius falls below `least` (meters; a batch's smallest
+/// radius sets its packing's position step). Powers are untouched.
 pub fn enclose(
     photons: &mut [Photon],
     normals: &[Vec3],
@@ -305,7 +304,9 @@ pub const FIT_SAMPLES: u32 = 4;
 /// down the surface's normal `normals[i]` as the client's test would see them), a disk is
 /// halved, never below `least` (meters; a batch's smallest radius sets its packing's
 /// position step). Renormalising the power by the share that lands instead overshot in
-/// dark pixels (relMSE 0.22 → 0.43 in the dungeon); a smaller disk keeps the estimate
+/// dark pixels (relMSE 0.22 → 0.43 in the dungeon; looked at in 16 points and by at most
+/// 1 / 0.7 after the halvings, the outside view at 640×360 after 32 passes of 80k photons
+/// read 0.143 → 0.188 for an energy ratio of 0.86 → 1.00); a smaller disk keeps the estimate
 /// unbiased and trades the bias for noise, which progressive passes average away. Only
 /// photons that carry their surface's normal ([`super::Receive::Normal`]): one that
 /// carries its direction lights the surface past a corner on purpose. Powers are
