@@ -64,6 +64,13 @@ if [ ${#missing[@]} -gt 0 ]; then
   echo "setup: installing ${missing[*]}" >&2
   export DEBIAN_FRONTEND=noninteractive
   apt-get update -q >&2
+  # A dpkg run stopped part-way (an install killed mid-upgrade) leaves packages unpacked but
+  # not configured, and apt-get refuses to install anything until that is finished.
+  if [ -n "$(dpkg --audit 2>/dev/null)" ]; then
+    echo "setup: finishing an interrupted dpkg run first" >&2
+    dpkg --configure -a >&2 || true
+    apt-get install -f -y -q --no-install-recommends >&2
+  fi
   # shellcheck disable=SC2086
   apt-get install -y -q --no-install-recommends "${missing[@]}" >&2
   echo "setup: done" >&2
