@@ -181,9 +181,6 @@ fn lights_seen_beyond(
     eps: f32,
     views: &[View],
 ) -> bool {
-    if views.is_empty() {
-        return false;
-    }
     let h = (receiving.flatten * p.radius).max(4.0 * eps);
     let at = p.position + dir * (0.5 * (t + p.radius));
     received_at(p, at + n * h, -n, 2.0 * h, bvh, receiving)
