@@ -125,7 +125,8 @@ fn fs_main(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
         return vec4<u32>(0u);
     }
     let gn = textureLoad(gnrm, px, 0).xy;
-    let n = normalize(vec3<f32>(unpack2x16float(gn.x), unpack2x16float(gn.y).x));
+    // Unit when written (gbuffer.wgsl); f16 keeps it within 1e-3 of unit length.
+    let n = vec3<f32>(unpack2x16float(gn.x), unpack2x16float(gn.y).x);
     let ga = textureLoad(galb, px, 0).xy;
     let albedo = vec3<f32>(unpack2x16float(ga.x), unpack2x16float(ga.y).x);
     let p = g.xyz + n * params.normal_offset_m;

@@ -19,7 +19,9 @@
 //! rasteriser pays ~2 µs of set-up per quad whatever its size; the compute splat pays per
 //! texel (Cornell, 10k photons, 640×360, lavapipe: indirect pass 42 → 20 ms, frame 52 →
 //! 31 ms), and its integer sums lose nothing to a half-precision buffer (GL llvmpipe). It
-//! reads each texel's surface from the G-buffer, so one dispatch serves every level.
+//! reads each texel's surface from its level's guide, one load per texel (the guides are
+//! copied into the layers of one array, so one dispatch serves every level; reading the
+//! G-buffer's position and normal instead, two loads, made the splat ~20% slower).
 //! The photons are uploaded once per set
 //! ([`PhotonSplatPass::set_photons`]), not once per frame. The pass owns its pipelines
 //! (`SplatPipelines`, built once per device); the shared raster knows nothing of photons.
@@ -178,6 +180,7 @@ impl SplatPipelines {
                     texture_entry(1, cs, UINT, D2),
                     texture_entry(2, cs, UINT, D2),
                     buffer_entry(8, cs, READ_ONLY),
+                    texture_entry(12, cs, UINT, wgpu::TextureViewDimension::D2Array),
                     buffer_entry(9, cs, wgpu::BufferBindingType::Storage { read_only: false }),
                 ],
             );
@@ -347,6 +350,10 @@ struct SplatTargets {
     accum: Vec<Target>,
     /// Each level's surfaces (1×1 stand-ins beyond `levels`).
     guides: Vec<Target>,
+    /// The compute splat's copy of the guides: level l in layer l of one array at level 0's
+    /// size (its top-left corner), so that one dispatch reads every level's. A copy, because
+    /// GL reads a single layer viewed as a 2D texture as zero.
+    guide_levels: Option<(wgpu::Texture, wgpu::TextureView)>,
     /// Bind groups: writing the guides (the G-buffer only), splatting into level l (its
     /// guide), folding level l + 1 into l (its buffer and guide, and l's guide), upsampling
     /// level 0.
@@ -513,6 +520,28 @@ impl PhotonSplatPass {
             let formats = raster.formats();
             let accum = level_targets("photon accumulation", formats.accum);
             let guides = level_targets("photon guide", formats.exact4);
+            let guide_levels = self.pipelines.compute.as_ref().map(|_| {
+                let texture = raster.device.create_texture(&wgpu::TextureDescriptor {
+                    label: Some("photon guides"),
+                    size: wgpu::Extent3d {
+                        width: low.0,
+                        height: low.1,
+                        depth_or_array_layers: MAX_LEVELS,
+                    },
+                    mip_level_count: 1,
+                    sample_count: 1,
+                    dimension: wgpu::TextureDimension::D2,
+                    format: formats.exact4,
+                    usage: wgpu::TextureUsages::COPY_DST | wgpu::TextureUsages::TEXTURE_BINDING,
+                    view_formats: &[],
+                });
+                let view = texture.create_view(&wgpu::TextureViewDescriptor {
+                    label: Some("photon guides"),
+                    dimension: Some(wgpu::TextureViewDimension::D2Array),
+                    ..Default::default()
+                });
+                (texture, view)
+            });
             // A pass never reads what it writes: stand-ins there.
             let stand_in = Target::new(raster, "unused", 1, 1, formats.accum);
             let guide_stand_in = Target::new(raster, "unused", 1, 1, formats.exact4);
@@ -609,6 +638,7 @@ impl PhotonSplatPass {
                 ),
                 accum,
                 guides,
+                guide_levels,
                 low,
                 levels,
                 fixed,
@@ -632,6 +662,27 @@ impl PhotonSplatPass {
     ) -> Result<(), RasterError> {
         let t = self.targets.as_ref().expect("made by encode");
         enc.clear_buffer(sums, 0, None);
+        let (levels_texture, levels_view) = t
+            .guide_levels
+            .as_ref()
+            .expect("made with the compute pipelines");
+        for level in 0..t.levels {
+            let guide = &t.guides[level as usize].texture;
+            enc.copy_texture_to_texture(
+                guide.as_image_copy(),
+                wgpu::TexelCopyTextureInfo {
+                    texture: levels_texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d {
+                        x: 0,
+                        y: 0,
+                        z: level,
+                    },
+                    aspect: wgpu::TextureAspect::All,
+                },
+                guide.size(),
+            );
+        }
         // A set larger than one storage binding may hold goes in chunks, each a range of
         // the buffer at an offset the device accepts.
         let limits = raster.device.limits();
@@ -670,6 +721,7 @@ impl PhotonSplatPass {
                     },
                     tex(1, &ctx.gbuffer.position.view),
                     tex(2, &ctx.gbuffer.normal.view),
+                    tex(12, levels_view),
                     wgpu::BindGroupEntry {
                         binding: 8,
                         resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
