@@ -250,6 +250,11 @@ const ACCUM: wgpu::TextureSampleType = wgpu::TextureSampleType::Float { filterab
 /// Most accumulation levels.
 pub const MAX_LEVELS: u32 = 4;
 
+// The compute splat's guide array has MAX_LEVELS layers, and wgpu's GL backend guesses a
+// texture's target from its layers (one: a 2D texture, a multiple of six: a cube map; see
+// raster/shadow.rs), neither of which it can read as a 2D array.
+const _: () = assert!(MAX_LEVELS > 1 && !MAX_LEVELS.is_multiple_of(6));
+
 /// Splatting settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SplatSettings {
