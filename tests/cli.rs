@@ -1214,6 +1214,18 @@ fn bench_client_splits_the_frame_by_pass() {
     assert!(report["frame_p50_ms"].as_f64().unwrap() > 0.0);
     // The light of cornell-animated moves every frame: every split frame re-renders shadows.
     assert_eq!(report["frames_with_shadows"], 3);
+    // The raster anchor of TARGETS.md, measured in the same run, and the frame read against it.
+    let anchor = &report["anchor"];
+    assert!(anchor["triangles"].as_u64().unwrap() >= 100_000, "{anchor}");
+    assert_eq!(
+        (anchor["width"].as_u64(), anchor["height"].as_u64()),
+        (Some(1280), Some(720))
+    );
+    assert!(anchor["gbuffer_p50_ms"].as_f64().unwrap() > 0.0, "{anchor}");
+    assert!(
+        text.contains("raster anchor (TARGETS.md: 100k triangles at 1280x720"),
+        "{text}"
+    );
     let bad = cloudlight()
         .args(["bench", "client", "--downsample", "3"])
         .output()

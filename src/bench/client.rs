@@ -1,12 +1,14 @@
 //! The client's frame alone on the machine (`cloudlight bench client`): frame time p50/p99
 //! whole, and split by pass (each pass submitted and waited for on its own), for any
 //! technique's indirect pass, with the scene's lights moving as its animation says (shadow
-//! maps are rendered again only on frames where a light moved).
+//! maps are rendered again only on frames where a light moved), beside the raster anchor of
+//! `TARGETS.md` measured on the same device in the same run ([`raster_anchor`]).
 
 use std::time::{Duration, Instant};
 
 use cloudlight_render::raster::{
-    FrameInputs, FrameRenderer, IndirectPass, PassTimes, Raster, Readback, ShadowSettings,
+    FrameInputs, FrameRenderer, IndirectPass, NoIndirect, PassTimes, Raster, Readback,
+    ShadowSettings,
 };
 use cloudlight_scenes::Scene;
 use serde::Serialize;
@@ -77,6 +79,72 @@ pub struct ClientBench {
     pub passes: Vec<PassStat>,
     /// Frames (of the split run) that rendered shadow maps.
     pub frames_with_shadows: usize,
+    /// The raster anchor measured in the same run, where it was ([`raster_anchor`]).
+    pub anchor: Option<RasterAnchor>,
+}
+
+/// Triangles of the raster anchor's scene (`city:100000`).
+pub const ANCHOR_TRIANGLES: usize = 100_000;
+/// The raster anchor's frame size.
+pub const ANCHOR_SIZE: (u32, u32) = (1280, 720);
+/// What `TARGETS.md` gives for the anchor on this kind of machine (lavapipe, 2 cores): "draws
+/// 100k triangles at 1280×720 in 20–25 ms", ms.
+pub const ANCHOR_TARGETS_MS: (f64, f64) = (20.0, 25.0);
+
+/// The raster anchor as measured in one run: how fast this device draws what `TARGETS.md`
+/// timed, so that a frame time can be read against the speed the targets assume (a shared
+/// machine's speed drifts by a third between runs).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RasterAnchor {
+    /// Triangles drawn.
+    pub triangles: usize,
+    /// Frame width, pixels.
+    pub width: u32,
+    /// Frame height, pixels.
+    pub height: u32,
+    /// Frames timed.
+    pub frames: usize,
+    /// The G-buffer pass (each frame submitted and waited for on its own): median, ms.
+    pub gbuffer_p50_ms: f64,
+}
+
+impl RasterAnchor {
+    /// How much slower than the middle of `TARGETS.md`'s range this run's device drew the
+    /// anchor (1: as fast; 1.4: a slow phase of a shared machine).
+    pub fn slowdown(&self) -> f64 {
+        let (lo, hi) = ANCHOR_TARGETS_MS;
+        self.gbuffer_p50_ms / (0.5 * (lo + hi))
+    }
+}
+
+/// Times the raster anchor: the G-buffer pass of `city:100000` seen whole
+/// ([`Scene::overview_camera`]: every chunk in view) at 1280×720 without lights or indirect
+/// light, `frames` frames after two warm-up frames.
+pub fn raster_anchor(raster: &Raster, frames: usize) -> anyhow::Result<RasterAnchor> {
+    let scene = cloudlight_scenes::city::city(ANCHOR_TRIANGLES);
+    let triangles = scene.triangles_at(0.0);
+    let (width, height) = ANCHOR_SIZE;
+    let mut frame = FrameRenderer::new(raster, width, height, ShadowSettings::default())?;
+    frame.set_geometry(raster, &scene, &triangles)?;
+    let inputs = FrameInputs {
+        camera: scene.overview_camera(),
+        lights: &[],
+    };
+    let frames = frames.max(1);
+    let mut times = Vec::with_capacity(frames);
+    for i in 0..frames + 2 {
+        let images = frame.render(raster, &inputs, &mut NoIndirect, Readback::Nothing, true)?;
+        if i >= 2 {
+            times.push(ms(images.times.gbuffer));
+        }
+    }
+    Ok(RasterAnchor {
+        triangles: triangles.len(),
+        width,
+        height,
+        frames,
+        gbuffer_p50_ms: stat("anchor", times).p50_ms,
+    })
 }
 
 fn stat(pass: impl Into<String>, mut ms: Vec<f64>) -> PassStat {
@@ -206,6 +274,7 @@ pub fn measure(
         ])
         .collect(),
         frames_with_shadows: split.iter().filter(|p| p.shadows_rendered).count(),
+        anchor: None,
     })
 }
 
@@ -228,5 +297,65 @@ impl ClientBench {
             ]);
         }
         t.render()
+    }
+
+    /// The anchor's line: its time in this run against `TARGETS.md`'s, and the whole frame
+    /// at the speed the targets assume (None without an anchor).
+    pub fn anchor_line(&self) -> Option<String> {
+        let a = self.anchor.as_ref()?;
+        let (lo, hi) = ANCHOR_TARGETS_MS;
+        let slowdown = a.slowdown();
+        Some(format!(
+            "raster anchor (TARGETS.md: {}k triangles at {}x{} in {lo:.0}–{hi:.0} ms): {} triangles \
+             in {:.1} ms p50 in this run, {slowdown:.2}× the targets' time; the whole frame at \
+             their speed: {:.1} / {slowdown:.2} = {:.1} ms p50",
+            ANCHOR_TRIANGLES / 1000,
+            a.width,
+            a.height,
+            a.triangles,
+            a.gbuffer_p50_ms,
+            self.frame_p50_ms,
+            self.frame_p50_ms / slowdown.max(1e-9),
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_anchor_reads_a_frame_at_the_speed_the_targets_assume() {
+        let anchor = RasterAnchor {
+            triangles: 100_034,
+            width: 1280,
+            height: 720,
+            frames: 10,
+            gbuffer_p50_ms: 45.0,
+        };
+        // Twice the middle of 20–25 ms: the machine ran at half the targets' speed.
+        assert!((anchor.slowdown() - 2.0).abs() < 1e-12);
+        let bench = ClientBench {
+            scene: "cornell".into(),
+            triangles: 32,
+            lights: 2,
+            adapter: "test".into(),
+            indirect: String::new(),
+            options: ClientBenchOptions::default(),
+            frame_p50_ms: 50.0,
+            frame_p99_ms: 60.0,
+            passes: Vec::new(),
+            frames_with_shadows: 0,
+            anchor: None,
+        };
+        assert_eq!(bench.anchor_line(), None);
+        let line = ClientBench {
+            anchor: Some(anchor),
+            ..bench
+        }
+        .anchor_line()
+        .unwrap();
+        assert!(line.contains("in 45.0 ms p50 in this run, 2.00×"), "{line}");
+        assert!(line.contains("50.0 / 2.00 = 25.0 ms p50"), "{line}");
     }
 }

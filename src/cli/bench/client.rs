@@ -105,7 +105,9 @@ impl Visit for Frame {
             a.height,
             raster.describe()
         );
-        let r = T::client_frame(&raster, &scene, &technique, options)?;
+        let mut r = T::client_frame(&raster, &scene, &technique, options)?;
+        // Right after the frames, so that both see the machine at the same speed.
+        r.anchor = Some(bench::client::raster_anchor(&raster, 10)?);
         println!(
             "{}: {} triangles, {} lights, {}, {}x{} on {}; shadow maps rendered in {} of {} split frames",
             r.scene,
@@ -120,6 +122,9 @@ impl Visit for Frame {
         );
         println!("{}", r.table());
         println!("{}", target_line(T::NAME, &a.scene, a.width, a.height));
+        if let Some(line) = r.anchor_line() {
+            println!("{line}");
+        }
         let json = serde_json::to_string_pretty(&r)?;
         println!("{json}");
         super::write_json(a.json.as_ref(), &json)
