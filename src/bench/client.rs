@@ -119,7 +119,10 @@ impl RasterAnchor {
 
 /// Times the raster anchor: the G-buffer pass of `city:100000` seen whole
 /// ([`Scene::overview_camera`]: every chunk in view) at 1280×720 without lights or indirect
-/// light, `frames` frames after two warm-up frames.
+/// light, `frames` frames after two warm-up frames. What the process drew before moves it
+/// (after Cornell frames it read 29–31 ms, after `city:250000` frames 21–28 ms, in
+/// alternating runs; more warm-up frames changed nothing): a guide to the machine's speed,
+/// not an exact correction.
 pub fn raster_anchor(raster: &Raster, frames: usize) -> anyhow::Result<RasterAnchor> {
     let scene = cloudlight_scenes::city::city(ANCHOR_TRIANGLES);
     let triangles = scene.triangles_at(0.0);
