@@ -105,7 +105,8 @@ pub struct PhotonSettings {
     /// set, one more set of fresh photons per iteration until it holds this many, the
     /// client drawing all of them with radii shrinking by [`progressive_radius_scale`].
     /// 1 (the default): a still light is traced once. Each doubling of the passes costs
-    /// the client's splat ~1.6× (disks hold P^α times the photons).
+    /// the client's splat about 2^α (disks hold P^α times the photons; ~1.6× measured when
+    /// α was 2/3).
     pub passes: u32,
     /// What each photon's vector is: its surface's normal (the default) or the direction
     /// it travelled ([`Receive`]).
@@ -164,8 +165,19 @@ pub fn view_points(bvh: &SceneBvh, views: &[View]) -> Vec<Vec3> {
 
 /// Radius reduction of progressive photon mapping (Knaus & Zwicker 2011): each pass keeps
 /// the fraction α of the photons per disk that the previous passes gathered, so bias and
-/// variance both vanish as passes grow.
-pub const PROGRESSIVE_ALPHA: f32 = 2.0 / 3.0;
+/// variance both vanish as passes grow. Their 2/3 is best as passes tend to infinity; over
+/// the tens of passes a still light gets, bias (disks wider than thin faces, steps and
+/// ribs) outweighs noise in game levels, and a faster shrink measured better:
+/// `bench quality --technique photons`, relMSE, α = 2/3 → 1/2 → 0.4 (→ 0.3), after 32
+/// passes unless said, the upsample's σ at 0.001 of the diagonal: the dungeon seen from outside (`--scene
+/// assets/dungeon/level-dungeon.gltf --spp 1024 --budgets 80000 --width 640 --height 360`)
+/// 0.1370 → 0.1224 → 0.1181 (→ 0.1197), after 128 0.1229 → 0.1155 → 0.1193 (smaller disks
+/// light a few hot pixels on thin faces); its courtyard and fountains (40k a pass, 128²,
+/// seeds: default, 2, 3) 0.0687 → 0.0662 → 0.0738 and 0.1062 / 0.0978 / 0.1060 → 0.1108 /
+/// 0.0976 / 0.1046; `city:250000` (`--budgets 160000 --spp 4096 --width 96 --height 96
+/// --set photons_per_disk=40`) 0.0364 → 0.0345; the Cornell box still (`--budgets 20000
+/// --spp 4096 --set receive=direction`, 128²) 0.0099 → 0.0100 → 0.0105.
+pub const PROGRESSIVE_ALPHA: f32 = 0.5;
 
 /// The factor on every radius when a light's photons are `passes` passes drawn together:
 /// r_P² = r_1² · Π_{k=1}^{P−1} (k + α) / (k + 1) (≈ P^(α−1): with P times the photons, a
