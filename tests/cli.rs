@@ -1226,6 +1226,14 @@ fn bench_client_splits_the_frame_by_pass() {
         text.contains("raster anchor (TARGETS.md: 100k triangles at 1280x720"),
         "{text}"
     );
+    // The frame is read at the targets' speed only where the anchor ran on their backend.
+    let scaled = anchor["backend"].as_str().unwrap() == "Vulkan";
+    assert_eq!(
+        text.contains("the whole frame at their speed"),
+        scaled,
+        "{text}"
+    );
+    assert_eq!(text.contains("not scaled"), !scaled, "{text}");
     let bad = cloudlight()
         .args(["bench", "client", "--downsample", "3"])
         .output()

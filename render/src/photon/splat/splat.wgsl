@@ -536,7 +536,7 @@ fn splat_edges(t: vec2<i32>, p: PhotonStored, power: vec3<f32>, i: u32) {
         let k = i32(firstTrailingBit(bits));
         bits = bits & (bits - 1u);
         let px = t * ds + vec2<i32>(k % ds, k / ds);
-        let kernel = kernel_at(texel_surface(px, 1), p.position_radius, p.direction);
+        let kernel = kernel_at(pixel_surface(px), p.position_radius, p.direction);
         if (kernel >= 0.0) {
             add_units(sums + 3u * pixel_index(px), power, kernel, i);
         }
@@ -583,10 +583,9 @@ fn next_texel(s: Span, t: vec2<i32>) -> vec2<i32> {
     return vec2<i32>(select(t.x + 1, s.lo.x, wrap), select(t.y, t.y + 1, wrap));
 }
 
-// The surface a texel of a level `ds` times smaller than the frame receives at: the
-// G-buffer at its centre pixel (what its guide holds; ds = 1: the pixel's own).
-fn texel_surface(t: vec2<i32>, ds: i32) -> Surface {
-    let px = full_texel(t, ds);
+// The surface pixel `px` sees, from the G-buffer (the edges' splat works at full
+// resolution, where no guide is).
+fn pixel_surface(px: vec2<i32>) -> Surface {
     let g = position_at(px);
     var surface: Surface;
     surface.covered = g.w >= 0.5;
