@@ -119,8 +119,9 @@ impl RasterAnchor {
     }
 
     /// Whether it ran where `TARGETS.md` timed it: lavapipe is Vulkan. GL llvmpipe draws
-    /// the anchor faster than lavapipe (18.7 ms against 22–31 in the same hour) but not the
-    /// photon client's passes, so its slowdown does not carry over to a frame.
+    /// the anchor much faster than lavapipe (back to back: 29.0 against 54.1 ms; 18.7 on
+    /// GL on a day lavapipe read 20–39) but the photon client's passes as fast, so its
+    /// slowdown does not carry over to a frame.
     pub fn comparable(&self) -> bool {
         self.backend == "Vulkan"
     }

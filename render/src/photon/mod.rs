@@ -169,8 +169,9 @@ pub fn view_points(bvh: &SceneBvh, views: &[View]) -> Vec<Vec3> {
 /// the tens of passes a still light gets, bias (disks wider than thin faces, steps and
 /// ribs) outweighs noise in game levels, and a faster shrink measured better:
 /// `bench quality --technique photons`, relMSE, α = 2/3 → 1/2 → 0.4 (→ 0.3), after 32
-/// passes unless said, the upsample's σ at 0.001 of the diagonal: the dungeon seen from outside (`--scene
-/// assets/dungeon/level-dungeon.gltf --spp 1024 --budgets 80000 --width 640 --height 360`)
+/// passes unless said, the upsample's σ at 0.001 of the diagonal: the dungeon seen from
+/// outside (`--scene assets/dungeon/level-dungeon.gltf --spp 1024 --budgets 80000 --width
+/// 640 --height 360`)
 /// 0.1370 → 0.1224 → 0.1181 (→ 0.1197), after 128 0.1229 → 0.1155 → 0.1193 (smaller disks
 /// light a few hot pixels on thin faces); its courtyard and fountains (40k a pass, 128²,
 /// seeds: default, 2, 3) 0.0687 → 0.0662 → 0.0738 and 0.1062 / 0.0978 / 0.1060 → 0.1108 /
