@@ -1160,6 +1160,49 @@ fn benchmarks_of_missing_techniques_say_so() {
 }
 
 #[test]
+fn bench_client_draws_a_still_lights_passes_together() {
+    // The photons drawn, from the line that names the scene ("…, N photons[ in P passes], …").
+    let drawn = |passes: &str| {
+        let out = cloudlight()
+            .args([
+                "bench",
+                "client",
+                "--technique",
+                "photons",
+                "--scene",
+                "cornell",
+            ])
+            .args(["--width", "64", "--height", "48", "--frames", "2"])
+            .args(["--photons", "1000", "--set", passes])
+            .output()
+            .unwrap();
+        ok(&out);
+        let text = String::from_utf8_lossy(&out.stdout).to_string();
+        let line = text
+            .lines()
+            .find(|l| l.starts_with("cornell:"))
+            .unwrap_or_else(|| panic!("{text}"))
+            .to_string();
+        let n: usize = line
+            .split(", ")
+            .find(|f| f.contains(" photons"))
+            .and_then(|f| f.split(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("{line}"));
+        (n, line)
+    };
+    let (one, line) = drawn("passes=1");
+    assert!(!line.contains("passes"), "{line}");
+    let (three, line) = drawn("passes=3");
+    assert!(line.contains(" photons in 3 passes"), "{line}");
+    // Three passes of fresh photons of the same budget, drawn together.
+    assert!(
+        (2.5 * one as f64..=3.5 * one as f64).contains(&(three as f64)),
+        "{one} → {three}"
+    );
+}
+
+#[test]
 fn bench_client_splits_the_frame_by_pass() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("client.json");

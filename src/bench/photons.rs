@@ -241,19 +241,45 @@ impl Technique for Photons {
         o: &PhotonOptions,
         frame: ClientBenchOptions,
     ) -> anyhow::Result<ClientBench> {
-        eprintln!("{}: tracing {} photons...", scene.name, o.photons);
+        let passes = o.passes.max(1);
+        eprintln!(
+            "{}: tracing {} photons{}...",
+            scene.name,
+            o.photons,
+            if passes > 1 {
+                format!(" a pass, {passes} passes")
+            } else {
+                String::new()
+            }
+        );
         let bvh = SceneBvh::at(scene, 0.0, BvhKind::default());
         let settings = PhotonSettings {
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
             receive: o.receive,
+            passes,
             ..PhotonSettings::for_budget(
                 scene,
                 o.photons,
                 o.batch_size.min(o.photons.max(1) as u32),
             )
         };
-        let photons = trace_iteration(scene, &bvh, 0.0, settings, 1, o.format).unpacked();
+        let photons: Vec<Photon> = if passes > 1 {
+            // A still light's refinement passes, drawn together as its client draws them
+            // (radii shrunk, powers divided by their number).
+            let mut stream = PhotonStream::new(settings, o.format, Retrace::Changed, 1);
+            let mut set = cloudlight_render::photon::PhotonSet::new();
+            for _ in 0..passes {
+                let it = stream.iterate(scene, &bvh, 0.0);
+                for b in &it.batches {
+                    set.insert(b);
+                }
+                set.apply_manifest(stream.manifest(0.0));
+            }
+            set.photons().collect()
+        } else {
+            trace_iteration(scene, &bvh, 0.0, settings, 1, o.format).unpacked()
+        };
         let splat = SplatSettings {
             downsample: o.downsample,
             levels: o.levels,
@@ -263,7 +289,10 @@ impl Technique for Photons {
             ..SplatSettings::default()
         };
         let mut bench = client_frame_with(raster, scene, &photons, splat, frame)?;
-        bench.indirect = format!("{} photons", photons.len());
+        bench.indirect = match passes {
+            1 => format!("{} photons", photons.len()),
+            p => format!("{} photons in {p} passes", photons.len()),
+        };
         Ok(bench)
     }
 

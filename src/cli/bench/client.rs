@@ -30,7 +30,8 @@ pub struct Args {
     /// Scene time advances 1/fps per frame (lights move as the scene's animation says).
     #[arg(long, default_value_t = 30.0, value_parser = ranges::closed(1.0 / 3600.0, 1000.0, "frames/s"))]
     fps: f64,
-    /// Photons splatted: one iteration of this budget (the knob `photons`) [default: 10000].
+    /// Photons splatted: one iteration of this budget (the knob `photons`; with `--set
+    /// passes=P`, P passes of it drawn together as a still light's) [default: 10000].
     #[arg(long, value_parser = ranges::count::<u64>(1, ranges::MAX_PHOTONS))]
     photons: Option<u64>,
     /// Emissive triangles become n² point emitters each (the client's knob `light_samples`).
