@@ -13,7 +13,7 @@ use cloudlight_actors::wire::PhotonMsg;
 use cloudlight_render::metrics::{ImageErrors, compare};
 use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings, photon_frame};
 use cloudlight_render::photon::{
-    PackFormat, Photon, PhotonSettings, PhotonStream, Receive, View, trace_iteration,
+    PackFormat, Photon, PhotonSet, PhotonSettings, PhotonStream, Receive, View, trace_iteration,
 };
 use cloudlight_render::raster::{Raster, ShadowSettings};
 use cloudlight_render::{BvhKind, SceneBvh};
@@ -268,13 +268,9 @@ impl Technique for Photons {
             // A still light's refinement passes, drawn together as its client draws them
             // (radii shrunk, powers divided by their number).
             let mut stream = PhotonStream::new(settings, o.format, Retrace::Changed, 1);
-            let mut set = cloudlight_render::photon::PhotonSet::new();
+            let mut set = PhotonSet::new();
             for _ in 0..passes {
-                let it = stream.iterate(scene, &bvh, 0.0);
-                for b in &it.batches {
-                    set.insert(b);
-                }
-                set.apply_manifest(stream.manifest(0.0));
+                still_pass(&mut stream, &mut set, scene, &bvh);
             }
             set.photons().collect()
         } else {
@@ -859,7 +855,6 @@ impl QualityView {
         photons: u64,
         o: &QualityOptions,
     ) -> anyhow::Result<Vec<(ProgressivePoint, Vec<Vec3>)>> {
-        use cloudlight_render::photon::PhotonSet;
         let settings = PhotonSettings {
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
@@ -881,12 +876,7 @@ impl QualityView {
         let mut set = PhotonSet::new();
         let (mut points, mut bytes) = (Vec::new(), 0usize);
         for pass in 1..=o.passes {
-            let it = stream.iterate(&self.scene, &self.bvh, 0.0);
-            bytes += it.data_bytes();
-            for b in &it.batches {
-                set.insert(b);
-            }
-            set.apply_manifest(stream.manifest(0.0));
+            bytes += still_pass(&mut stream, &mut set, &self.scene, &self.bvh);
             if !(pass.is_power_of_two() || pass == o.passes) {
                 continue;
             }
@@ -910,6 +900,22 @@ impl QualityView {
         }
         Ok(points)
     }
+}
+
+/// One more iteration of `stream` over a still scene (time 0) into `set`, as a client holds
+/// it (the batches, then the manifest): a still light's next refinement pass. Its bytes.
+fn still_pass(
+    stream: &mut PhotonStream,
+    set: &mut PhotonSet,
+    scene: &Scene,
+    bvh: &SceneBvh,
+) -> usize {
+    let it = stream.iterate(scene, bvh, 0.0);
+    for b in &it.batches {
+        set.insert(b);
+    }
+    set.apply_manifest(stream.manifest(0.0));
+    it.data_bytes()
 }
 
 /// The progressive table.
