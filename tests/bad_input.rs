@@ -47,7 +47,7 @@ name = "viewer"
 kind = "photon_reconstructor"
 node = "client"
 replicas = @replicas@
-params = { width = @width@, height = @height@, fps = @fps@, camera = @camera@, write_every = @write_every@, light_samples = @light_samples@, shadow_size = @shadow_size@, downsample = @downsample@, levels = @levels@, min_texels = @min_texels@, compute = @compute@ }
+params = { width = @width@, height = @height@, fps = @fps@, camera = @camera@, write_every = @write_every@, light_samples = @light_samples@, shadow_size = @shadow_size@, downsample = @downsample@, levels = @levels@, min_texels = @min_texels@, compute = @compute@, merge = @merge@ }
 [[stage]]
 name = "probe"
 kind = "probe_source"
@@ -118,6 +118,7 @@ const KEYS: &[(&str, &str)] = &[
     ("levels", "4"),
     ("min_texels", "2.0"),
     ("compute", "true"),
+    ("merge", "0.5"),
     ("rate_hz", "10.0"),
     ("payload_bytes", "100"),
     ("work_ms", "1.0"),

@@ -1191,6 +1191,12 @@ fn bench_client_draws_a_still_lights_passes_together() {
             .unwrap_or_else(|| panic!("{line}"));
         (n, line)
     };
+    // The photons splatted after merging ("…, M splatted (merged), …").
+    let splatted = |line: &str| -> Option<usize> {
+        line.split(", ")
+            .find(|f| f.ends_with(" splatted (merged)"))
+            .and_then(|f| f.split(' ').next()?.parse().ok())
+    };
     let (one, line) = drawn("passes=1");
     assert!(!line.contains("passes"), "{line}");
     let (three, line) = drawn("passes=3");
@@ -1200,6 +1206,11 @@ fn bench_client_draws_a_still_lights_passes_together() {
         (2.5 * one as f64..=3.5 * one as f64).contains(&(three as f64)),
         "{one} → {three}"
     );
+    // Merged (the default) into fewer photons; not at all with `merge=0`.
+    let merged = splatted(&line).unwrap_or_else(|| panic!("{line}"));
+    assert!(merged > 0 && merged < three, "{line}");
+    let (_, line) = drawn("merge=0");
+    assert_eq!(splatted(&line), None, "{line}");
 }
 
 #[test]

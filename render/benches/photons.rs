@@ -1,6 +1,8 @@
 //! Photon kernels on the Cornell box at the paper's budget (10k photons, one batch): tracing
 //! a batch (plain, relaxed, and with disks not fitted to their surfaces), packing it (12 and 20 bytes per photon), unpacking it; and
-//! tracing a batch on city:250000, where the BVH no longer fits the caches.
+//! tracing a batch on city:250000, where the BVH no longer fits the caches; merging a batch,
+//! and 32 batches drawn together as a still light's refinement passes, before a client
+//! splats them.
 //!
 //! `cargo bench -p cloudlight-render --bench photons`
 
@@ -104,6 +106,27 @@ fn photons(c: &mut Criterion) {
             |b| b.iter(|| packed.unpack().unwrap()),
         );
     }
+    let cell = cloudlight_render::photon::splat::SplatSettings::default().merge;
+    c.bench_function(&format!("cornell: merge {} photons", stored.len()), |b| {
+        b.iter(|| cloudlight_render::photon::merge::merge(&stored, cell).len())
+    });
+    // 32 passes as a client draws them: each its own photons, powers / 32, radii scaled.
+    let scale = cloudlight_render::photon::progressive_radius_scale(32);
+    let passes: Vec<_> = (0..32)
+        .flat_map(|g| tracer.trace_batch(&lights[0], 0, 1, 100 + g))
+        .map(|p| cloudlight_render::photon::Photon {
+            power: p.power / 32.0,
+            radius: p.radius * scale,
+            ..p
+        })
+        .collect();
+    let mut group = c.benchmark_group("merge");
+    group.sample_size(10);
+    group.bench_function(
+        format!("cornell: merge 32 passes, {} photons", passes.len()),
+        |b| b.iter(|| cloudlight_render::photon::merge::merge(&passes, cell).len()),
+    );
+    group.finish();
 }
 
 fn city(c: &mut Criterion) {

@@ -62,6 +62,9 @@ pub struct PhotonOptions {
     /// The compute splat adds every photon to edge pixels at full resolution
     /// ([`SplatSettings::edges`]).
     pub edges: bool,
+    /// The client merges photons within this fraction of their radius before splatting
+    /// ([`SplatSettings::merge`]; 0: none).
+    pub merge: f32,
     /// Refinement passes of a still light (progressive photon mapping); `bench quality`
     /// measures the error pass by pass when above 1.
     pub passes: u32,
@@ -92,6 +95,7 @@ impl Default for PhotonOptions {
             min_texels: SplatSettings::default().min_texels,
             compute: SplatSettings::default().compute,
             edges: SplatSettings::default().edges,
+            merge: SplatSettings::default().merge,
             passes: PhotonSettings::default().passes,
             guide: PhotonSettings::default().guide_share,
             guide_reach: PhotonSettings::default().guide_reach,
@@ -133,17 +137,22 @@ impl Photons {
     /// Refuses options a batcher or a client would refuse, naming the knob and its range.
     fn check(o: &PhotonOptions) -> anyhow::Result<()> {
         use cloudlight_runtime::CheckParams;
-        let client = PhotonClientParams {
+        Self::batcher_params(o)
+            .check()
+            .and_then(|()| Self::client(o).check())
+            .map_err(|e| anyhow::anyhow!("--set: {e}"))
+    }
+
+    /// The client's own knobs among `o`.
+    fn client(o: &PhotonOptions) -> PhotonClientParams {
+        PhotonClientParams {
             downsample: o.downsample,
             levels: o.levels,
             min_texels: o.min_texels,
             compute: o.compute,
             edges: o.edges,
-        };
-        Self::batcher_params(o)
-            .check()
-            .and_then(|()| client.check())
-            .map_err(|e| anyhow::anyhow!("--set: {e}"))
+            merge: o.merge,
+        }
     }
 
     /// A client's `params`: `render` false for a cluster benchmark's clients (they measure,
@@ -151,13 +160,7 @@ impl Photons {
     pub fn client_params(o: &PhotonOptions, frame: ClientParams) -> anyhow::Result<toml::Table> {
         let params = Params {
             client: frame,
-            technique: PhotonClientParams {
-                downsample: o.downsample,
-                levels: o.levels,
-                min_texels: o.min_texels,
-                compute: o.compute,
-                edges: o.edges,
-            },
+            technique: Self::client(o),
         };
         Ok(params.to_table()?)
     }
@@ -276,19 +279,13 @@ impl Technique for Photons {
         } else {
             trace_iteration(scene, &bvh, 0.0, settings, 1, o.format).unpacked()
         };
-        let splat = SplatSettings {
-            downsample: o.downsample,
-            levels: o.levels,
-            min_texels: o.min_texels,
-            compute: o.compute,
-            edges: o.edges,
-            ..SplatSettings::default()
-        };
-        let mut bench = client_frame_with(raster, scene, &photons, splat, frame)?;
-        bench.indirect = match passes {
-            1 => format!("{} photons", photons.len()),
-            p => format!("{} photons in {p} passes", photons.len()),
-        };
+        let mut bench = client_frame_with(raster, scene, &photons, Self::client(o).splat(), frame)?;
+        if passes > 1 {
+            bench.indirect =
+                bench
+                    .indirect
+                    .replacen(" photons", &format!(" photons in {passes} passes"), 1);
+        }
         Ok(bench)
     }
 
@@ -353,6 +350,7 @@ impl Technique for Photons {
             min_texels: options.min_texels,
             compute: options.compute,
             edges: options.edges,
+            merge: options.merge,
             passes: options.passes,
             guide: options.guide,
             guide_reach: options.guide_reach,
@@ -623,7 +621,12 @@ pub fn client_frame_with(
 ) -> anyhow::Result<ClientBench> {
     let mut pass = PhotonSplatPass::new(raster, splat)?;
     pass.set_photons(raster, photons)?;
-    super::client::measure(raster, scene, &mut pass, options)
+    let mut bench = super::client::measure(raster, scene, &mut pass, options)?;
+    bench.indirect = format!("{} photons", pass.received_count());
+    if pass.photon_count() != pass.received_count() {
+        bench.indirect += &format!(", {} splatted (merged)", pass.photon_count());
+    }
+    Ok(bench)
 }
 
 /// The speed/accuracy sweep's settings.
@@ -661,6 +664,8 @@ pub struct QualityOptions {
     pub compute: bool,
     /// Its edge pixels splatted at full resolution.
     pub edges: bool,
+    /// Photons merged within this fraction of their radius before splatting (0: none).
+    pub merge: f32,
     /// Above 1: the first budget is also measured pass by pass while its lights stand
     /// still, up to this many passes (progressive photon mapping).
     pub passes: u32,
@@ -797,6 +802,7 @@ impl QualityView {
                 min_texels: o.min_texels,
                 compute: o.compute,
                 edges: o.edges,
+                merge: o.merge,
                 ..SplatSettings::default()
             },
         )?;
@@ -838,6 +844,9 @@ pub struct ProgressivePoint {
     pub scene_time_s: f64,
     /// Photons drawn.
     pub photons: usize,
+    /// Of them, photons splatted after merging ([`SplatSettings::merge`]).
+    #[serde(default)]
+    pub splatted: usize,
     /// Bytes sent so far, kB.
     pub kbytes: f64,
     /// Errors against the reference.
@@ -882,8 +891,9 @@ impl QualityView {
             }
             let drawn: Vec<Photon> = set.photons().collect();
             let (errors, image) = self.client_errors(raster, &drawn, o)?;
+            let splatted = cloudlight_render::photon::merge::merge(&drawn, o.merge).len();
             eprintln!(
-                "{pass} passes: {} photons, relMSE {:.4}, energy {:.3}, worst 1% of pixels {:.0}% of it",
+                "{pass} passes: {} photons ({splatted} splatted), relMSE {:.4}, energy {:.3}, worst 1% of pixels {:.0}% of it",
                 drawn.len(),
                 errors.relmse,
                 errors.energy_ratio,
@@ -893,6 +903,7 @@ impl QualityView {
                 passes: pass,
                 scene_time_s: pass as f64 / o.rate_hz,
                 photons: drawn.len(),
+                splatted,
                 kbytes: bytes as f64 / 1e3,
                 errors,
             };
@@ -924,6 +935,7 @@ pub fn progressive_markdown(points: &[ProgressivePoint], photons: u64) -> String
         "passes",
         "scene time s",
         "photons drawn",
+        "splatted (merged)",
         "KB sent",
         "relMSE",
         "HDR-FLIP",
@@ -935,6 +947,7 @@ pub fn progressive_markdown(points: &[ProgressivePoint], photons: u64) -> String
             p.passes.to_string(),
             format!("{:.2}", p.scene_time_s),
             p.photons.to_string(),
+            p.splatted.to_string(),
             format!("{:.0}", p.kbytes),
             format!("{:.4}", p.errors.relmse),
             format!("{:.3}", p.errors.flip),

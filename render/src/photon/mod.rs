@@ -45,6 +45,7 @@ use footprint::{Footprint, FootprintCache, Guide};
 pub mod compact8;
 pub mod density;
 pub mod footprint;
+pub mod merge;
 pub mod pack;
 pub mod relax;
 pub mod splat;

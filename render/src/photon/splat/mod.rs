@@ -316,6 +316,12 @@ pub struct SplatSettings {
     /// at most (ignored beyond).
     /// Off by default: it did not move the error enough for its cost (README, "Edges").
     pub edges: bool,
+    /// Photons within a cell of this fraction of their radius (of one radius class and
+    /// receiving alike) are merged into one before they are uploaded ([`super::merge`]);
+    /// 0: none. A splat's cost is its photon count, and a still light's refinement passes
+    /// multiply it. `bench quality --technique photons` and `bench client --technique
+    /// photons --set passes=P`, merge 0 → 0.5: see the README ("Merging photons").
+    pub merge: f32,
 }
 
 impl Default for SplatSettings {
@@ -331,6 +337,7 @@ impl Default for SplatSettings {
             compute: true,
             chunk_photons: None,
             edges: false,
+            merge: 0.5,
         }
     }
 }
@@ -392,6 +399,8 @@ pub struct PhotonSplatPass {
     settings: SplatSettings,
     photons: Option<wgpu::Buffer>,
     count: u32,
+    /// Photons given to the last [`PhotonSplatPass::set_photons`] (before merging).
+    received: u32,
     /// Σ over photons of their largest power channel, watts (sets the accumulation scale).
     power_w: f32,
     /// Fixed-point units per W/m² of the compute splat ([`UNITS_PER_PEAK`] over the median
@@ -410,6 +419,7 @@ impl PhotonSplatPass {
             settings,
             photons: None,
             count: 0,
+            received: 0,
             power_w: 0.0,
             fixed_units: 1.0,
             params: raster.device.create_buffer(&wgpu::BufferDescriptor {
@@ -425,6 +435,14 @@ impl PhotonSplatPass {
     /// Photons splatted from now on (non-finite photons and those without a radius are
     /// left out).
     pub fn set_photons(&mut self, raster: &Raster, photons: &[Photon]) -> Result<(), RasterError> {
+        self.received = photons.len() as u32;
+        let merged;
+        let photons = if self.settings.merge > 0.0 {
+            merged = super::merge::merge(photons, self.settings.merge);
+            &merged[..]
+        } else {
+            photons
+        };
         let instances: Vec<SplatPhoton> = photons
             .iter()
             .filter(|p| {
@@ -504,9 +522,14 @@ impl PhotonSplatPass {
         self.settings.edges && self.settings.downsample.clamp(1, 8) <= 4
     }
 
-    /// Photons uploaded.
+    /// Photons uploaded (after merging, [`SplatSettings::merge`]).
     pub fn photon_count(&self) -> u32 {
         self.count
+    }
+
+    /// Photons given to the last [`PhotonSplatPass::set_photons`], before merging.
+    pub fn received_count(&self) -> u32 {
+        self.received
     }
 
     fn targets(&mut self, raster: &Raster, ctx: &IndirectContext<'_>) -> &SplatTargets {

@@ -748,3 +748,71 @@ fn a_timed_frame_names_the_splats_steps_and_draws_the_same_image() {
         }
     });
 }
+
+#[test]
+fn merged_photons_draw_the_image_of_the_photons_they_stand_for() {
+    // Cornell box, 10k photons and 4 refinement passes of them drawn together (64²):
+    // merging photons within half their radius (the default) splats a fraction of them,
+    // keeps the light's energy and moves the image by far less than its own error against
+    // the path tracer; a cell of twice the radius moves it more.
+    use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
+    let view = CornellView::new();
+    let one = |seed| {
+        let s = PhotonSettings::for_budget(&view.scene, 10_000, 10_000);
+        trace_iteration(&view.scene, &view.bvh, 0.0, s, seed, PackFormat::Compact8).unpacked()
+    };
+    // Four passes as a client draws them: powers divided by 4, radii scaled.
+    let scale = crate::photon::progressive_radius_scale(4);
+    let four: Vec<_> = (1..=4u64)
+        .flat_map(one)
+        .map(|p| crate::photon::Photon {
+            power: p.power / 4.0,
+            radius: p.radius * scale,
+            ..p
+        })
+        .collect();
+    on_every_backend(|raster| {
+        for (name, photons) in [("one pass", one(3)), ("four passes", four.clone())] {
+            let splat = |merge| SplatSettings {
+                merge,
+                ..Default::default()
+            };
+            let merged = crate::photon::merge::merge(&photons, 0.5).len();
+            let ((plain, unmerged), (e, image)) = (
+                view.errors_with(raster, &photons, splat(0.0)),
+                view.errors_with(raster, &photons, splat(0.5)),
+            );
+            let (_, coarse) = view.errors_with(raster, &photons, splat(2.0));
+            let mask: Vec<bool> = unmerged.iter().map(|v| v.max_element() > 0.0).collect();
+            let moved = crate::metrics::compare(&image, &unmerged, &mask, VIEW, VIEW);
+            let moved_coarse = crate::metrics::compare(&coarse, &unmerged, &mask, VIEW, VIEW);
+            eprintln!(
+                "{name}: {} photons -> {merged}; relMSE {:.4} -> {:.4}; merged against unmerged {:.5} (energy {:.4}), cell 2: {:.5}",
+                photons.len(),
+                plain.relmse,
+                e.relmse,
+                moved.relmse,
+                moved.energy_ratio,
+                moved_coarse.relmse
+            );
+            assert!(
+                merged * 2 < photons.len(),
+                "{name}: {merged} of {}",
+                photons.len()
+            );
+            assert!((moved.energy_ratio - 1.0).abs() < 0.01, "{name}: {moved:?}");
+            assert!(
+                moved.relmse < 0.05 * plain.relmse,
+                "{name}: {moved:?} against {plain:?}"
+            );
+            assert!(
+                moved_coarse.relmse > moved.relmse,
+                "{name}: {moved_coarse:?}"
+            );
+            assert!(
+                e.relmse < 1.1 * plain.relmse,
+                "{name}: {e:?} against {plain:?}"
+            );
+        }
+    });
+}
