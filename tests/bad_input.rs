@@ -41,13 +41,13 @@ address = "127.0.0.1:0"
 name = "batcher"
 kind = "photon_batcher"
 node = @node_ref@
-params = { photons = @photons@, batch_size = @batch_size@, bounces = @bounces@, photons_per_disk = @photons_per_disk@, radius_m = @radius_m@, interval_ms = @interval_ms@, resend_s = @resend_s@, passes = @passes@, format = @format@, receive = @receive@, guide_share = @guide_share@, guide_reach = @guide_reach@, relax = @relax@ }
+params = { photons = @photons@, batch_size = @batch_size@, bounces = @bounces@, photons_per_disk = @photons_per_disk@, radius_m = @radius_m@, interval_ms = @interval_ms@, resend_s = @resend_s@, passes = @passes@, format = @format@, receive = @receive@, guide_share = @guide_share@, guide_reach = @guide_reach@, relax = @relax@, merge = @merge@ }
 [[stage]]
 name = "viewer"
 kind = "photon_reconstructor"
 node = "client"
 replicas = @replicas@
-params = { width = @width@, height = @height@, fps = @fps@, camera = @camera@, write_every = @write_every@, light_samples = @light_samples@, shadow_size = @shadow_size@, downsample = @downsample@, levels = @levels@, min_texels = @min_texels@, compute = @compute@, merge = @merge@ }
+params = { width = @width@, height = @height@, fps = @fps@, camera = @camera@, write_every = @write_every@, light_samples = @light_samples@, shadow_size = @shadow_size@, downsample = @downsample@, levels = @levels@, min_texels = @min_texels@, compute = @compute@, splat_merge = @splat_merge@ }
 [[stage]]
 name = "probe"
 kind = "probe_source"
@@ -106,6 +106,7 @@ const KEYS: &[(&str, &str)] = &[
     ("guide_share", "0.5"),
     ("guide_reach", "0.05"),
     ("relax", "2"),
+    ("merge", "0.5"),
     ("replicas", "2"),
     ("width", "64"),
     ("height", "48"),
@@ -118,7 +119,7 @@ const KEYS: &[(&str, &str)] = &[
     ("levels", "4"),
     ("min_texels", "2.0"),
     ("compute", "true"),
-    ("merge", "0.5"),
+    ("splat_merge", "0.5"),
     ("rate_hz", "10.0"),
     ("payload_bytes", "100"),
     ("work_ms", "1.0"),

@@ -28,6 +28,7 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
         min_texels: 3.0,
         compute: true,
         edges: true,
+        splat_merge: 0.5,
         merge: 0.5,
         passes: 1,
         guide: 0.5,

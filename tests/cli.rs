@@ -1161,7 +1161,9 @@ fn benchmarks_of_missing_techniques_say_so() {
 
 #[test]
 fn bench_client_draws_a_still_lights_passes_together() {
-    // The photons drawn, from the line that names the scene ("…, N photons[ in P passes], …").
+    // The photons drawn, from the line that names the scene ("…, N photons[ in P passes], …"),
+    // as the batcher sends them unmerged (`merge=0`: it merges a first pass in cells
+    // larger than a refinement pass's, so merged counts do not grow with P alone).
     let drawn = |passes: &str| {
         let out = cloudlight()
             .args([
@@ -1173,7 +1175,7 @@ fn bench_client_draws_a_still_lights_passes_together() {
                 "cornell",
             ])
             .args(["--width", "64", "--height", "48", "--frames", "2"])
-            .args(["--photons", "1000", "--set", passes])
+            .args(["--photons", "1000", "--set", passes, "--set", "merge=0"])
             .output()
             .unwrap();
         ok(&out);
@@ -1206,10 +1208,10 @@ fn bench_client_draws_a_still_lights_passes_together() {
         (2.5 * one as f64..=3.5 * one as f64).contains(&(three as f64)),
         "{one} → {three}"
     );
-    // Merged (the default) into fewer photons; not at all with `merge=0`.
+    // Merged (the default) into fewer photons; not at all with `splat_merge=0`.
     let merged = splatted(&line).unwrap_or_else(|| panic!("{line}"));
     assert!(merged > 0 && merged < three, "{line}");
-    let (_, line) = drawn("merge=0");
+    let (_, line) = drawn("splat_merge=0");
     assert_eq!(splatted(&line), None, "{line}");
 }
 

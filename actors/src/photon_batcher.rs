@@ -124,10 +124,20 @@ pub struct BatcherParams {
     /// ([`PhotonSettings::fit`]).
     #[serde(default = "default_fit")]
     pub fit: u32,
+    /// Each batch's photons within a cell of this fraction of their radius (receiving
+    /// alike) merged into one before packing, 0 to 2 (0: none; default 0.5): the Cornell
+    /// box's 10k photons go out as ~3.7k, 62 → 23 KB an update, at the same relMSE within
+    /// 1% ([`PhotonSettings::merge`]; the README's "Merging photons").
+    #[serde(default = "default_merge")]
+    pub merge: f32,
 }
 
 fn default_fit() -> u32 {
     PhotonSettings::default().fit
+}
+
+fn default_merge() -> f32 {
+    PhotonSettings::default().merge
 }
 
 fn default_guide_share() -> f32 {
@@ -182,6 +192,7 @@ impl Default for BatcherParams {
             guide_reach: default_guide_reach(),
             relax: 0,
             fit: default_fit(),
+            merge: default_merge(),
         }
     }
 }
@@ -209,6 +220,9 @@ pub struct BatcherReport {
     pub photons_emitted: u64,
     /// Photons stored by the last iteration that traced.
     pub photons_stored: u64,
+    /// Photons sent by the last iteration that traced (those stored, merged).
+    #[serde(default)]
+    pub photons_sent: u64,
     /// Splat radius of the last iteration, meters.
     pub radius_m: f32,
     /// Bytes of packed photons held.
@@ -255,6 +269,7 @@ struct Figures {
     batches_traced: u64,
     photons_emitted: u64,
     photons_stored_last: u64,
+    photons_sent_last: u64,
     radius_m: f32,
     bytes_sent: u64,
     resends: u64,
@@ -306,6 +321,7 @@ impl PhotonBatcher {
                 batches_traced: 0,
                 photons_emitted: 0,
                 photons_stored_last: 0,
+                photons_sent_last: 0,
                 radius_m: 0.0,
                 bytes_sent: 0,
                 resends: 0,
@@ -331,13 +347,15 @@ impl PhotonBatcher {
         let mbps_sent = f.bytes_sent as f64 * 8.0 / elapsed / 1e6;
         BatcherReport {
             summary: format!(
-                "{} iterations (p50 {:.1} ms: trace {:.1}, pack {:.2}), {} batches of {} photons, {:.0} kB per set, {:.1} Mbps sent",
+                "{} iterations (p50 {:.1} ms: trace {:.1}, pack {:.2}), {} batches of {} photons ({} stored, {} sent merged, last iteration), {:.0} kB per set, {:.1} Mbps sent",
                 f.iterations,
                 f.iteration.p50_ms(),
                 f.trace.p50_ms(),
                 f.pack.p50_ms(),
                 batches,
                 settings.batch_size,
+                f.photons_stored_last,
+                f.photons_sent_last,
                 footprint as f64 / 1e3,
                 mbps_sent
             ),
@@ -354,6 +372,7 @@ impl PhotonBatcher {
             batches_traced: f.batches_traced,
             photons_emitted: f.photons_emitted,
             photons_stored: f.photons_stored_last,
+            photons_sent: f.photons_sent_last,
             radius_m: f.radius_m,
             footprint_bytes: footprint,
             bytes_per_photon: stream.bytes_per_photon(),
@@ -433,7 +452,7 @@ impl PhotonBatcher {
         );
         self.figures.radius_m = plan.radius_m();
         let (seed, format) = (ctx.seed(), self.format);
-        let mut stored = 0u64;
+        let (mut stored, mut sent) = (0u64, 0u64);
         let mut done: BTreeMap<(usize, u32), BTreeMap<u32, PackedBatch>> = BTreeMap::new();
         for (k, job) in plan.jobs.iter().enumerate() {
             if ctx.is_stopping() {
@@ -446,6 +465,7 @@ impl PhotonBatcher {
             .await?;
             self.count(&traced);
             stored += traced.stored as u64;
+            sent += traced.sent as u64;
             self.send(ctx, t, PhotonMsg::Batch(traced.batch.clone()))
                 .await?;
             let set = done.entry((job.light, job.pass)).or_default();
@@ -463,6 +483,7 @@ impl PhotonBatcher {
         }
         if stored > 0 {
             self.figures.photons_stored_last = stored;
+            self.figures.photons_sent_last = sent;
         }
         let manifest = lock(&self.stream).manifest(t);
         self.send(ctx, t, PhotonMsg::Manifest(manifest)).await?;
@@ -566,6 +587,7 @@ impl BatcherParams {
         settings.guide_reach = self.guide_reach;
         settings.relax = self.relax;
         settings.fit = self.fit;
+        settings.merge = self.merge;
         let lights = cloudlight_render::photon::photon_lights(scene, 0.0);
         let per_iteration =
             cloudlight_render::photon::BatchPlan::new(&lights, &settings).total_photons();
@@ -607,6 +629,7 @@ impl cloudlight_runtime::CheckParams for BatcherParams {
         check_range("passes", self.passes as f64, 1.0, 1024.0, "passes")?;
         check_range("relax", self.relax as f64, 0.0, 64.0, "rounds")?;
         check_range("fit", self.fit as f64, 0.0, 8.0, "halvings")?;
+        check_range("merge", self.merge as f64, 0.0, 2.0, "radii")?;
         check_range(
             "photons_per_disk",
             self.photons_per_disk as f64,

@@ -48,11 +48,12 @@ pub struct PhotonClientParams {
     #[serde(default = "default_edges")]
     pub edges: bool,
     /// Photons within a cell of this fraction of their radius (receiving alike) are merged
-    /// into one before they are splatted, 0 to 2 (0: none; 0.5, the default, splats ~3×
-    /// fewer photons of one pass and ~7× fewer of a still light's 32 passes for ~1–3% more
-    /// error: the README's "Merging photons").
-    #[serde(default = "default_merge")]
-    pub merge: f32,
+    /// into one before they are splatted, 0 to 2 (0: none; default 0.5): what the
+    /// batcher's `merge` could not merge, photons of different batches and a still light's
+    /// refinement passes (32 passes of the Cornell box's 10k photons splatted as ~7× fewer,
+    /// for ~1% more error: the README's "Merging photons").
+    #[serde(default = "default_splat_merge")]
+    pub splat_merge: f32,
 }
 
 fn default_downsample() -> u32 {
@@ -75,7 +76,7 @@ fn default_edges() -> bool {
     SplatSettings::default().edges
 }
 
-fn default_merge() -> f32 {
+fn default_splat_merge() -> f32 {
     SplatSettings::default().merge
 }
 
@@ -87,7 +88,7 @@ impl Default for PhotonClientParams {
             min_texels: default_min_texels(),
             compute: default_compute(),
             edges: default_edges(),
-            merge: default_merge(),
+            splat_merge: default_splat_merge(),
         }
     }
 }
@@ -101,7 +102,7 @@ impl PhotonClientParams {
             min_texels: self.min_texels,
             compute: self.compute,
             edges: self.edges,
-            merge: self.merge,
+            merge: self.splat_merge,
             ..Default::default()
         }
     }
@@ -122,7 +123,7 @@ impl cloudlight_runtime::CheckParams for PhotonClientParams {
             ));
         }
         cloudlight_runtime::check_range("min_texels", self.min_texels as f64, 0.5, 64.0, "texels")?;
-        cloudlight_runtime::check_range("merge", self.merge as f64, 0.0, 2.0, "radii")
+        cloudlight_runtime::check_range("splat_merge", self.splat_merge as f64, 0.0, 2.0, "radii")
     }
 }
 

@@ -64,6 +64,9 @@ pub struct PhotonOptions {
     pub edges: bool,
     /// The client merges photons within this fraction of their radius before splatting
     /// ([`SplatSettings::merge`]; 0: none).
+    pub splat_merge: f32,
+    /// The batcher merges each batch's photons within this fraction of their radius
+    /// before packing ([`PhotonSettings::merge`]; 0: none).
     pub merge: f32,
     /// Refinement passes of a still light (progressive photon mapping); `bench quality`
     /// measures the error pass by pass when above 1.
@@ -95,7 +98,8 @@ impl Default for PhotonOptions {
             min_texels: SplatSettings::default().min_texels,
             compute: SplatSettings::default().compute,
             edges: SplatSettings::default().edges,
-            merge: SplatSettings::default().merge,
+            splat_merge: SplatSettings::default().merge,
+            merge: PhotonSettings::default().merge,
             passes: PhotonSettings::default().passes,
             guide: PhotonSettings::default().guide_share,
             guide_reach: PhotonSettings::default().guide_reach,
@@ -129,6 +133,7 @@ impl Photons {
             passes: o.passes,
             relax: o.relax,
             fit: o.fit,
+            merge: o.merge,
             format: o.format.name().into(),
             ..BatcherParams::default()
         }
@@ -151,7 +156,7 @@ impl Photons {
             min_texels: o.min_texels,
             compute: o.compute,
             edges: o.edges,
-            merge: o.merge,
+            splat_merge: o.splat_merge,
         }
     }
 
@@ -261,6 +266,9 @@ impl Technique for Photons {
             density_radius: o.density_radius,
             receive: o.receive,
             passes,
+            relax: o.relax,
+            fit: o.fit,
+            merge: o.merge,
             ..PhotonSettings::for_budget(
                 scene,
                 o.photons,
@@ -350,6 +358,7 @@ impl Technique for Photons {
             min_texels: options.min_texels,
             compute: options.compute,
             edges: options.edges,
+            splat_merge: options.splat_merge,
             merge: options.merge,
             passes: options.passes,
             guide: options.guide,
@@ -664,7 +673,11 @@ pub struct QualityOptions {
     pub compute: bool,
     /// Its edge pixels splatted at full resolution.
     pub edges: bool,
-    /// Photons merged within this fraction of their radius before splatting (0: none).
+    /// The client merges photons within this fraction of their radius before splatting
+    /// (0: none).
+    pub splat_merge: f32,
+    /// The batcher merges each batch's photons within this fraction of their radius (0:
+    /// none).
     pub merge: f32,
     /// Above 1: the first budget is also measured pass by pass while its lights stand
     /// still, up to this many passes (progressive photon mapping).
@@ -688,6 +701,9 @@ pub struct QualityPoint {
     pub photons: u64,
     /// Photons stored.
     pub stored: usize,
+    /// Photons sent: those stored, merged by the batcher ([`PhotonSettings::merge`]).
+    #[serde(default)]
+    pub sent: usize,
     /// Splat radius, m.
     pub radius_m: f32,
     /// Trace + pack time of one update, ms.
@@ -696,7 +712,7 @@ pub struct QualityPoint {
     pub trace_ms: f64,
     /// Photon bytes per update, kB.
     pub kbytes: f64,
-    /// Bytes of data per stored photon (Compact8's varies with the batch).
+    /// Bytes of data per photon sent (Compact8's varies with the batch).
     pub bytes_per_photon: f64,
     /// Megabits per second at the update rate.
     pub mbps: f64,
@@ -739,6 +755,7 @@ impl QualityView {
             guide_reach: o.guide_reach,
             relax: o.relax,
             fit: o.fit,
+            merge: o.merge,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,
@@ -756,11 +773,12 @@ impl QualityView {
             packing: packing.to_string(),
             photons,
             stored: it.stored,
+            sent: it.sent,
             radius_m: it.radius,
             update_ms,
             trace_ms: it.trace_time.as_secs_f64() * 1000.0,
             kbytes: bytes / 1e3,
-            bytes_per_photon: bytes / it.stored.max(1) as f64,
+            bytes_per_photon: bytes / it.sent.max(1) as f64,
             mbps: bytes * 8.0 * rate / 1e6,
             errors,
         };
@@ -802,7 +820,7 @@ impl QualityView {
                 min_texels: o.min_texels,
                 compute: o.compute,
                 edges: o.edges,
-                merge: o.merge,
+                merge: o.splat_merge,
                 ..SplatSettings::default()
             },
         )?;
@@ -873,6 +891,7 @@ impl QualityView {
             guide_reach: o.guide_reach,
             relax: o.relax,
             fit: o.fit,
+            merge: o.merge,
             ..PhotonSettings::for_budget(
                 &self.scene,
                 photons,
@@ -891,7 +910,7 @@ impl QualityView {
             }
             let drawn: Vec<Photon> = set.photons().collect();
             let (errors, image) = self.client_errors(raster, &drawn, o)?;
-            let splatted = cloudlight_render::photon::merge::merge(&drawn, o.merge).len();
+            let splatted = cloudlight_render::photon::merge::merge(&drawn, o.splat_merge).len();
             eprintln!(
                 "{pass} passes: {} photons ({splatted} splatted), relMSE {:.4}, energy {:.3}, worst 1% of pixels {:.0}% of it",
                 drawn.len(),
@@ -966,9 +985,10 @@ pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
     let mut t = Markdown::new(&[
         "photons",
         "stored",
+        "sent (merged)",
         "radius cm",
         "update ms (8 B)",
-        "B/photon (8 B)",
+        "B/photon sent (8 B)",
         "KB/update (8 B)",
         &format!("Mbps @ {rate_hz} Hz: 8 B / 12 B"),
         "relMSE (8 B)",
@@ -982,6 +1002,7 @@ pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
         t.row(vec![
             r.photons.to_string(),
             p.stored.to_string(),
+            p.sent.to_string(),
             format!("{:.2}", p.radius_m * 100.0),
             format!("{:.1}", p.update_ms),
             format!("{:.2}", p.bytes_per_photon),

@@ -114,6 +114,8 @@ pub struct TracedBatch {
     pub batch: PackedBatch,
     /// Photons stored.
     pub stored: usize,
+    /// Photons sent: those stored, merged ([`PhotonSettings::merge`]).
+    pub sent: usize,
     /// Time spent tracing.
     pub trace_time: Duration,
     /// Time spent packing.
@@ -304,8 +306,20 @@ impl PhotonStream {
             .guided(&plan.guides)
             .seen_from(&plan.views);
         let start = Instant::now();
-        let photons: Vec<Photon> =
+        let mut photons: Vec<Photon> =
             tracer.trace_pass(light, job.slot, job.slots, job.generation, job.pass);
+        let stored = photons.len();
+        if plan.settings.merge > 0.0 {
+            // A refinement pass is drawn with radii that shrink as passes come: merged
+            // within the share of the radius it is drawn at once the light holds all its
+            // passes (merged at the traced radius, 32 passes of the Cornell box read 0.0109
+            // instead of 0.0100). A first pass is drawn alone until the next comes.
+            let cell = match job.pass {
+                0 => plan.settings.merge,
+                _ => plan.settings.merge * super::progressive_radius_scale(plan.settings.passes),
+            };
+            photons = super::merge::merge(&photons, cell);
+        }
         let trace_time = start.elapsed();
         let start = Instant::now();
         let batch = PackedBatch::pack(
@@ -324,7 +338,8 @@ impl PhotonStream {
         );
         TracedBatch {
             batch,
-            stored: photons.len(),
+            stored,
+            sent: photons.len(),
             trace_time,
             pack_time: start.elapsed(),
         }
@@ -428,7 +443,8 @@ impl PhotonStream {
     pub fn iterate(&mut self, scene: &Scene, bvh: &SceneBvh, t_s: f64) -> Iteration {
         let plan = self.plan(scene, bvh, t_s);
         let mut batches = Vec::with_capacity(plan.jobs.len());
-        let (mut trace_time, mut pack_time, mut stored) = (Duration::ZERO, Duration::ZERO, 0);
+        let (mut trace_time, mut pack_time) = (Duration::ZERO, Duration::ZERO);
+        let (mut stored, mut sent) = (0, 0);
         let mut per_light: BTreeMap<(usize, u64, u32), BTreeMap<u32, PackedBatch>> =
             BTreeMap::new();
         for job in &plan.jobs {
@@ -436,6 +452,7 @@ impl PhotonStream {
             trace_time += traced.trace_time;
             pack_time += traced.pack_time;
             stored += traced.stored;
+            sent += traced.sent;
             per_light
                 .entry((job.light, job.generation, job.pass))
                 .or_default()
@@ -451,6 +468,7 @@ impl PhotonStream {
             plan: plan.plan,
             batches,
             stored,
+            sent,
             trace_time,
             pack_time,
         }
@@ -482,7 +500,9 @@ pub struct Iteration {
     pub batches: Vec<PackedBatch>,
     /// Photons stored.
     pub stored: usize,
-    /// Time spent tracing.
+    /// Photons sent: those stored, merged ([`PhotonSettings::merge`]).
+    pub sent: usize,
+    /// Time spent tracing (and merging).
     pub trace_time: Duration,
     /// Time spent packing.
     pub pack_time: Duration,

@@ -494,7 +494,12 @@ fn the_compute_splat_draws_what_the_raster_splat_draws() {
     // the rounding (and, on GL llvmpipe, the raster's half-precision accumulation).
     use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
     let view = CornellView::new();
-    let s = PhotonSettings::for_budget(&view.scene, 10_000, 10_000);
+    // Unmerged: 10k photons, so that the sums' rounding (stochastic, zero-mean) adds up to
+    // a small share of the light whichever way the set is chunked.
+    let s = PhotonSettings {
+        merge: 0.0,
+        ..PhotonSettings::for_budget(&view.scene, 10_000, 10_000)
+    };
     let photons =
         trace_iteration(&view.scene, &view.bvh, 0.0, s, 3, PackFormat::Compact8).unpacked();
     on_every_backend(|raster| {
@@ -757,8 +762,12 @@ fn merged_photons_draw_the_image_of_the_photons_they_stand_for() {
     // the path tracer; a cell of twice the radius moves it more.
     use crate::photon::{PackFormat, PhotonSettings, trace_iteration};
     let view = CornellView::new();
+    // The tracer's photons, not merged by the batcher.
     let one = |seed| {
-        let s = PhotonSettings::for_budget(&view.scene, 10_000, 10_000);
+        let s = PhotonSettings {
+            merge: 0.0,
+            ..PhotonSettings::for_budget(&view.scene, 10_000, 10_000)
+        };
         trace_iteration(&view.scene, &view.bvh, 0.0, s, seed, PackFormat::Compact8).unpacked()
     };
     // Four passes as a client draws them: powers divided by 4, radii scaled.
