@@ -347,7 +347,7 @@ impl PhotonBatcher {
         let mbps_sent = f.bytes_sent as f64 * 8.0 / elapsed / 1e6;
         BatcherReport {
             summary: format!(
-                "{} iterations (p50 {:.1} ms: trace {:.1}, pack {:.2}), {} batches of {} photons ({} stored, {} sent merged, last iteration), {:.0} kB per set, {:.1} Mbps sent",
+                "{} iterations (p50 {:.1} ms: trace {:.1}, pack {:.2}), {} batches of {} photons ({} stored, {} sent, last iteration), {:.0} kB per set, {:.1} Mbps sent",
                 f.iterations,
                 f.iteration.p50_ms(),
                 f.trace.p50_ms(),
