@@ -57,19 +57,18 @@ pub fn merge(photons: &[Photon], cell: f32) -> Vec<Photon> {
             .par_chunk_by(|a, b| a.0 == b.0)
             .map(|group| match group {
                 [(_, only)] => photons[*only as usize],
-                _ => merged(group.iter().map(|(_, i)| &photons[*i as usize])),
+                _ => merged(group, photons),
             }),
     );
     out
 }
 
-/// The photon that stands for `group` (at least one photon, all finite).
-fn merged<'a>(group: impl Iterator<Item = &'a Photon> + Clone) -> Photon {
-    let first = *group.clone().next().expect("a group holds a photon");
+/// The photon that stands for `group` (two photons or more, all finite).
+fn merged(group: &[(u128, u32)], photons: &[Photon]) -> Photon {
+    let first = photons[group[0].1 as usize];
     let (mut power, mut weight) = (Vec3::ZERO, 0.0f64);
     let (mut position, mut radius, mut direction) = (glam::DVec3::ZERO, 0.0f64, Vec3::ZERO);
-    let mut count = 0usize;
-    for p in group.clone() {
+    for p in group.iter().map(|(_, i)| &photons[*i as usize]) {
         // Weighted by the sum of channels (what the splat adds in), floored so a group of
         // black photons still has a centroid.
         let w = (p.power.max(Vec3::ZERO).element_sum() as f64).max(1e-30);
@@ -78,9 +77,7 @@ fn merged<'a>(group: impl Iterator<Item = &'a Photon> + Clone) -> Photon {
         position += p.position.as_dvec3() * w;
         radius += p.radius as f64 * w;
         direction += p.direction * w as f32;
-        count += 1;
     }
-    debug_assert!(count > 1);
     Photon {
         position: (position / weight).as_vec3(),
         direction: direction.try_normalize().unwrap_or(first.direction),
