@@ -7,7 +7,7 @@
 //! |---|---|---|---|---|---|
 //! | [`PackFormat::Wide20`] | 3 × f32 | RGB, 9-bit mantissas + 5-bit shared exponent | octahedral 2 × 12 bit | 8-bit log | 20 |
 //! | [`PackFormat::Compact12`] | 3 × 16 bit in the batch's bounds | RGB, 7-bit mantissas + 5-bit shared exponent | octahedral 2 × 8 bit | 6-bit log | 12 |
-//! | [`PackFormat::Compact8`] | Morton order, Exp-Golomb gaps on a grid of 1/16 the smallest radius | RGB, 6-bit dithered mantissas + 4-bit shared exponent | octahedral 2 × 5 bit | 5-bit log | ~7–8 (varies) |
+//! | [`PackFormat::Compact8`] | Morton order, Exp-Golomb gaps on a grid of 1/12 of each photon's radius (rounded down to a power of two of the smallest's) | RGB, 6-bit dithered mantissas + 4-bit shared exponent | octahedral 2 × 5 bit | 5-bit log | ~7–8 (varies) |
 //!
 //! Compact8 is a bit stream whose photons come out in Morton order, not the order packed
 //! ([`super::compact8`] has its layout and bounds).
