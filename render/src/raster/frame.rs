@@ -21,6 +21,7 @@ use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
 use glam::{Mat4, Vec3};
 use wgpu::util::DeviceExt;
 
+use super::albedo::AlbedoTextures;
 use super::compose::ComposePass;
 use super::direct::DirectPass;
 use super::gbuffer::{Chunks, GBufferPass, Geometry};
@@ -267,13 +268,26 @@ impl FrameRenderer {
 
     /// Uploads the geometry the frames draw (once for a static scene; again whenever it
     /// moves). Triangles take their albedo from `scene`'s materials, a textured one times
-    /// its texture's mean over the triangle ([`triangle_albedo`]).
+    /// its texture where each pixel sees it (`raster/albedo.rs`; the textures are
+    /// uploaded the first time, and again only for a scene with other textures).
     pub fn set_geometry(
         &mut self,
         raster: &Raster,
         scene: &Scene,
         triangles: &[WorldTriangle],
     ) -> Result<(), RasterError> {
+        if !self
+            .geometry
+            .albedo
+            .as_ref()
+            .is_some_and(|a| a.holds(scene))
+        {
+            let textures = raster.checked("uploading textures", || {
+                Ok(AlbedoTextures::new(raster, scene))
+            })?;
+            self.geometry.albedo = Some(textures);
+        }
+        let albedo_maps = self.geometry.albedo.as_ref().expect("uploaded above");
         let mut lo = Vec3::splat(f32::INFINITY);
         let mut hi = Vec3::splat(f32::NEG_INFINITY);
         let mut shaded = Vec::with_capacity(triangles.len() * 3);
@@ -282,7 +296,13 @@ impl FrameRenderer {
             let albedo = scene
                 .materials
                 .get(t.material as usize)
-                .map_or([0.0; 3], |m| triangle_albedo(m, t).to_array());
+                .map_or(Vec3::ZERO, |m| m.albedo);
+            let albedo = (albedo.clamp(Vec3::ZERO, Vec3::ONE) * 65535.0 + Vec3::splat(0.5))
+                .as_uvec3()
+                .to_array()
+                .map(|c| c as u16);
+            let albedo = [albedo[0], albedo[1], albedo[2], 0];
+            let layer = albedo_maps.layer(t.material);
             // A triangle whose three light-map UVs are all zero has none (WorldTriangle's
             // convention for meshes without them).
             let has_lightmap = t.lightmap_uv.iter().any(|uv| *uv != glam::Vec2::ZERO);
@@ -291,13 +311,15 @@ impl FrameRenderer {
                 hi = hi.max(t.v[k]);
                 shaded.push(GBufferVertex {
                     position: t.v[k].to_array(),
-                    normal: t.n[k].to_array(),
+                    normal: snorm16(t.n[k]),
                     albedo,
                     lightmap: if has_lightmap {
-                        [t.lightmap_uv[k].x, t.lightmap_uv[k].y, 1.0]
+                        t.lightmap_uv[k].to_array()
                     } else {
-                        [0.0; 3]
+                        [-1.0; 2]
                     },
+                    uv: t.uv[k].to_array(),
+                    layer,
                 });
                 positions.push(t.v[k].to_array());
             }
@@ -536,32 +558,8 @@ impl ReadFrame {
     }
 }
 
-/// The albedo a triangle is drawn with: its material's, times the mean of the material's
-/// texture over the triangle's UVs (32 low-discrepancy samples, nearest texel as the path tracer
-/// reads it). The G-buffer has no texture lookups yet, so a textured surface is flat-shaded
-/// by its mean: without this factor a client saw textured scenes (the dungeon) about 2.7×
-/// brighter than the reference, whose hits read the texture.
-pub fn triangle_albedo(material: &cloudlight_scenes::Material, t: &WorldTriangle) -> Vec3 {
-    let Some(texture) = &material.texture else {
-        return material.albedo;
-    };
-    if texture.texels.is_empty() {
-        return material.albedo;
-    }
-    // Roberts' R2 sequence folded onto the triangle: a lattice would alias with a texture
-    // tiled a whole number of times across the triangle.
-    const N: u32 = 32;
-    let mut sum = Vec3::ZERO;
-    for i in 0..N {
-        let (mut a, mut b) = (
-            (0.5 + i as f32 * 0.754_877_7).fract(),
-            (0.5 + i as f32 * 0.569_840_3).fract(),
-        );
-        if a + b > 1.0 {
-            (a, b) = (1.0 - a, 1.0 - b);
-        }
-        let uv = t.uv[0] * (1.0 - a - b) + t.uv[1] * a + t.uv[2] * b;
-        sum += texture.sample(uv);
-    }
-    material.albedo * sum / N as f32
+/// A unit vector as snorm16 (the fourth component 0).
+fn snorm16(n: Vec3) -> [i16; 4] {
+    let q = |c: f32| (c.clamp(-1.0, 1.0) * 32767.0).round() as i16;
+    [q(n.x), q(n.y), q(n.z), 0]
 }

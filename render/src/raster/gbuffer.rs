@@ -14,6 +14,8 @@ use super::targets::{GBufferTargets, cleared_colour, cleared_depth, view_bind_gr
 #[derive(Default)]
 pub(crate) struct Geometry {
     pub(crate) gbuffer: Option<wgpu::Buffer>,
+    /// The scene's albedo textures (uploaded with the geometry the first time).
+    pub(crate) albedo: Option<super::albedo::AlbedoTextures>,
     pub(crate) shadow: Option<wgpu::Buffer>,
     pub(crate) vertices: u32,
     pub(crate) bounds: (Vec3, Vec3),
@@ -166,9 +168,10 @@ impl GBufferPass {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        if let Some(vbuf) = &geometry.gbuffer {
+        if let (Some(vbuf), Some(albedo)) = (&geometry.gbuffer, &geometry.albedo) {
             pass.set_pipeline(&raster.pipelines.gbuffer);
             pass.set_bind_group(0, &self.bind, &[0]);
+            pass.set_bind_group(1, &albedo.bind, &[]);
             pass.set_vertex_buffer(0, vbuf.slice(..));
             for run in geometry.culled.visible_near_first(clip, eye) {
                 pass.draw(run, 0..1);

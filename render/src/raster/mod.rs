@@ -15,6 +15,7 @@
 use cloudlight_scenes::Camera;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
+mod albedo;
 mod compose;
 pub mod device;
 pub mod direct;

@@ -10,10 +10,16 @@ use super::Formats;
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct GBufferVertex {
     pub(crate) position: [f32; 3],
-    pub(crate) normal: [f32; 3],
-    pub(crate) albedo: [f32; 3],
-    /// Light-map UV, and 1 where the triangle has light-map UVs (else 0).
-    pub(crate) lightmap: [f32; 3],
+    /// Unit normal, snorm16 (the fourth unused).
+    pub(crate) normal: [i16; 4],
+    /// Albedo in [0, 1], unorm16 (the fourth unused).
+    pub(crate) albedo: [u16; 4],
+    /// Light-map UV in [0, 1]², or negative where the triangle has none.
+    pub(crate) lightmap: [f32; 2],
+    /// Texture UV.
+    pub(crate) uv: [f32; 2],
+    /// The albedo array's layer (0: untextured, white).
+    pub(crate) layer: u32,
 }
 
 /// Stride of one view matrix in the views uniform buffer (dynamic offsets are 256-aligned).
@@ -24,6 +30,8 @@ pub(crate) struct Pipelines {
     /// One `clip_from_world` at a dynamic offset (camera or shadow view).
     pub(crate) view_layout: wgpu::BindGroupLayout,
     pub(crate) gbuffer: wgpu::RenderPipeline,
+    /// The G-buffer's albedo textures and their sampler (`raster/albedo.rs`).
+    pub(crate) albedo_layout: wgpu::BindGroupLayout,
     pub(crate) shadow: wgpu::RenderPipeline,
     pub(crate) direct_layout: wgpu::BindGroupLayout,
     pub(crate) direct: wgpu::RenderPipeline,
@@ -173,7 +181,31 @@ impl Pipelines {
             }],
         );
         let view_pipeline_layout = pipeline_layout(device, "view", &view_layout);
-        let (gbuffer, shadow) = geometry_pipelines(device, formats, &view_pipeline_layout);
+        let albedo_layout = layout(
+            device,
+            "albedo textures",
+            &[
+                texture_entry(
+                    0,
+                    FRAGMENT,
+                    wgpu::TextureSampleType::Float { filterable: true },
+                    wgpu::TextureViewDimension::D2Array,
+                ),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: FRAGMENT,
+                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                    count: None,
+                },
+            ],
+        );
+        let gbuffer_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("gbuffer"),
+            bind_group_layouts: &[Some(&view_layout), Some(&albedo_layout)],
+            immediate_size: 0,
+        });
+        let (gbuffer, shadow) =
+            geometry_pipelines(device, formats, &gbuffer_layout, &view_pipeline_layout);
         let (direct_layout, direct) = direct_pipeline(device, formats);
         let compose_layout = layout(
             device,
@@ -195,6 +227,7 @@ impl Pipelines {
         Pipelines {
             view_layout,
             gbuffer,
+            albedo_layout,
             shadow,
             direct_layout,
             direct,
@@ -244,10 +277,12 @@ fn direct_pipeline(
     (direct_layout, direct)
 }
 
-/// The G-buffer pipeline and the depth-only shadow pipeline (both take one view matrix).
+/// The G-buffer pipeline (a view matrix, then the albedo textures) and the depth-only shadow
+/// pipeline (a view matrix).
 fn geometry_pipelines(
     device: &wgpu::Device,
     formats: &Formats,
+    gbuffer_layout: &wgpu::PipelineLayout,
     layout: &wgpu::PipelineLayout,
 ) -> (wgpu::RenderPipeline, wgpu::RenderPipeline) {
     let target = |format| {
@@ -260,7 +295,7 @@ fn geometry_pipelines(
     let shader = device.create_shader_module(wgpu::include_wgsl!("gbuffer.wgsl"));
     let gbuffer = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
         label: Some("gbuffer"),
-        layout: Some(layout),
+        layout: Some(gbuffer_layout),
         vertex: wgpu::VertexState {
             module: &shader,
             entry_point: Some("vs_main"),
@@ -268,7 +303,7 @@ fn geometry_pipelines(
             buffers: &[Some(wgpu::VertexBufferLayout {
                 array_stride: std::mem::size_of::<GBufferVertex>() as u64,
                 step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x3, 2 => Float32x3, 3 => Float32x3],
+                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Snorm16x4, 2 => Unorm16x4, 3 => Float32x2, 4 => Float32x2, 5 => Uint32],
             })],
         },
         primitive: wgpu::PrimitiveState {

@@ -739,41 +739,105 @@ fn the_gbuffer_carries_light_map_uvs_where_the_geometry_has_them() {
 }
 
 #[test]
-fn a_textured_triangle_is_drawn_with_its_texture_mean() {
-    // A 2×2 checkerboard of black and white texels under an albedo of 0.8: a triangle over
-    // the whole texture, or over many repeats of it, averages 0.4; one inside a white
-    // texel is 0.8; an untextured material keeps its albedo.
-    use cloudlight_scenes::{Material, Texture, WorldTriangle};
-    let checker = Texture {
-        width: 2,
-        height: 2,
-        texels: vec![Vec3::ZERO, Vec3::ONE, Vec3::ONE, Vec3::ZERO],
+fn a_textured_surface_is_drawn_with_its_texels_up_close_and_their_mean_far_away() {
+    // A 4×4 texture of 16 greys under an albedo of 0.8, on a 2 m square facing the camera:
+    // seen whole (each texel ~16 pixels across), each pixel's albedo is 0.8 times the texel
+    // the path tracer reads at its centre (away from texel edges); repeated 64 times across
+    // (16 texels to a pixel), it is 0.8 times the texture's mean; an untextured square keeps
+    // its material's albedo.
+    use cloudlight_scenes::{Camera, Material, Texture, WorldTriangle};
+    let texture = Texture {
+        width: 4,
+        height: 4,
+        texels: (0..16).map(|i| Vec3::splat(i as f32 / 15.0)).collect(),
     };
-    let material = Material {
-        texture: Some(checker),
-        ..Material::diffuse("checker", Vec3::splat(0.8))
-    };
-    let triangle = |uv: [Vec2; 3]| WorldTriangle {
-        v: [Vec3::ZERO, Vec3::X, Vec3::Z],
-        n: [Vec3::Y; 3],
-        uv,
-        lightmap_uv: [Vec2::ZERO; 3],
-        material: 0,
-    };
-    let whole = triangle([Vec2::ZERO, Vec2::new(2.0, 0.0), Vec2::new(0.0, 2.0)]);
-    let tiled = triangle([Vec2::ZERO, Vec2::new(40.0, 0.0), Vec2::new(0.0, 40.0)]);
-    let white = triangle([
-        Vec2::new(0.55, 0.05),
-        Vec2::new(0.9, 0.05),
-        Vec2::new(0.55, 0.4),
-    ]);
-    for (t, want, tol) in [(whole, 0.4, 0.1), (tiled, 0.4, 0.15), (white, 0.8, 1e-6)] {
-        let got = frame::triangle_albedo(&material, &t);
-        assert!(
-            (got - Vec3::splat(want)).abs().max_element() <= tol,
-            "{got} vs {want}"
+    let mut scene = cloudlight_scenes::builtin("cornell").unwrap();
+    scene.materials = vec![
+        Material {
+            texture: Some(texture.clone()),
+            ..Material::diffuse("greys", Vec3::splat(0.8))
+        },
+        Material::diffuse("plain", Vec3::new(0.1, 0.2, 0.3)),
+    ];
+    let square = |repeats: f32, material: u32| -> Vec<WorldTriangle> {
+        let (v, uv) = (
+            [
+                Vec3::new(-1.0, -1.0, 0.0),
+                Vec3::new(1.0, -1.0, 0.0),
+                Vec3::new(1.0, 1.0, 0.0),
+                Vec3::new(-1.0, 1.0, 0.0),
+            ],
+            [
+                Vec2::new(0.0, repeats),
+                Vec2::new(repeats, repeats),
+                Vec2::new(repeats, 0.0),
+                Vec2::ZERO,
+            ],
         );
-    }
-    let plain = Material::diffuse("plain", Vec3::new(0.1, 0.2, 0.3));
-    assert_eq!(frame::triangle_albedo(&plain, &whole), plain.albedo);
+        [[0, 1, 2], [0, 2, 3]]
+            .map(|k| WorldTriangle {
+                v: k.map(|k| v[k]),
+                n: [Vec3::Z; 3],
+                uv: k.map(|k| uv[k]),
+                lightmap_uv: [Vec2::ZERO; 3],
+                material,
+            })
+            .to_vec()
+    };
+    let camera = Camera {
+        position: Vec3::new(0.0, 0.0, 2.0),
+        target: Vec3::ZERO,
+        up: Vec3::Y,
+        fov_y_rad: 60f32.to_radians(),
+    };
+    let (w, h) = (64u32, 64u32);
+    on_every_backend(|raster| {
+        let whole = raster
+            .gbuffer(&scene, &square(1.0, 0), &camera, w, h)
+            .unwrap();
+        let bvh = SceneBvh::build(square(1.0, 0), BvhKind::default());
+        let (mut checked, mut off) = (0, 0);
+        for (i, d) in pixel_rays(&camera, w, h).into_iter().enumerate() {
+            let Some(hit) = bvh.closest_hit(camera.position, d, f32::INFINITY) else {
+                continue;
+            };
+            let uv = bvh.hit_uv(&hit);
+            let to_edge = (uv * 4.0 - (uv * 4.0).round()).abs().min_element();
+            if to_edge < 0.1 {
+                continue; // within a tenth of a texel of its edge
+            }
+            checked += 1;
+            let want = 0.8 * texture.sample(uv);
+            if (whole.albedo[i] - want).abs().max_element() > 0.01 {
+                off += 1;
+                eprintln!("pixel {i}: {} vs {want} at uv {uv}", whole.albedo[i]);
+            }
+        }
+        assert!(checked > 1000, "only {checked} pixels checked");
+        assert_eq!(off, 0, "{off} of {checked} pixels off their texel");
+        let mean = 0.8 * texture.texels.iter().sum::<Vec3>() / 16.0;
+        let far = raster
+            .gbuffer(&scene, &square(64.0, 0), &camera, w, h)
+            .unwrap();
+        let plain = raster
+            .gbuffer(&scene, &square(1.0, 1), &camera, w, h)
+            .unwrap();
+        for i in 0..(w * h) as usize {
+            if far.position[i].w > 0.5 {
+                assert!(
+                    (far.albedo[i] - mean).abs().max_element() < 0.05,
+                    "pixel {i}: {} vs the mean {mean}",
+                    far.albedo[i]
+                );
+            }
+            if plain.position[i].w > 0.5 {
+                assert!(
+                    (plain.albedo[i] - Vec3::new(0.1, 0.2, 0.3))
+                        .abs()
+                        .max_element()
+                        < 1e-3
+                );
+            }
+        }
+    });
 }
