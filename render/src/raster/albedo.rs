@@ -207,16 +207,8 @@ fn mip_chain(t: &Texture, side: u32) -> Vec<Vec<Vec3>> {
 
 /// Linear RGB in [0, 1] as sRGB-encoded RGBA8.
 fn srgb8(c: Vec3) -> [u8; 4] {
-    let encode = |v: f32| {
-        let v = v.clamp(0.0, 1.0);
-        let s = if v <= 0.003_130_8 {
-            v * 12.92
-        } else {
-            1.055 * v.powf(1.0 / 2.4) - 0.055
-        };
-        (s * 255.0 + 0.5) as u8
-    };
-    [encode(c.x), encode(c.y), encode(c.z), 255]
+    let [r, g, b] = c.to_array().map(crate::metrics::srgb8);
+    [r, g, b, 255]
 }
 
 #[cfg(test)]
