@@ -11,8 +11,7 @@
 //! as the smallest photon's, as fine as its splat needs and no finer, and its gap is
 //! counted in its own cells (3k bits fewer: `city:250000`'s 640k-photon batches went from
 //! 8.3 to 8.1 B a photon, and to 7.7 with 12 steps a radius instead of 16). The rest of a
-//! photon is
-//! fixed-width and comes before its gap, so that the reader knows its cell:
+//! photon is fixed-width and comes before its gap, so that the reader knows its cell:
 //!
 //! | field | bits | error |
 //! |---|---|---|

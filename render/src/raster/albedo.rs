@@ -8,7 +8,7 @@
 //! where a pixel covers many texels: the same mean over the pixel's footprint. Texels are
 //! stored sRGB-encoded in 8 bits (filtering in linear RGB): ~0.4% steps at an albedo of 0.5.
 
-use cloudlight_scenes::{Scene, Texture};
+use cloudlight_scenes::{Material, Scene, Texture};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use wgpu::util::DeviceExt;
@@ -35,10 +35,7 @@ impl AlbedoTextures {
             .materials
             .iter()
             .map(|m| {
-                m.texture
-                    .as_ref()
-                    .filter(|t| !t.texels.is_empty())
-                    .map(|t| (t.width, t.height, t.texels[0].to_array().map(f32::to_bits)))
+                texture_of(m).map(|t| (t.width, t.height, t.texels[0].to_array().map(f32::to_bits)))
             })
             .collect()
     }
@@ -55,22 +52,19 @@ impl AlbedoTextures {
 
     /// Uploads `scene`'s textures.
     pub(crate) fn new(raster: &Raster, scene: &Scene) -> Self {
-        let textured: Vec<&Texture> = scene
-            .materials
-            .iter()
-            .filter_map(|m| m.texture.as_ref().filter(|t| !t.texels.is_empty()))
-            .collect();
-        let mut next = 0;
+        let textured: Vec<&Texture> = scene.materials.iter().filter_map(texture_of).collect();
+        // Textured materials take layers 1, 2, … in order.
         let layers = scene
             .materials
             .iter()
-            .map(|m| {
-                if m.texture.as_ref().is_some_and(|t| !t.texels.is_empty()) {
-                    next += 1;
-                    next
-                } else {
-                    0
-                }
+            .scan(0, |next, m| {
+                Some(match texture_of(m) {
+                    Some(_) => {
+                        *next += 1;
+                        *next
+                    }
+                    None => 0,
+                })
             })
             .collect();
         let side = textured
@@ -158,6 +152,11 @@ impl AlbedoTextures {
             bind,
         }
     }
+}
+
+/// Material `m`'s texture, unless it has none (or an empty one).
+fn texture_of(m: &Material) -> Option<&Texture> {
+    m.texture.as_ref().filter(|t| !t.texels.is_empty())
 }
 
 /// `t` resampled to `side` × `side` (nearest texel at each texel's centre when enlarged, the

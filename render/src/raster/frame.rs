@@ -297,11 +297,7 @@ impl FrameRenderer {
                 .materials
                 .get(t.material as usize)
                 .map_or(Vec3::ZERO, |m| m.albedo);
-            let albedo = (albedo.clamp(Vec3::ZERO, Vec3::ONE) * 65535.0 + Vec3::splat(0.5))
-                .as_uvec3()
-                .to_array()
-                .map(|c| c as u16);
-            let albedo = [albedo[0], albedo[1], albedo[2], 0];
+            let albedo = unorm16(albedo);
             let layer = albedo_maps.layer(t.material);
             // A triangle whose three light-map UVs are all zero has none (WorldTriangle's
             // convention for meshes without them).
@@ -556,6 +552,12 @@ impl ReadFrame {
             .map(|(d, i)| *d + *i)
             .collect()
     }
+}
+
+/// RGB in [0, 1] as unorm16 (the fourth component 0).
+fn unorm16(c: Vec3) -> [u16; 4] {
+    let q = |c: f32| (c.clamp(0.0, 1.0) * 65535.0).round() as u16;
+    [q(c.x), q(c.y), q(c.z), 0]
 }
 
 /// A unit vector as snorm16 (the fourth component 0).
