@@ -165,6 +165,26 @@ pub struct Marker {
     pub label: String,
 }
 
+/// A horizontal reference line: an error no configuration can be told below (e.g. the
+/// raster's sampling floor).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Floor {
+    /// Where, in y units.
+    pub y: f64,
+    /// Its text.
+    pub label: String,
+}
+
+impl Floor {
+    /// The raster's sampling floor of a quality benchmark (`QualityView::sampling_floor`).
+    pub fn sampling(y: f64) -> Floor {
+        Floor {
+            y,
+            label: format!("sampling floor {y:.3} (exact light at pixel centres)"),
+        }
+    }
+}
+
 /// One panel of a Pareto plot.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ParetoPanel {
@@ -176,6 +196,8 @@ pub struct ParetoPanel {
     pub series: Vec<Series>,
     /// A reference mark.
     pub marker: Option<Marker>,
+    /// A floor of the error.
+    pub floor: Option<Floor>,
 }
 
 /// The points no other point beats in both cost and error, by increasing cost.
@@ -198,6 +220,7 @@ pub fn pareto_front(points: &[(f64, f64)]) -> Vec<(f64, f64)> {
 fn pareto_panel<'a, 'b: 'a, X, Y>(
     chart: &mut ChartContext<'a, BitMapBackend<'b>, Cartesian2d<X, Y>>,
     panel: &ParetoPanel,
+    x_range: &Range<f64>,
     y_range: &Range<f64>,
 ) -> Result<(), Box<dyn std::error::Error + 'b>>
 where
@@ -252,6 +275,18 @@ where
             .label(m.label.clone())
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], black.stroke_width(1)));
     }
+    if let Some(f) = &panel.floor {
+        let red = RGBColor(200, 30, 30);
+        chart
+            .draw_series(DashedLineSeries::new(
+                [(x_range.start, f.y), (x_range.end, f.y)],
+                6,
+                4,
+                red.stroke_width(1),
+            ))?
+            .label(f.label.clone())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], red.stroke_width(1)));
+    }
     chart
         .configure_series_labels()
         .background_style(WHITE.mix(0.85))
@@ -284,6 +319,7 @@ pub fn pareto(path: &Path, title: &str, panels: &[ParetoPanel]) -> anyhow::Resul
                 .series
                 .iter()
                 .flat_map(|s| s.points.iter().map(|p| p.1))
+                .chain(panel.floor.iter().map(|f| f.y))
                 .filter(|y| y.is_finite())
                 .fold(0.0f64, f64::max);
             let y_range = 0.0..log_range([top * 1.1].into_iter()).end;
@@ -291,7 +327,7 @@ pub fn pareto(path: &Path, title: &str, panels: &[ParetoPanel]) -> anyhow::Resul
                 .margin(16)
                 .x_label_area_size(48)
                 .y_label_area_size(80)
-                .build_cartesian_2d(x_range.log_scale(), y_range.clone())?;
+                .build_cartesian_2d(x_range.clone().log_scale(), y_range.clone())?;
             chart
                 .configure_mesh()
                 .x_labels(12)
@@ -302,7 +338,7 @@ pub fn pareto(path: &Path, title: &str, panels: &[ParetoPanel]) -> anyhow::Resul
                 .y_label_formatter(&tick)
                 .label_style(("sans-serif", 14))
                 .draw()?;
-            pareto_panel(&mut chart, panel, &y_range)?;
+            pareto_panel(&mut chart, panel, &x_range, &y_range)?;
         }
         root.present()?;
         Ok(())

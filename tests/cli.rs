@@ -569,6 +569,9 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
     // The reference's own noise (64 spp: small, but not nothing), and each image beside it.
     let noise = report["reference_noise"].as_f64().unwrap();
     assert!(noise > 0.0 && noise < 0.5, "{noise}");
+    // What a client shading pixel centres with exact light shows: the box's edges hold some.
+    let floor = report["sampling_floor"].as_f64().unwrap();
+    assert!(floor > 0.0 && floor < 1.0, "{floor}");
     for image in ["indirect_8000", "progressive_1000_3"] {
         assert!(quality.join(format!("{image}.exr")).is_file(), "{image}");
         assert!(

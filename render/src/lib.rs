@@ -25,7 +25,7 @@ pub mod voxel;
 
 pub use bvh::{BvhKind, Hit, SceneBvh};
 pub use hdr_map::HdrMap;
-pub use reference::{ReferenceImages, ReferenceRenderer, RenderSettings, render};
+pub use reference::{PixelSampling, ReferenceImages, ReferenceRenderer, RenderSettings, render};
 
 /// Locks `m`, taking the value even if a thread panicked while holding it (the caches this
 /// crate keeps stay consistent across a panic). The runtime's stages use `runtime::lock`;

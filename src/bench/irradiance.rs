@@ -691,11 +691,17 @@ pub fn quality(
         common.spp, common.rate_hz
     );
     let report = serde_json::json!({ "technique": Irradiance::NAME, "scene": scene_spec, "common": common,
-        "options": options, "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "points": points });
+        "options": options, "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "sampling_floor": view.sampling_floor, "points": points });
     let json = out.join("quality.json");
     std::fs::write(&json, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("writing {}", json.display()))?;
-    let png = quality_plot(&out.join("quality.png"), scene_spec, &points, &qps)?;
+    let png = quality_plot(
+        &out.join("quality.png"),
+        scene_spec,
+        &points,
+        &qps,
+        view.sampling_floor,
+    )?;
     println!("wrote {} and {}", json.display(), png.display());
     Ok(report)
 }
@@ -839,8 +845,9 @@ fn quality_plot(
     scene: &str,
     points: &[IrradiancePoint],
     qps: &[u8],
+    floor: f64,
 ) -> anyhow::Result<std::path::PathBuf> {
-    use crate::plot::{Marker, ParetoPanel, Series};
+    use crate::plot::{Floor, Marker, ParetoPanel, Series};
     // One series per fit, at the middle QP of the sweep (QP moves the error by far less
     // than the fit does; the table has every QP).
     let qp = qps.get(qps.len() / 2).copied().unwrap_or_default();
@@ -892,6 +899,7 @@ fn quality_plot(
                     x: 0.16,
                     label: "paper: 0.16 Mbps (Cornell box)".into(),
                 }),
+                floor: Some(Floor::sampling(floor)),
             },
             ParetoPanel {
                 x_label: "update ms (gather)".into(),
@@ -901,6 +909,7 @@ fn quality_plot(
                     x: 7.5,
                     label: "paper: 7.5 ms per update".into(),
                 }),
+                floor: Some(Floor::sampling(floor)),
             },
         ],
     )

@@ -865,6 +865,10 @@ pub struct QualityView {
     /// The reference's own noise: the relMSE a noiseless technique would show against it
     /// ([`reference_cache::Reference::noise`]).
     pub reference_noise: f64,
+    /// The error a client shading each pixel's centre with exact light shows against the
+    /// reference ([`reference_cache::Reference::sampling_floor`]): below it, a technique's
+    /// relMSE is the raster's sampling, not its light.
+    pub sampling_floor: f64,
     /// Image width and height, pixels.
     pub size: (u32, u32),
 }
@@ -909,15 +913,25 @@ impl QualityView {
             time_s: 0.0,
             seed: 77,
             max_bounces: 64,
+            pixel: cloudlight_render::PixelSampling::Area,
         };
         let cache = reference_cache::dir();
         let reference = reference_cache::reference(&scene, &bvh, settings, spp, cache.as_deref());
+        // The same view through each pixel's centre, as a client's raster shades it.
+        let centred = cloudlight_render::RenderSettings {
+            pixel: cloudlight_render::PixelSampling::Centre,
+            ..settings
+        };
+        let centred = reference_cache::reference(&scene, &bvh, centred, spp, cache.as_deref());
         let reference_s = start.elapsed().as_secs_f64();
         let reference_noise = reference.noise();
+        let sampling_floor = reference.sampling_floor(&centred);
         eprintln!(
             "reference {} in {reference_s:.1} s; its own noise, relMSE {reference_noise:.4} (what a noiseless \
-             technique would show against it)",
-            if reference.cached {
+             technique would show against it); the raster's sampling floor, relMSE {sampling_floor:.4} (what a \
+             client shading each pixel's centre with exact light would show: the reference holds each pixel's \
+             mean over its area)",
+            if reference.cached && centred.cached {
                 "read from the cache"
             } else {
                 "rendered"
@@ -929,8 +943,9 @@ impl QualityView {
             camera,
             reference: reference.indirect,
             reference_s,
-            reference_cached: reference.cached,
+            reference_cached: reference.cached && centred.cached,
             reference_noise,
+            sampling_floor,
             size: (width, height),
         })
     }

@@ -1070,22 +1070,29 @@ pub fn quality(
     println!(
         "relMSE of the client's indirect radiance ({}x{}) against the path tracer's indirect image ({} spp) of the same \
          view and time, both divided by the reference's mean luminance over pixels that see geometry (ε = 0.01 of that \
-         mean; the reference's own noise: {:.4}); Mbps if updated at {} Hz or as fast as the update allows. Paper's \
+         mean; the reference's own noise: {:.4}; the raster's sampling floor, what a client shading each pixel's \
+         centre with exact light would show: {:.4}); Mbps if updated at {} Hz or as fast as the update allows. Paper's \
          operating point: 10k photons, {} Mbps, {} ms.",
         o.width,
         o.height,
         o.spp,
         view.reference_noise,
+        view.sampling_floor,
         o.rate_hz,
         paper::PHOTON_OPERATING_POINT.0,
         paper::PHOTON_OPERATING_POINT.1
     );
     let report = serde_json::json!({ "technique": "photons", "scene": scene_spec, "options": o,
-        "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "rows": rows, "progressive": progressive });
+        "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "sampling_floor": view.sampling_floor, "rows": rows, "progressive": progressive });
     let json = out.join("quality.json");
     std::fs::write(&json, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("writing {}", json.display()))?;
-    let png = quality_plot(&out.join("quality.png"), scene_spec, &rows)?;
+    let png = quality_plot(
+        &out.join("quality.png"),
+        scene_spec,
+        &rows,
+        view.sampling_floor,
+    )?;
     println!("wrote {} and {}", json.display(), png.display());
     Ok(rows)
 }
@@ -1104,14 +1111,16 @@ fn variants_plot(
         path,
         &format!("Photons, {scene}: error against bandwidth and update time (8-byte photons)"),
         &sets,
+        None,
     )
 }
 
-/// The Pareto plot of one run: each packing's points.
+/// The Pareto plot of one run: each packing's points, and the view's sampling floor.
 fn quality_plot(
     path: &Path,
     scene: &str,
     rows: &[QualityRow],
+    floor: f64,
 ) -> anyhow::Result<std::path::PathBuf> {
     type Pick = fn(&QualityRow) -> &QualityPoint;
     let pick: [(&str, Pick); 3] = [
@@ -1127,17 +1136,19 @@ fn quality_plot(
         path,
         &format!("Photons, {scene}: error against bandwidth and update time"),
         &sets,
+        Some(floor),
     )
 }
 
 /// relMSE against Mbps and against update time, a series per labelled set of points, with
-/// the paper's operating point marked.
+/// the paper's operating point marked (and the view's sampling floor, where known).
 fn fronts_plot(
     path: &Path,
     title: &str,
     sets: &[(String, Vec<&QualityPoint>)],
+    floor: Option<f64>,
 ) -> anyhow::Result<std::path::PathBuf> {
-    use crate::plot::{Marker, ParetoPanel, Series};
+    use crate::plot::{Floor, Marker, ParetoPanel, Series};
     let series = |x: fn(&QualityPoint) -> f64| -> Vec<Series> {
         sets.iter()
             .map(|(label, points)| Series {
@@ -1162,6 +1173,7 @@ fn fronts_plot(
                     x: mbps,
                     label: format!("paper: {mbps} Mbps (10k photons)"),
                 }),
+                floor: floor.map(Floor::sampling),
             },
             ParetoPanel {
                 x_label: "update ms (trace + pack)".into(),
@@ -1171,6 +1183,7 @@ fn fronts_plot(
                     x: ms,
                     label: format!("paper: {ms} ms per iteration"),
                 }),
+                floor: floor.map(Floor::sampling),
             },
         ],
     )

@@ -16,7 +16,7 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use cloudlight_render::{RenderSettings, SceneBvh, image_io};
+use cloudlight_render::{PixelSampling, RenderSettings, SceneBvh, image_io};
 use cloudlight_scenes::Scene;
 use cloudlight_scenes::glam::Vec3;
 use sha2::{Digest, Sha256};
@@ -62,6 +62,26 @@ impl Reference {
             .collect();
         cloudlight_render::metrics::relmse_normalized(&self.indirect_half, &self.indirect, &lit)
     }
+
+    /// The error a client that shades each pixel at one point, its centre (every raster's
+    /// G-buffer), shows against this image even when its light is exact: relMSE of
+    /// `centred`'s indirect image (the same view rendered with
+    /// [`PixelSampling::Centre`]) against this one's, over the pixels with light in
+    /// either. This image holds each pixel's mean over its area; where a pixel straddles a
+    /// silhouette, a fold or texels smaller than it, its centre's light is not that mean.
+    /// A technique's relMSE below this is the raster's sampling, not its light. Each pixel
+    /// of both images draws the same random numbers, so where the centre and the area see
+    /// one surface their paths stay alike and little of their noise
+    /// ([`Reference::noise`]) is in it.
+    pub fn sampling_floor(&self, centred: &Reference) -> f64 {
+        let lit: Vec<bool> = self
+            .indirect
+            .iter()
+            .zip(&centred.indirect)
+            .map(|(a, b)| a.max_element() > 0.0 || b.max_element() > 0.0)
+            .collect();
+        cloudlight_render::metrics::relmse_normalized(&centred.indirect, &self.indirect, &lit)
+    }
 }
 
 /// Feeds formatted text straight into a hash (a scene's `Debug` text can be tens of MB).
@@ -90,6 +110,10 @@ pub fn key(scene: &Scene, settings: &RenderSettings, spp: u32) -> String {
         settings.seed,
         settings.max_bounces
     );
+    // Jittered images keep the keys they had before the choice existed.
+    if settings.pixel == PixelSampling::Centre {
+        let _ = write!(w, "|centre");
+    }
     hasher
         .finalize()
         .iter()
@@ -169,7 +193,7 @@ pub fn reference(
             "scene": scene.name, "camera": format!("{:?}", settings.camera),
             "time_s": settings.time_s, "width": settings.width, "height": settings.height,
             "spp": spp, "seed": settings.seed, "max_bounces": settings.max_bounces,
-            "tracer_version": TRACER_VERSION,
+            "tracer_version": TRACER_VERSION, "pixel": format!("{:?}", settings.pixel),
         });
         // Each file is written under a name of this process and renamed into place, so a
         // reader (another benchmark, a parallel test) never sees half of one.
@@ -208,6 +232,7 @@ mod tests {
             time_s: 0.0,
             seed: 5,
             max_bounces: 8,
+            pixel: Default::default(),
         }
     }
 
@@ -239,6 +264,11 @@ mod tests {
             k,
             "size"
         );
+        let centred = RenderSettings {
+            pixel: PixelSampling::Centre,
+            ..s
+        };
+        assert_ne!(key(&scene, &centred, 4), k, "pixel sampling");
         let mut brighter = scene.clone();
         brighter.materials[0].albedo *= 0.99;
         assert_ne!(key(&brighter, &s, 4), k, "a material");
@@ -298,5 +328,39 @@ mod tests {
         );
         // At one sample the half is the whole: no noise can be told.
         assert_eq!(reference(&scene, &bvh, s, 1, None).noise(), 0.0);
+    }
+
+    #[test]
+    fn the_sampling_floor_is_the_noise_on_a_plain_wall_and_more_where_pixels_straddle_edges() {
+        let scene = cloudlight_scenes::load("cornell").unwrap();
+        let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+        let floor = |camera: &str| {
+            let area = RenderSettings {
+                width: 24,
+                height: 24,
+                camera: cloudlight_scenes::camera(&scene, camera, 0.0).unwrap(),
+                ..settings(&scene)
+            };
+            let centred = RenderSettings {
+                pixel: PixelSampling::Centre,
+                ..area
+            };
+            let r = reference(&scene, &bvh, area, 64, None);
+            (
+                r.sampling_floor(&reference(&scene, &bvh, centred, 64, None)),
+                r.noise(),
+            )
+        };
+        // Only the back wall in view: one surface, evenly lit at the scale of a pixel, and
+        // the same random numbers for both images: far below their noise (0.045).
+        let (wall, wall_noise) = floor("0.28,0.45,0.3:0.28,0.45,1:20");
+        // The whole box in 24² pixels: its edges, the blocks' silhouettes (0.24).
+        let (whole, whole_noise) = floor("0");
+        eprintln!("wall {wall} (noise {wall_noise}), whole {whole} (noise {whole_noise})");
+        assert!(wall < 0.2 * wall_noise, "wall {wall}, noise {wall_noise}");
+        assert!(
+            whole > 10.0 * wall && whole > 2.0 * whole_noise,
+            "whole {whole}, noise {whole_noise}, wall {wall}"
+        );
     }
 }

@@ -679,11 +679,16 @@ pub fn quality(
         common.spp, common.rate_hz
     );
     let report = serde_json::json!({ "technique": Voxels::NAME, "scene": scene_spec, "common": common,
-        "options": options, "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "points": points });
+        "options": options, "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "sampling_floor": view.sampling_floor, "points": points });
     let json = out.join("quality.json");
     std::fs::write(&json, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("writing {}", json.display()))?;
-    let png = quality_plot(&out.join("quality.png"), scene_spec, &points)?;
+    let png = quality_plot(
+        &out.join("quality.png"),
+        scene_spec,
+        &points,
+        view.sampling_floor,
+    )?;
     println!("wrote {} and {}", json.display(), png.display());
     Ok(report)
 }
@@ -735,8 +740,9 @@ fn quality_plot(
     path: &Path,
     scene: &str,
     points: &[VoxelPoint],
+    floor: f64,
 ) -> anyhow::Result<std::path::PathBuf> {
-    use crate::plot::{Marker, ParetoPanel, Series};
+    use crate::plot::{Floor, Marker, ParetoPanel, Series};
     let mut depths: Vec<u32> = points.iter().map(|p| p.depth).collect();
     depths.sort_unstable();
     depths.dedup();
@@ -772,6 +778,7 @@ fn quality_plot(
                 y_label: "relMSE (scale-invariant)".into(),
                 series: series(|p| p.gi_mbps),
                 marker: None,
+                floor: Some(Floor::sampling(floor)),
             },
             ParetoPanel {
                 x_label: "update ms (inject + filter + gather)".into(),
@@ -781,6 +788,7 @@ fn quality_plot(
                     x: 19.0,
                     label: "paper: 19 ms per update (Cornell box)".into(),
                 }),
+                floor: Some(Floor::sampling(floor)),
             },
         ],
     )

@@ -147,6 +147,7 @@ impl References {
             time_s: t,
             seed: SEED,
             max_bounces: 64,
+            pixel: Default::default(),
         };
         let moving;
         let bvh = match &self.bvh {

@@ -424,6 +424,7 @@ fn link_section(
                         x: Budget::default().indirect_age_ms,
                         label: "0.5 s".into(),
                     }),
+                    floor: None,
                 },
                 plot::ParetoPanel {
                     x_label: "Mbit/s per client (local cuts at 0.01)".into(),
@@ -435,6 +436,7 @@ fn link_section(
                             x: bw,
                             label: "link".into(),
                         }),
+                    floor: None,
                 },
             ],
         )?;

@@ -357,6 +357,7 @@ mod tests {
             time_s: 0.0,
             seed: 77,
             max_bounces: 64,
+            pixel: Default::default(),
         };
         let reference = crate::render(&cornell, &bvh, settings, 256).indirect();
         let shadows = ShadowSettings {

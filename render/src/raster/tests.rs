@@ -243,6 +243,7 @@ fn raster_direct_light_matches_the_path_tracer_direct_image() {
             time_s: 0.0,
             seed: 3,
             max_bounces: 1,
+            pixel: Default::default(),
         };
         let reference = crate::reference::render(&scene, &bvh, settings, 16).direct();
         let covered: Vec<usize> = (0..(w * h) as usize)
@@ -334,6 +335,7 @@ fn every_light_alone_matches_the_path_tracer() {
             time_s: 0.0,
             seed: 3,
             max_bounces: 1,
+            pixel: Default::default(),
         };
         for light in &scene.lights {
             let mut alone = scene.clone();
@@ -392,6 +394,7 @@ fn raster_direct_light_of_the_cornell_box_matches_the_path_tracer() {
             time_s: 0.0,
             seed: 5,
             max_bounces: 1,
+            pixel: Default::default(),
         };
         let reference = crate::reference::render(&scene, &bvh, settings, 1024).direct();
         let aspect = w as f32 / h as f32;

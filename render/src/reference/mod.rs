@@ -37,6 +37,22 @@ pub struct RenderSettings {
     pub seed: u64,
     /// Longest path (bounces), a safety bound; Russian roulette ends paths long before.
     pub max_bounces: u32,
+    /// Where in its pixel each camera ray passes.
+    pub pixel: PixelSampling,
+}
+
+/// Where a pixel's camera rays pass through it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum PixelSampling {
+    /// Uniformly over the pixel (jittered): the pixel's mean radiance, the image a camera
+    /// with a box filter sees — what every technique is judged against.
+    #[default]
+    Area,
+    /// Through its centre only, as a raster that shades one point per pixel (every
+    /// client's G-buffer) sees the scene: against the [`PixelSampling::Area`] image, the
+    /// error such a client shows even with exact light — the sampling's own floor, not the
+    /// light's (silhouettes, a ledge a pixel high, texels smaller than a pixel).
+    Centre,
 }
 
 /// Accumulated radiance images (sums over samples; divide by `spp`).
@@ -197,13 +213,18 @@ impl<'a> ReferenceRenderer<'a> {
         images.spp += count;
     }
 
-    /// Sample `k` of pixel (`x`, `y`): its camera ray, jittered in the pixel, and its random
-    /// sequence.
+    /// Sample `k` of pixel (`x`, `y`): its camera ray (jittered in the pixel, or through its
+    /// centre: [`RenderSettings::pixel`]), and its random sequence.
     fn camera_path(&self, x: usize, y: usize, k: u32) -> Path {
         let s = &self.settings;
         let pixel = (y * s.width as usize + x) as u64;
         let mut rng = Rng::new(s.seed, pixel * 1_000_003 + k as u64);
+        // Drawn either way, so that a pixel's random sequence is the same for both.
         let jitter = Vec2::new(rng.next_f32(), rng.next_f32());
+        let jitter = match s.pixel {
+            PixelSampling::Area => jitter,
+            PixelSampling::Centre => Vec2::splat(0.5),
+        };
         let ndc = Vec2::new(
             ((x as f32 + jitter.x) / s.width as f32) * 2.0 - 1.0,
             1.0 - ((y as f32 + jitter.y) / s.height as f32) * 2.0,

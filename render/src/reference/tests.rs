@@ -35,6 +35,7 @@ fn settings(camera: Camera, size: u32) -> RenderSettings {
         time_s: 0.0,
         seed: 9,
         max_bounces: 256,
+        pixel: Default::default(),
     }
 }
 

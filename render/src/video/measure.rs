@@ -24,6 +24,7 @@ pub fn reference_map(scene: &cloudlight_scenes::Scene, size: u32, spp: u32) -> H
         time_s: 0.0,
         seed: 1,
         max_bounces: 16,
+        pixel: Default::default(),
     };
     let images = crate::render(scene, &bvh, settings, spp);
     HdrMap::new(size, size, &images.indirect(), &[]).expect("one texel per pixel")

@@ -343,6 +343,7 @@ mod tests {
             time_s: 0.0,
             seed: 77,
             max_bounces: 64,
+            pixel: Default::default(),
         };
         let reference = crate::render(&scene, &bvh, settings, 256).indirect();
         let tris = scene.triangles_at(0.0);

@@ -385,6 +385,7 @@ impl CornellView {
             time_s: 0.0,
             seed: 21,
             max_bounces: 64,
+            pixel: Default::default(),
         };
         let reference = crate::reference::render(&scene, &bvh, settings, 2048).indirect();
         CornellView {
