@@ -263,29 +263,23 @@ where
                 )
         }))?;
     }
-    if let Some(m) = &panel.marker {
-        let black = RGBColor(0, 0, 0);
+    // Reference lines, dashed, with their legend entries.
+    let lines = panel
+        .marker
+        .iter()
+        .map(|m| {
+            let line = [(m.x, y_range.start), (m.x, y_range.end)];
+            (line, RGBColor(0, 0, 0), &m.label)
+        })
+        .chain(panel.floor.iter().map(|f| {
+            let line = [(x_range.start, f.y), (x_range.end, f.y)];
+            (line, RGBColor(200, 30, 30), &f.label)
+        }));
+    for (line, colour, label) in lines {
         chart
-            .draw_series(DashedLineSeries::new(
-                [(m.x, y_range.start), (m.x, y_range.end)],
-                6,
-                4,
-                black.stroke_width(1),
-            ))?
-            .label(m.label.clone())
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], black.stroke_width(1)));
-    }
-    if let Some(f) = &panel.floor {
-        let red = RGBColor(200, 30, 30);
-        chart
-            .draw_series(DashedLineSeries::new(
-                [(x_range.start, f.y), (x_range.end, f.y)],
-                6,
-                4,
-                red.stroke_width(1),
-            ))?
-            .label(f.label.clone())
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], red.stroke_width(1)));
+            .draw_series(DashedLineSeries::new(line, 6, 4, colour.stroke_width(1)))?
+            .label(label.clone())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(1)));
     }
     chart
         .configure_series_labels()

@@ -54,13 +54,7 @@ impl Reference {
     /// whole's variance), over the pixels with light in either. A technique's relMSE cannot
     /// be trusted much below this.
     pub fn noise(&self) -> f64 {
-        let lit: Vec<bool> = self
-            .indirect
-            .iter()
-            .zip(&self.indirect_half)
-            .map(|(a, b)| a.max_element() > 0.0 || b.max_element() > 0.0)
-            .collect();
-        cloudlight_render::metrics::relmse_normalized(&self.indirect_half, &self.indirect, &lit)
+        self.relmse_where_lit(&self.indirect_half)
     }
 
     /// The error a client that shades each pixel at one point, its centre (every raster's
@@ -74,13 +68,18 @@ impl Reference {
     /// one surface their paths stay alike and little of their noise
     /// ([`Reference::noise`]) is in it.
     pub fn sampling_floor(&self, centred: &Reference) -> f64 {
+        self.relmse_where_lit(&centred.indirect)
+    }
+
+    /// relMSE of `image` against the indirect image, over the pixels with light in either.
+    fn relmse_where_lit(&self, image: &[Vec3]) -> f64 {
         let lit: Vec<bool> = self
             .indirect
             .iter()
-            .zip(&centred.indirect)
+            .zip(image)
             .map(|(a, b)| a.max_element() > 0.0 || b.max_element() > 0.0)
             .collect();
-        cloudlight_render::metrics::relmse_normalized(&centred.indirect, &self.indirect, &lit)
+        cloudlight_render::metrics::relmse_normalized(image, &self.indirect, &lit)
     }
 }
 
