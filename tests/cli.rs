@@ -403,6 +403,58 @@ fn reference_writes_three_float_images_and_pngs() {
         "{}",
         String::from_utf8_lossy(&custom.stderr)
     );
+    // Through each pixel's centre: the same light on the whole, another where pixels
+    // straddle the box's edges; a sampling it does not know is refused.
+    let centred = cloudlight()
+        .args([
+            "reference",
+            "cornell",
+            "--spp",
+            "4",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--pixel",
+            "centre",
+            "--out",
+        ])
+        .arg(dir.path().join("centre"))
+        .output()
+        .unwrap();
+    ok(&centred);
+    let read = |d: &std::path::Path| {
+        cloudlight::render::image_io::read_exr(&d.join("direct.exr"))
+            .unwrap()
+            .2
+    };
+    let (area, centre) = (read(dir.path()), read(&dir.path().join("centre")));
+    assert_eq!(area.len(), centre.len());
+    let mean = |img: &[cloudlight::scenes::glam::Vec3]| {
+        img.iter().map(|v| v.element_sum() as f64).sum::<f64>() / img.len() as f64
+    };
+    let (ma, mc) = (mean(&area), mean(&centre));
+    assert!((ma / mc - 1.0).abs() < 0.1, "area {ma}, centre {mc}");
+    // Pixels whose centre sees another surface (or the dark) than most of their area.
+    let straddle = area
+        .iter()
+        .zip(&centre)
+        .filter(|(a, c)| {
+            (a.element_sum() - c.element_sum()).abs() > 0.5 * a.element_sum().max(c.element_sum())
+        })
+        .count();
+    assert!(
+        straddle > 0 && straddle < area.len() / 4,
+        "{straddle} of {} pixels straddle an edge",
+        area.len()
+    );
+    let bad = cloudlight()
+        .args(["reference", "cornell", "--pixel", "corner", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("area, centre"));
 }
 
 #[test]
