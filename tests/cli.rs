@@ -349,22 +349,26 @@ fn bench_transport_reports_an_intact_transfer_through_a_lossy_link() {
 #[test]
 fn reference_writes_three_float_images_and_pngs() {
     let dir = tempfile::tempdir().unwrap();
-    let out = cloudlight()
-        .args([
-            "reference",
-            "cornell",
-            "--spp",
-            "4",
-            "--width",
-            "32",
-            "--height",
-            "24",
-            "--out",
-        ])
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    ok(&out);
+    // The Cornell box at 32 × 24 and 4 spp into `out`, with `extra` flags.
+    let cornell = |out: &std::path::Path, extra: &[&str]| {
+        cloudlight()
+            .args([
+                "reference",
+                "cornell",
+                "--spp",
+                "4",
+                "--width",
+                "32",
+                "--height",
+                "24",
+            ])
+            .args(extra)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    ok(&cornell(dir.path(), &[]));
     for name in ["full", "direct", "indirect"] {
         let (w, h, px) =
             cloudlight::render::image_io::read_exr(&dir.path().join(format!("{name}.exr")))
@@ -405,24 +409,7 @@ fn reference_writes_three_float_images_and_pngs() {
     );
     // Through each pixel's centre: the same light on the whole, another where pixels
     // straddle the box's edges; a sampling it does not know is refused.
-    let centred = cloudlight()
-        .args([
-            "reference",
-            "cornell",
-            "--spp",
-            "4",
-            "--width",
-            "32",
-            "--height",
-            "24",
-            "--pixel",
-            "centre",
-            "--out",
-        ])
-        .arg(dir.path().join("centre"))
-        .output()
-        .unwrap();
-    ok(&centred);
+    ok(&cornell(&dir.path().join("centre"), &["--pixel", "centre"]));
     let read = |d: &std::path::Path| {
         cloudlight::render::image_io::read_exr(&d.join("direct.exr"))
             .unwrap()
