@@ -564,6 +564,8 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
             "32",
             "--set",
             "passes=3",
+            "--still-frames",
+            "4",
             "--out",
         ])
         .arg(&quality)
@@ -571,6 +573,8 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
         .unwrap();
     ok(&out);
     let report = read_json(quality.join("quality.json"));
+    // The client's image: the mean of 4 jittered frames of the still view.
+    assert_eq!(report["options"]["still_frames"], 4);
     // Passes 1, 2 and 3 of the first budget while the scene stands still.
     let progressive = report["progressive"].as_array().unwrap();
     let passes: Vec<u64> = progressive
@@ -767,6 +771,12 @@ fn photon_quality_refuses_knobs_a_batcher_or_client_would_refuse() {
             "{knob}: rendered before refusing: {err}"
         );
     }
+    let out = photon_quality(&["--still-frames", "0", "--budgets", "100"], dir.path());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("--still-frames"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -31,6 +31,25 @@ address = "127.0.0.1:0"
     )
 }
 
+/// Runs a topology text with the project's stages, its output in a new folder (kept while
+/// the returned guard lives).
+async fn run_with_output(text: &str) -> (cloudlight::runtime::RunReport, tempfile::TempDir) {
+    let registry = cloudlight::actors::registry();
+    let plan = plan_text(text, &registry);
+    let out = tempfile::tempdir().unwrap();
+    let run = run_plan(
+        &plan,
+        &registry,
+        RunOptions {
+            out_dir: Some(out.path().to_path_buf()),
+            ..RunOptions::default()
+        },
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+    (run, out)
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn clients_behind_a_slow_lossy_link_show_current_indirect_light() {
     // 50 ms each way and 2% loss between the cloud and each client. The Cornell box's light
@@ -69,19 +88,7 @@ jitter_ms = 5.0
 loss = 0.02
 "#,
     );
-    let registry = cloudlight::actors::registry();
-    let plan = plan_text(&text, &registry);
-    let out = tempfile::tempdir().unwrap();
-    let run = run_plan(
-        &plan,
-        &registry,
-        RunOptions {
-            out_dir: Some(out.path().to_path_buf()),
-            ..RunOptions::default()
-        },
-    )
-    .await
-    .unwrap_or_else(|e| panic!("{e}"));
+    let (run, _out) = run_with_output(&text).await;
     let m = &run.metrics;
     let batcher = report(m, "batcher");
     assert!(f(batcher, "iterations") >= 10.0, "{batcher}");
@@ -424,4 +431,77 @@ capacity = 16
     assert_eq!(f(b, "views_received"), 7.0, "{b}");
     assert_eq!(f(b, "views_rejected"), 6.0, "{b}");
     assert_eq!(f(b, "views_in_use"), 1.0, "{b}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_still_view_of_still_light_shows_the_mean_of_its_jittered_frames() {
+    // The static Cornell box from its still camera: once the light has arrived, nothing a
+    // client shows changes, and a client that accumulates (the default) blends each frame,
+    // sampled at another point in its pixels, into the mean of those since (batches sent
+    // again unchanged do not reset it): its last frame
+    // matches the plain client's inside surfaces and differs along the edges, where a pixel
+    // straddles two surfaces. A client that does not accumulate blends nothing.
+    let text = cloud_and_home(
+        "cornell",
+        3.0,
+        r#"
+[[stage]]
+name = "batcher"
+kind = "photon_batcher"
+node = "cloud"
+params = { photons = 3000, batch_size = 3000, interval_ms = 100.0, resend_s = 0.5 }
+[[stage]]
+name = "still"
+kind = "photon_reconstructor"
+node = "home"
+params = { width = 48, height = 36, fps = 8.0, shadow_size = 128, write_frames = true, exposure_stops = 0.0 }
+[[stage]]
+name = "plain"
+kind = "photon_reconstructor"
+node = "home"
+params = { width = 48, height = 36, fps = 8.0, shadow_size = 128, write_frames = true, exposure_stops = 0.0, accumulate = false }
+[[edge]]
+from = "batcher.out"
+to = "still.in"
+[[edge]]
+from = "batcher.out"
+to = "plain.in"
+"#,
+    );
+    let (run, out) = run_with_output(&text).await;
+    let (still, plain) = (report(&run.metrics, "still"), report(&run.metrics, "plain"));
+    eprintln!("still: {still}\nplain: {plain}");
+    // Every frame after the light arrived but the one that started the mean: the batches
+    // sent again every 0.5 s change nothing.
+    assert!(f(still, "batches_replaced") >= 3.0, "{still}");
+    assert!(
+        f(still, "still_frames") >= f(still, "frames") - 5.0,
+        "{still}"
+    );
+    assert_eq!(f(plain, "still_frames"), 0.0, "{plain}");
+    // The last frame each wrote.
+    let last = |client: &str| {
+        let dir = out.path().join(client);
+        let mut frames: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "png"))
+            .collect();
+        frames.sort();
+        image::open(frames.last().unwrap()).unwrap().to_rgb8()
+    };
+    let (a, b) = (last("still"), last("plain"));
+    let differ: Vec<u8> = a
+        .pixels()
+        .zip(b.pixels())
+        .map(|(p, q)| (0..3).map(|c| p[c].abs_diff(q[c])).max().unwrap())
+        .collect();
+    let changed = differ.iter().filter(|&&d| d > 8).count();
+    let n = differ.len();
+    eprintln!("{changed} of {n} pixels differ by more than 8/255");
+    assert!(changed > 0, "the accumulated frame is the plain one");
+    assert!(
+        changed * 4 < n,
+        "{changed} of {n} pixels differ: not only edges"
+    );
 }

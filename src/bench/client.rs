@@ -28,6 +28,9 @@ pub struct ClientBenchOptions {
     pub light_samples: u32,
     /// Shadow-map side, texels.
     pub shadow_size: u32,
+    /// A still view (camera and lights as in the frame before) accumulates its jittered
+    /// frames, as the client shell does (its `accumulate`).
+    pub accumulate: bool,
 }
 
 impl Default for ClientBenchOptions {
@@ -39,6 +42,7 @@ impl Default for ClientBenchOptions {
             fps: 30.0,
             light_samples: cloudlight_actors::client::DEFAULT_LIGHT_SAMPLES,
             shadow_size: 512,
+            accumulate: true,
         }
     }
 }
@@ -142,6 +146,7 @@ pub fn raster_anchor(raster: &Raster, frames: usize) -> anyhow::Result<RasterAnc
     let inputs = FrameInputs {
         camera: scene.overview_camera(),
         lights: &[],
+        still: None,
     };
     let frames = frames.max(1);
     let mut times = Vec::with_capacity(frames);
@@ -208,6 +213,10 @@ pub fn measure(
     let mut lights_count = 0;
     let mut whole = Vec::new();
     let mut split: Vec<PassTimes> = Vec::new();
+    // A still view's frame number, as the client shell counts it (the technique's light does
+    // not change here).
+    let mut last_view = None;
+    let mut still: Option<u32> = None;
     let total = 2 + 2 * options.frames.max(1);
     for i in 0..total {
         let t = i as f64 / options.fps.max(1e-3);
@@ -220,9 +229,15 @@ pub fn measure(
             None => scene.direct_lights(t, &scene.surface_light_samples(t, options.light_samples)),
         };
         lights_count = lights.len();
+        let camera = camera_path.at(t);
+        let view = Some((camera, lights.clone()));
+        still = (options.accumulate && !moving && view == last_view)
+            .then(|| still.map_or(0, |k| k + 1));
+        last_view = view;
         let inputs = FrameInputs {
-            camera: camera_path.at(t),
+            camera,
             lights: &lights,
+            still,
         };
         let timed = i >= 2 + options.frames;
         let readback = if timed {
@@ -283,6 +298,7 @@ pub fn measure(
         .chain(steps)
         .chain([
             stat("compose", pick(|p| p.compose)),
+            stat("accumulate", pick(|p| p.accumulate)),
             stat("readback", pick(|p| p.readback)),
             stat("total (split)", pick(|p| p.total)),
         ])

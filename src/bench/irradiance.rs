@@ -13,10 +13,10 @@ use cloudlight_actors::irradiance_reconstructor::{IrradianceClientParams, Irradi
 use cloudlight_actors::video_encoder::{EncoderParams, EncoderReport};
 use cloudlight_render::HdrMap;
 use cloudlight_render::lightmap::{
-    BasisFit, GatherMode, Gatherer, Lightmap, LightmapPass, NotParametrizable, lightmap_frame,
+    BasisFit, GatherMode, Gatherer, Lightmap, LightmapPass, NotParametrizable,
 };
 use cloudlight_render::metrics::{ImageErrors, compare};
-use cloudlight_render::raster::{Raster, ShadowSettings};
+use cloudlight_render::raster::{OneFrame, Raster, ShadowSettings};
 use cloudlight_render::video::{Decoder, Encoder, EncoderSettings, RateControl, hdr};
 use cloudlight_scenes::Scene;
 use cloudlight_scenes::glam::Vec3;
@@ -598,19 +598,12 @@ pub fn quality(
         let (lm, raw, cost) = converged_map(&view.scene, o, common.seed, 48)?;
         let tris = lm.scene.triangles_at(0.0);
         let show = |map: &HdrMap| -> anyhow::Result<(ImageErrors, Vec<Vec3>)> {
-            let f = lightmap_frame(
-                raster,
-                &lm.scene,
-                &tris,
-                &[],
-                &view.camera,
-                (w, h),
-                shadows,
-                map,
-            )?;
-            let mask: Vec<bool> = (0..f.indirect.len())
-                .map(|i| f.gbuffer.covered(i))
-                .collect();
+            let mut pass = LightmapPass::new(raster)?;
+            pass.set_map(raster, map)?;
+            let frame = OneFrame::new(&lm.scene, &tris, &[], &view.camera, (w, h), shadows)
+                .with_samples(common.still_frames);
+            let f = raster.read_frame(&frame, &mut pass)?;
+            let mask: Vec<bool> = f.coverage.iter().map(|&c| c > 0.0).collect();
             Ok((
                 compare(&f.indirect, &view.reference, &mask, w, h),
                 f.indirect,

@@ -124,6 +124,9 @@ pub struct QualityCommon {
     pub rate_hz: f64,
     /// Seed of the technique's random streams.
     pub seed: u64,
+    /// Frames of the still view the client's image averages, each jittered over its pixels
+    /// (1: through their centres).
+    pub still_frames: u32,
 }
 
 /// A sweep: knobs and the values each takes (the technique says how they combine).

@@ -11,11 +11,11 @@ use cloudlight_actors::photon_batcher::{BatcherParams, BatcherReport, Retrace};
 use cloudlight_actors::photon_reconstructor::{PhotonClientParams, PhotonClientReport};
 use cloudlight_actors::wire::PhotonMsg;
 use cloudlight_render::metrics::{ImageErrors, compare};
-use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings, photon_frame};
+use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings};
 use cloudlight_render::photon::{
     PackFormat, Photon, PhotonSet, PhotonSettings, PhotonStream, Receive, View, trace_iteration,
 };
-use cloudlight_render::raster::{Raster, ShadowSettings};
+use cloudlight_render::raster::{OneFrame, Raster, ShadowSettings};
 use cloudlight_render::{BvhKind, SceneBvh};
 use cloudlight_scenes::Scene;
 use cloudlight_scenes::glam::Vec3;
@@ -365,6 +365,7 @@ impl Technique for Photons {
             guide_reach: options.guide_reach,
             relax: options.relax,
             fit: options.fit,
+            still_frames: common.still_frames,
         };
         if knobs.is_empty() {
             Self::check(options)?;
@@ -690,6 +691,8 @@ pub struct QualityOptions {
     pub relax: u32,
     /// Halvings of a disk that overhangs its surface at most.
     pub fit: u32,
+    /// Frames of the still view the client's image averages, jittered over its pixels.
+    pub still_frames: u32,
 }
 
 /// One point of the trade: a budget in one packing.
@@ -801,19 +804,8 @@ impl QualityView {
         photons: &[Photon],
         o: &QualityOptions,
     ) -> anyhow::Result<(ImageErrors, Vec<Vec3>)> {
-        let frame = photon_frame(
+        let mut pass = PhotonSplatPass::new(
             raster,
-            &self.scene,
-            self.bvh.triangles(),
-            &[],
-            &self.camera,
-            o.width,
-            o.height,
-            ShadowSettings {
-                size: 16,
-                ..Default::default()
-            },
-            photons,
             SplatSettings {
                 downsample: o.downsample,
                 levels: o.levels,
@@ -824,9 +816,17 @@ impl QualityView {
                 ..SplatSettings::default()
             },
         )?;
-        let mask: Vec<bool> = (0..frame.indirect.len())
-            .map(|i| frame.gbuffer.covered(i))
-            .collect();
+        pass.set_photons(raster, photons)?;
+        let shadows = ShadowSettings {
+            size: 16,
+            ..Default::default()
+        };
+        let size = (o.width, o.height);
+        let triangles = self.bvh.triangles();
+        let view = OneFrame::new(&self.scene, triangles, &[], &self.camera, size, shadows)
+            .with_samples(o.still_frames);
+        let frame = raster.read_frame(&view, &mut pass)?;
+        let mask: Vec<bool> = frame.coverage.iter().map(|&c| c > 0.0).collect();
         let errors = compare(&frame.indirect, &self.reference, &mask, o.width, o.height);
         Ok((errors, frame.indirect))
     }

@@ -604,11 +604,10 @@ pub fn quality(
         }
         let volume = VoxelVolume::new(&octree, decoder.levels(), octree.depth(), o.volume_level);
         pass.set_volume(raster, &volume)?;
-        let frame = OneFrame::new(&view.scene, &tris, &[], &view.camera, (w, h), shadows);
+        let frame = OneFrame::new(&view.scene, &tris, &[], &view.camera, (w, h), shadows)
+            .with_samples(common.still_frames);
         let f = raster.read_frame(&frame, &mut pass)?;
-        let mask: Vec<bool> = (0..f.indirect.len())
-            .map(|i| f.gbuffer.covered(i))
-            .collect();
+        let mask: Vec<bool> = f.coverage.iter().map(|&c| c > 0.0).collect();
         let before = compare(&f.indirect, &view.reference, &mask, w, h);
         let tag = format!(
             "d{}_a{}_c{}_m{}",

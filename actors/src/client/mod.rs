@@ -178,6 +178,10 @@ pub struct ClientReport<R> {
     pub first_indirect_s: Option<f64>,
     /// Times the shadow maps were rendered.
     pub shadow_renders: u64,
+    /// Frames blended into a still view's mean (`accumulate`; a still view's first frame
+    /// not counted).
+    #[serde(default)]
+    pub still_frames: u64,
     /// Samples written ([`ClientParams::sample_every_s`]).
     #[serde(default)]
     pub samples_written: u64,
@@ -286,6 +290,7 @@ struct Figures {
     started: Instant,
     first_indirect_s: Option<f64>,
     shadow_renders: u64,
+    still_frames: u64,
     /// Index of the next sample due ([`ClientParams::sample_every_s`]).
     next_sample: u64,
     samples_written: u64,
@@ -310,6 +315,10 @@ pub struct ClientShell<T: ClientTechnique> {
     exposure: Option<f32>,
     /// The MP4 recording, made at the first frame shown.
     recorder: Option<cloudlight_render::video::Recorder>,
+    /// What the last frame showed (camera and lights), to tell a still view.
+    last_view: Option<(Camera, Vec<LightState>)>,
+    /// The still view's frame number (`ClientParams::accumulate`), while it stands still.
+    still: Option<u32>,
     figures: Figures,
     cadence: Cadence,
 }
@@ -364,6 +373,8 @@ impl<T: ClientTechnique> ClientShell<T> {
             output,
             exposure,
             recorder: None,
+            last_view: None,
+            still: None,
             figures: Figures {
                 frames: 0,
                 frames_written: 0,
@@ -374,6 +385,7 @@ impl<T: ClientTechnique> ClientShell<T> {
                 started: Instant::now(),
                 first_indirect_s: None,
                 shadow_renders: 0,
+                still_frames: 0,
                 next_sample: 1,
                 samples_written: 0,
             },
@@ -417,6 +429,7 @@ impl<T: ClientTechnique> ClientShell<T> {
             indirect_shown: self.technique.valid_as_of().is_some(),
             first_indirect_s: f.first_indirect_s,
             shadow_renders: f.shadow_renders,
+            still_frames: f.still_frames,
             samples_written: f.samples_written,
             exposure_stops: self.exposure,
             technique: self.technique.report(),
@@ -500,6 +513,18 @@ impl<T: ClientTechnique> ClientShell<T> {
         let update = self.technique.update();
         let lights = self.lights_at(t).await?;
         let camera = self.camera_at(t);
+        // A still view: nothing the frame shows changed since the last one (the first such
+        // frame starts the mean again, through the pixels' centres).
+        let view = (camera, lights.clone());
+        let unchanged =
+            update.is_none() && geometry.is_none() && self.last_view.as_ref() == Some(&view);
+        self.still = (self.params.accumulate && unchanged)
+            .then(|| self.still.map_or(0, |k| k.saturating_add(1)));
+        self.last_view = Some(view);
+        if self.still.is_some_and(|k| k > 0) {
+            self.figures.still_frames += 1;
+        }
+        let still = self.still;
         let write = self.output.frames_dir.is_some()
             && self.figures.frames.is_multiple_of(self.params.write_every);
         let scene = self.drawn.clone();
@@ -520,6 +545,7 @@ impl<T: ClientTechnique> ClientShell<T> {
             let inputs = FrameInputs {
                 camera,
                 lights: &lights,
+                still,
             };
             let readback = if write || keep {
                 Readback::Composed

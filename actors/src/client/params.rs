@@ -54,10 +54,17 @@ pub struct ClientParams {
     /// What a placement experiment compares with the reference.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sample_every_s: Option<f64>,
+    /// While nothing it shows changes (camera, lights, geometry, the technique's light), the
+    /// client shows the mean of its frames since, each sampling its pixels at another point
+    /// within them: a still view converges to each pixel's mean over its area, as a camera
+    /// sees it (`render/src/raster/accumulate.rs`). False: every frame through the pixels'
+    /// centres.
+    #[serde(default = "yes")]
+    pub accumulate: bool,
 }
 
 /// The keys of [`ClientParams`] (a test keeps the two in step).
-pub const CLIENT_KEYS: [&str; 12] = [
+pub const CLIENT_KEYS: [&str; 13] = [
     "width",
     "height",
     "fps",
@@ -70,6 +77,7 @@ pub const CLIENT_KEYS: [&str; 12] = [
     "record",
     "exposure_stops",
     "sample_every_s",
+    "accumulate",
 ];
 
 fn default_width() -> u32 {
@@ -116,6 +124,7 @@ impl Default for ClientParams {
             record: None,
             exposure_stops: None,
             sample_every_s: None,
+            accumulate: true,
         }
     }
 }

@@ -314,6 +314,7 @@ mod tests {
                 width: size.0,
                 height: size.1,
                 shadows,
+                samples: 1,
             };
             let f = raster.read_frame(&view, &mut pass).unwrap();
             assert!(f.indirect.iter().all(|c| *c == Vec3::ZERO));

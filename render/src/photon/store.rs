@@ -140,6 +140,14 @@ impl PhotonSet {
             return Inserted::Stale;
         }
         let key = (h.light, h.pass, h.slot);
+        // A batch sent again unchanged (the batcher's `resend_s`, for clients that joined
+        // late) changes nothing: the set keeps its version, so a client's still view keeps
+        // accumulating.
+        if self.held.get(&key).is_some_and(|held| held.batch == *batch) {
+            self.stats.accepted += 1;
+            self.stats.replaced += 1;
+            return Inserted::Replaced;
+        }
         let held_gen = self.held.get(&key).map(|h| h.generation);
         self.held.insert(
             key,

@@ -789,6 +789,10 @@ fn the_set_keeps_the_newest_batch_per_slot() {
     set.apply_manifest(manifest(1, 0.0, &[(0, 1, 2)]));
     assert_eq!(set.valid_as_of(), Some(0.0));
     assert_eq!(set.photon_count(), 20);
+    // The same batch sent again (`resend_s`) changes nothing, not even the set's version.
+    let version = set.version();
+    assert_eq!(set.insert(&batch(0, 1, 2, 1, 0.0)), Inserted::Replaced);
+    assert_eq!(set.version(), version);
     // The light moves: generation 2 replaces slot 0; the set is not complete for the new
     // manifest until slot 1 arrives too.
     assert_eq!(set.insert(&batch(0, 0, 2, 2, 0.5)), Inserted::Replaced);

@@ -15,5 +15,6 @@ fn fs_main(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<u32> {
     let px = vec2<i32>(frag.xy);
     let d = bitcast<vec4<f32>>(textureLoad(direct, px, 0));
     let i = bitcast<vec4<f32>>(textureLoad(indirect, px, 0));
-    return bitcast<vec4<u32>>(vec4<f32>(d.rgb + i.rgb, 1.0));
+    // w: 1 where a surface was drawn (the direct pass's w), else 0.
+    return bitcast<vec4<u32>>(vec4<f32>(d.rgb + i.rgb, d.w));
 }

@@ -18,9 +18,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
-use glam::{Mat4, Vec3};
+use glam::{Mat4, Vec2, Vec3};
 use wgpu::util::DeviceExt;
 
+use super::accumulate::Accumulation;
 use super::albedo::AlbedoTextures;
 use super::compose::ComposePass;
 use super::direct::DirectPass;
@@ -50,6 +51,23 @@ pub struct FrameInputs<'a> {
     pub camera: Camera,
     /// Lights for direct light (punctual lights and surface emitter samples).
     pub lights: &'a [LightState],
+    /// `Some(k)`: frame k of a still view (0 starts it; the caller says when nothing the
+    /// frame shows has changed since frame k − 1). The frame samples its pixels at
+    /// [`pixel_jitter`]`(k)` and is blended into the view's running mean, which is what is
+    /// read back (`raster/accumulate.rs`). `None`: the frame alone, through the pixels'
+    /// centres.
+    pub still: Option<u32>,
+}
+
+/// Sub-pixel offset `k` of a still view's accumulation, pixels from the centre (x right, y
+/// down): the centre first (a still view's first frame is the frame of a moving one), then
+/// the Halton (2, 3) points 1, 2, … (every prefix spread over the pixel).
+pub fn pixel_jitter(k: u32) -> Vec2 {
+    if k == 0 {
+        return Vec2::ZERO;
+    }
+    let x = (u64::from(k.reverse_bits()) as f64 / 4_294_967_296.0) as f32;
+    Vec2::new(x, crate::sampling::radical_inverse3(k)) - Vec2::splat(0.5)
 }
 
 /// Which targets a frame reads back.
@@ -78,6 +96,9 @@ pub struct FrameImages {
     pub composed: Option<Vec<Vec3>>,
     /// Pass times (zero unless the frame was timed, but `total`).
     pub times: PassTimes,
+    /// A still view's radiance: the share of its frames whose sample saw a surface, per
+    /// pixel.
+    pub coverage: Option<Vec<f32>>,
 }
 
 /// Wall time of each pass of one frame (a submit and a wait after each when timed).
@@ -96,6 +117,8 @@ pub struct PassTimes {
     pub indirect_steps: Vec<(&'static str, Duration)>,
     /// Compose.
     pub compose: Duration,
+    /// A still view's accumulation (zero without one).
+    pub accumulate: Duration,
     /// Read-back (or the final wait when nothing is read).
     pub readback: Duration,
     /// The whole frame, from the first command to the end of the read-back.
@@ -122,6 +145,9 @@ pub struct OneFrame<'a> {
     pub height: u32,
     /// Shadow maps.
     pub shadows: ShadowSettings,
+    /// Frames averaged, each sampling its pixels at the next [`pixel_jitter`] (1: once,
+    /// through the pixels' centres).
+    pub samples: u32,
 }
 
 impl<'a> OneFrame<'a> {
@@ -142,6 +168,15 @@ impl<'a> OneFrame<'a> {
             width,
             height,
             shadows,
+            samples: 1,
+        }
+    }
+
+    /// The same view, `samples` jittered frames averaged ([`OneFrame::samples`]).
+    pub fn with_samples(self, samples: u32) -> Self {
+        OneFrame {
+            samples: samples.max(1),
+            ..self
         }
     }
 }
@@ -159,6 +194,7 @@ impl Raster {
         let inputs = FrameInputs {
             camera: view.camera,
             lights: view.lights,
+            still: None,
         };
         frame.render(self, &inputs, indirect, readback, false)
     }
@@ -202,6 +238,11 @@ pub struct FrameRenderer {
     shadows: ShadowMaps,
     direct: DirectPass,
     compose: ComposePass,
+    /// A still view's running means (made at its first frame).
+    still: Option<Accumulation>,
+    /// Whether a still view accumulates direct and indirect radiance too, not only the
+    /// composed frame.
+    still_all: bool,
 }
 
 impl FrameRenderer {
@@ -242,8 +283,19 @@ impl FrameRenderer {
                 shadows: ShadowMaps::new(raster, shadows),
                 direct: DirectPass::new(raster),
                 compose,
+                still: None,
+                still_all: false,
             })
         })
+    }
+
+    /// Whether a still view ([`FrameInputs::still`]) accumulates its direct and indirect
+    /// radiance too (to read them back), not only the composed frame (default: not).
+    pub fn accumulate_every_image(&mut self, all: bool) {
+        if all != self.still_all {
+            self.still_all = all;
+            self.still = None;
+        }
     }
 
     /// Frame width, pixels.
@@ -387,6 +439,15 @@ impl FrameRenderer {
             let mut timer = PassTimer { timed, mark: start };
             let mut enc = raster.device.create_command_encoder(&Default::default());
             let (clip_from_view, view_from_world) = self.camera_matrices(&inputs.camera);
+            // The point of pixel (x, y) moves to (x + ½ + jx, y + ½ + jy): the image moves the
+            // other way, in clip space scaled by w (near plane, P00 and P11 unchanged).
+            let jitter = inputs.still.map_or(Vec2::ZERO, pixel_jitter);
+            let shift = Vec3::new(
+                -2.0 * jitter.x / self.width as f32,
+                2.0 * jitter.y / self.height as f32,
+                0.0,
+            );
+            let clip_from_view = Mat4::from_translation(shift) * clip_from_view;
             let clip = clip_from_view * view_from_world;
             self.gbuffer.encode(
                 raster,
@@ -435,7 +496,20 @@ impl FrameRenderer {
             self.compose
                 .encode(raster, &mut enc, &self.targets.composed.view);
             timer.lap(raster, &mut enc, &mut times.compose)?;
-            let mut images = self.read_back(raster, enc, readback)?;
+            if let Some(frame) = inputs.still {
+                let t = &self.targets;
+                let still = self.still.get_or_insert_with(|| {
+                    let mut images = vec![&t.composed];
+                    if self.still_all {
+                        images.extend([&t.direct, &t.indirect]);
+                    }
+                    let size = (self.width, self.height);
+                    Accumulation::new(raster, &images, size)
+                });
+                still.encode(raster, &mut enc, frame);
+                timer.lap(raster, &mut enc, &mut times.accumulate)?;
+            }
+            let mut images = self.read_back(raster, enc, readback, inputs.still.is_some())?;
             times.readback = timer.mark.elapsed();
             times.total = start.elapsed();
             images.times = times;
@@ -448,8 +522,24 @@ impl FrameRenderer {
         raster: &Raster,
         enc: wgpu::CommandEncoder,
         which: Readback,
+        still: bool,
     ) -> Result<FrameImages, RasterError> {
         let t = &self.targets;
+        // A still view's images are its running means (composed first, then direct and
+        // indirect where they are accumulated).
+        let means = self.still.as_ref().filter(|_| still);
+        fn mean<'a>(
+            means: Option<&'a Accumulation>,
+            all: bool,
+            i: usize,
+            own: &'a Target,
+        ) -> &'a wgpu::Texture {
+            match means {
+                Some(m) if i == 0 || all => &m.mean(i).texture,
+                _ => &own.texture,
+            }
+        }
+        let all = self.still_all;
         let g = &t.gbuffer;
         let gbuffer = [
             (&g.position.texture, Layout::Exact4),
@@ -458,9 +548,9 @@ impl FrameRenderer {
             (&g.lightmap_uv.texture, Layout::Exact2),
         ];
         let radiance = [
-            (&t.direct.texture, Layout::Exact4),
-            (&t.indirect.texture, Layout::Exact4),
-            (&t.composed.texture, Layout::Exact4),
+            (mean(means, all, 1, &t.direct), Layout::Exact4),
+            (mean(means, all, 2, &t.indirect), Layout::Exact4),
+            (mean(means, all, 0, &t.composed), Layout::Exact4),
         ];
         let list: Vec<(&wgpu::Texture, Layout)> = match which {
             Readback::Nothing => Vec::new(),
@@ -490,27 +580,50 @@ impl FrameRenderer {
             images.direct = planes.next().map(|p| rgb(&p));
             images.indirect = planes.next().map(|p| rgb(&p));
         }
-        images.composed = planes.next().map(|p| rgb(&p));
+        if let Some(composed) = planes.next() {
+            if means.is_some() {
+                images.coverage = Some(composed.iter().map(|v| v.w).collect());
+            }
+            images.composed = Some(rgb(&composed));
+        }
         Ok(images)
     }
 }
 
 impl Raster {
-    /// One view rendered once with `indirect` as the technique's pass, everything read back.
+    /// One view rendered with `indirect` as the technique's pass, everything read back: once
+    /// through the pixels' centres, or with [`OneFrame::samples`] above 1 as a still view's
+    /// accumulation of that many frames ([`FrameInputs::still`]): each pixel the mean over
+    /// its area, as a camera sees it, but for what no neighbour shows (`raster/accumulate.rs`).
+    /// The G-buffer is the last frame's; `coverage` counts every frame's.
     pub fn read_frame(
         &self,
         view: &OneFrame<'_>,
         indirect: &mut dyn IndirectPass,
     ) -> Result<ReadFrame, RasterError> {
-        let images = self.render_once(view, indirect, Readback::Everything)?;
-        match (images.gbuffer, images.direct, images.indirect) {
-            (Some(gbuffer), Some(direct), Some(indirect)) => Ok(ReadFrame {
-                gbuffer,
-                direct,
-                indirect,
-            }),
-            _ => Err(RasterError::Readback("the frame was not read back".into())),
+        if view.samples <= 1 {
+            let images = self.render_once(view, indirect, Readback::Everything)?;
+            return ReadFrame::from_images(images);
         }
+        let mut frame = FrameRenderer::new(self, view.width, view.height, view.shadows)?;
+        frame.set_geometry(self, view.scene, view.triangles)?;
+        frame.accumulate_every_image(true);
+        let mut images = FrameImages::default();
+        for k in 0..view.samples {
+            let inputs = FrameInputs {
+                camera: view.camera,
+                lights: view.lights,
+                still: Some(k),
+            };
+            let last = k + 1 == view.samples;
+            let readback = if last {
+                Readback::Everything
+            } else {
+                Readback::Nothing
+            };
+            images = frame.render(self, &inputs, indirect, readback, false)?;
+        }
+        ReadFrame::from_images(images)
     }
 
     /// The G-buffer and the direct radiance (ρ/π · E_direct, with shadow maps) of one view
@@ -541,9 +654,27 @@ pub struct ReadFrame {
     pub direct: Vec<Vec3>,
     /// Indirect radiance from the technique's pass (ρ/π · E_indirect).
     pub indirect: Vec<Vec3>,
+    /// Share of each pixel's frames that saw a surface (0 or 1 from one frame).
+    pub coverage: Vec<f32>,
 }
 
 impl ReadFrame {
+    fn from_images(images: FrameImages) -> Result<ReadFrame, RasterError> {
+        match (images.gbuffer, images.direct, images.indirect) {
+            (Some(gbuffer), Some(direct), Some(indirect)) => Ok(ReadFrame {
+                coverage: images.coverage.unwrap_or_else(|| {
+                    (0..gbuffer.position.len())
+                        .map(|i| if gbuffer.covered(i) { 1.0 } else { 0.0 })
+                        .collect()
+                }),
+                gbuffer,
+                direct,
+                indirect,
+            }),
+            _ => Err(RasterError::Readback("the frame was not read back".into())),
+        }
+    }
+
     /// Direct + indirect radiance.
     pub fn combined(&self) -> Vec<Vec3> {
         self.direct

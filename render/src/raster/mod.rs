@@ -15,6 +15,7 @@
 use cloudlight_scenes::Camera;
 use glam::{Mat4, Vec2, Vec3, Vec4};
 
+mod accumulate;
 mod albedo;
 mod compose;
 pub mod device;
@@ -29,7 +30,7 @@ pub mod targets;
 
 pub use device::Formats;
 pub use frame::{
-    FrameImages, FrameInputs, FrameRenderer, OneFrame, PassTimes, ReadFrame, Readback,
+    FrameImages, FrameInputs, FrameRenderer, OneFrame, PassTimes, ReadFrame, Readback, pixel_jitter,
 };
 pub use pass::{IndirectContext, IndirectPass, NoIndirect, StepTimer};
 pub use shadow::{MAX_LIGHTS, ShadowSettings};
@@ -349,6 +350,7 @@ impl Raster {
                 size: 1,
                 ..Default::default()
             },
+            samples: 1,
         };
         let images = self.render_once(&view, &mut NoIndirect, Readback::GBuffer)?;
         images

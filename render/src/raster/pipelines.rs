@@ -37,6 +37,8 @@ pub(crate) struct Pipelines {
     pub(crate) direct: wgpu::RenderPipeline,
     pub(crate) compose_layout: wgpu::BindGroupLayout,
     pub(crate) compose: wgpu::RenderPipeline,
+    pub(crate) accumulate_layout: wgpu::BindGroupLayout,
+    pub(crate) accumulate: wgpu::RenderPipeline,
 }
 
 pub(crate) fn texture_entry(
@@ -224,7 +226,36 @@ impl Pipelines {
             ("vs_main", "fs_main"),
             formats.exact4,
         );
+        let accumulate_layout = layout(
+            device,
+            "accumulate",
+            &[
+                texture_entry(0, FRAGMENT, UINT, D2),
+                texture_entry(1, FRAGMENT, UINT, D2),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: wgpu::BufferSize::new(16),
+                    },
+                    count: None,
+                },
+            ],
+        );
+        let shader = device.create_shader_module(wgpu::include_wgsl!("accumulate.wgsl"));
+        let accumulate = fullscreen_pipeline(
+            device,
+            "accumulate",
+            &pipeline_layout(device, "accumulate", &accumulate_layout),
+            &shader,
+            ("vs_main", "fs_main"),
+            formats.exact4,
+        );
         Pipelines {
+            accumulate_layout,
+            accumulate,
             view_layout,
             gbuffer,
             albedo_layout,

@@ -40,6 +40,11 @@ pub struct Args {
     /// Shadow-map side, texels.
     #[arg(long, default_value_t = 512, value_parser = ranges::count::<u32>(1, ranges::MAX_FRAME_SIDE))]
     shadow_size: u32,
+    /// A still view (camera and lights unchanged since the frame before) accumulates its
+    /// jittered frames, as the client shell does by default (its `accumulate`); `false`:
+    /// every frame alone.
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    accumulate: bool,
     /// Photon accumulation buffer downsampling per axis, 1, 2 or 4 (the knob `downsample`)
     /// [default: 2, the client's].
     #[arg(long, value_parser = clap::builder::TypedValueParser::map(
@@ -97,6 +102,7 @@ impl Visit for Frame {
             fps: a.fps,
             light_samples: a.light_samples,
             shadow_size: a.shadow_size,
+            accumulate: a.accumulate,
         };
         eprintln!(
             "rendering {} + {} frames at {}x{} on {}...",

@@ -155,6 +155,11 @@ pub struct QualityArgs {
     /// Update rate the Mbps column assumes (capped by the update time), Hz.
     #[arg(long, default_value_t = 30.0, value_parser = ranges::closed(0.001, 1e6, "Hz"))]
     rate_hz: f64,
+    /// The client's image is the mean of this many frames of the still view, each sampling
+    /// its pixels at another point within them (the client shell's `accumulate`; 1: one
+    /// frame through the pixels' centres).
+    #[arg(long, default_value_t = 1, value_parser = ranges::count::<u32>(1, 1024))]
+    still_frames: u32,
     /// Seed of the technique's random streams (the reference keeps its own): a difference
     /// between two settings is real when it holds across seeds.
     #[arg(long, default_value_t = 5)]
@@ -278,6 +283,7 @@ impl Visit for Quality {
             height: a.height,
             rate_hz: a.rate_hz,
             seed: a.seed,
+            still_frames: a.still_frames,
         };
         let out = a.out.clone().unwrap_or_else(|| default_out("quality"));
         T::quality(&raster, &a.scene, &common, &options, &sweep, &out)?;

@@ -723,6 +723,7 @@ fn a_timed_frame_names_the_splats_steps_and_draws_the_same_image() {
             let inputs = FrameInputs {
                 camera,
                 lights: &[],
+                still: None,
             };
             let mut render = |timed| {
                 frame
