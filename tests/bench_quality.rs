@@ -35,6 +35,7 @@ fn photon_quality_errors_do_not_change_when_every_light_is_scaled() {
         guide_reach: 0.05,
         relax: 0,
         fit: cloudlight::render::photon::PhotonSettings::default().fit,
+        window: 1,
         // Two jittered frames of the still view averaged (their clamp scales with the light).
         still_frames: 2,
     };

@@ -564,6 +564,8 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
             "32",
             "--set",
             "passes=3",
+            "--set",
+            "window=2",
             "--still-frames",
             "4",
             "--out",
@@ -585,6 +587,13 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
     for p in progressive {
         assert!(p["errors"]["relmse"].as_f64().unwrap().is_finite(), "{p}");
     }
+    // A light that changes every iteration, drawn from its last 1 and 2 generations: twice
+    // the photons for the same bytes an update.
+    let window = report["window"].as_array().unwrap();
+    assert_eq!(window.len(), 2, "{window:?}");
+    assert!(window[1]["photons"].as_u64() > window[0]["photons"].as_u64());
+    assert_eq!(window[0]["kbytes"], window[1]["kbytes"]);
+    assert!(window[1]["errors"]["relmse"].as_f64().unwrap().is_finite());
     let photons: Vec<u64> = progressive
         .iter()
         .map(|p| p["photons"].as_u64().unwrap())
@@ -761,6 +770,10 @@ fn photon_quality_refuses_knobs_a_batcher_or_client_would_refuse() {
         ("fit=9", "`fit` = 9 is out of range: must be in [0, 8]"),
         ("passes=5000", "`passes` = 5000 is out of range"),
         ("levels=0", "`levels` = 0 must be 1 to 4"),
+        (
+            "window=65",
+            "`window` = 65 is out of range: must be in [1, 64]",
+        ),
     ] {
         let out = photon_quality(&["--set", knob, "--budgets", "100"], dir.path());
         let err = String::from_utf8_lossy(&out.stderr);
@@ -1305,6 +1318,7 @@ fn bench_client_splits_the_frame_by_pass() {
         "indirect: resolve",
         "indirect: upsample",
         "compose",
+        "accumulate",
         "readback",
         "total (split)",
     ];
@@ -1320,8 +1334,16 @@ fn bench_client_splits_the_frame_by_pass() {
         .collect();
     assert_eq!(names, passes);
     assert!(report["frame_p50_ms"].as_f64().unwrap() > 0.0);
-    // The light of cornell-animated moves every frame: every split frame re-renders shadows.
+    // The light of cornell-animated moves every frame: every split frame re-renders shadows,
+    // and the view is never still, so nothing accumulates.
     assert_eq!(report["frames_with_shadows"], 3);
+    let accumulate = report["passes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["pass"] == "accumulate")
+        .unwrap();
+    assert_eq!(accumulate["p50_ms"].as_f64(), Some(0.0), "{accumulate}");
     // The raster anchor of TARGETS.md, measured in the same run, and the frame read against it.
     let anchor = &report["anchor"];
     assert!(anchor["triangles"].as_u64().unwrap() >= 100_000, "{anchor}");

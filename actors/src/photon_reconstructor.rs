@@ -54,6 +54,16 @@ pub struct PhotonClientParams {
     /// for ~1% more error: the README's "Merging photons").
     #[serde(default = "default_splat_merge")]
     pub splat_merge: f32,
+    /// A light that changes every iteration is drawn from its last `window` generations
+    /// together, as passes (1 to 64; 1: the newest only): the same bytes, less noise and
+    /// smaller disks, the light lagging by (window − 1)/2 iterations on average
+    /// (`render/src/photon/store.rs`; the README's "A moving light's window").
+    #[serde(default = "one")]
+    pub window: u32,
+}
+
+fn one() -> u32 {
+    1
 }
 
 fn default_downsample() -> u32 {
@@ -89,6 +99,7 @@ impl Default for PhotonClientParams {
             compute: default_compute(),
             edges: default_edges(),
             splat_merge: default_splat_merge(),
+            window: 1,
         }
     }
 }
@@ -123,7 +134,8 @@ impl cloudlight_runtime::CheckParams for PhotonClientParams {
             ));
         }
         cloudlight_runtime::check_range("min_texels", self.min_texels as f64, 0.5, 64.0, "texels")?;
-        cloudlight_runtime::check_range("splat_merge", self.splat_merge as f64, 0.0, 2.0, "radii")
+        cloudlight_runtime::check_range("splat_merge", self.splat_merge as f64, 0.0, 2.0, "radii")?;
+        cloudlight_runtime::check_range("window", self.window as f64, 1.0, 64.0, "generations")
     }
 }
 
@@ -166,11 +178,11 @@ impl ClientTechnique for PhotonClient {
 
     fn new(
         _setup: &StageSetup,
-        _params: &Self::Params,
+        params: &Self::Params,
         _scene: &Arc<Scene>,
     ) -> anyhow::Result<Self> {
         Ok(PhotonClient {
-            set: PhotonSet::new(),
+            set: PhotonSet::with_window(params.window),
             uploaded_version: None,
             bytes_received: 0,
         })

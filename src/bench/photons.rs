@@ -81,6 +81,9 @@ pub struct PhotonOptions {
     pub relax: u32,
     /// Halvings of a disk that overhangs its surface at most ([`PhotonSettings::fit`]).
     pub fit: u32,
+    /// The client draws a moving light's last `window` generations together; `bench
+    /// quality` measures the error generation by generation when above 1.
+    pub window: u32,
 }
 
 impl Default for PhotonOptions {
@@ -105,6 +108,7 @@ impl Default for PhotonOptions {
             guide_reach: PhotonSettings::default().guide_reach,
             relax: PhotonSettings::default().relax,
             fit: PhotonSettings::default().fit,
+            window: PhotonClientParams::default().window,
         }
     }
 }
@@ -157,6 +161,7 @@ impl Photons {
             compute: o.compute,
             edges: o.edges,
             splat_merge: o.splat_merge,
+            window: o.window,
         }
     }
 
@@ -284,6 +289,19 @@ impl Technique for Photons {
                 still_pass(&mut stream, &mut set, scene, &bvh);
             }
             set.photons().collect()
+        } else if o.window > 1 {
+            // A moving light's last generations, drawn together as its client draws them.
+            let mut stream = PhotonStream::new(settings, o.format, Retrace::Always, 1);
+            let mut set = [PhotonSet::with_window(o.window)];
+            generations(
+                &mut stream,
+                &mut set,
+                scene,
+                &bvh,
+                o.window,
+                1000.0 / o.interval_ms,
+            );
+            set[0].photons().collect()
         } else {
             trace_iteration(scene, &bvh, 0.0, settings, 1, o.format).unpacked()
         };
@@ -293,6 +311,12 @@ impl Technique for Photons {
                 bench
                     .indirect
                     .replacen(" photons", &format!(" photons in {passes} passes"), 1);
+        } else if o.window > 1 {
+            bench.indirect = bench.indirect.replacen(
+                " photons",
+                &format!(" photons in {} generations", o.window),
+                1,
+            );
         }
         Ok(bench)
     }
@@ -365,6 +389,7 @@ impl Technique for Photons {
             guide_reach: options.guide_reach,
             relax: options.relax,
             fit: options.fit,
+            window: options.window,
             still_frames: common.still_frames,
         };
         if knobs.is_empty() {
@@ -691,6 +716,9 @@ pub struct QualityOptions {
     pub relax: u32,
     /// Halvings of a disk that overhangs its surface at most.
     pub fit: u32,
+    /// Above 1: the first budget is also measured with the client drawing the last 1, 2,
+    /// 4, … up to this many generations of a light that changes every iteration.
+    pub window: u32,
     /// Frames of the still view the client's image averages, jittered over its pixels.
     pub still_frames: u32,
 }
@@ -882,11 +910,34 @@ impl QualityView {
         photons: u64,
         o: &QualityOptions,
     ) -> anyhow::Result<Vec<(ProgressivePoint, Vec<Vec3>)>> {
+        let mut stream = self.stream(photons, o, o.passes, Retrace::Changed);
+        let mut set = PhotonSet::new();
+        let (mut points, mut bytes) = (Vec::new(), 0usize);
+        for pass in 1..=o.passes {
+            bytes += still_pass(&mut stream, &mut set, &self.scene, &self.bvh);
+            if !(pass.is_power_of_two() || pass == o.passes) {
+                continue;
+            }
+            let time = pass as f64 / o.rate_hz;
+            points.push(self.drawn(raster, &set, o, (pass, "passes"), time, bytes)?);
+        }
+        Ok(points)
+    }
+
+    /// A photon stream of `photons` an iteration as `o` sets it (`passes` for a still
+    /// light), its views the reference's.
+    fn stream(
+        &self,
+        photons: u64,
+        o: &QualityOptions,
+        passes: u32,
+        retrace: Retrace,
+    ) -> PhotonStream {
         let settings = PhotonSettings {
             photons_per_disk: o.photons_per_disk,
             density_radius: o.density_radius,
             receive: o.receive,
-            passes: o.passes,
+            passes,
             guide_share: o.guide,
             guide_reach: o.guide_reach,
             relax: o.relax,
@@ -898,38 +949,111 @@ impl QualityView {
                 o.batch_size.min(photons as u32).max(1),
             )
         };
-        let mut stream =
-            PhotonStream::new(settings, PackFormat::Compact8, Retrace::Changed, o.seed);
+        let mut stream = PhotonStream::new(settings, PackFormat::Compact8, retrace, o.seed);
         stream.set_views(vec![self.view(o)]);
-        let mut set = PhotonSet::new();
-        let (mut points, mut bytes) = (Vec::new(), 0usize);
-        for pass in 1..=o.passes {
-            bytes += still_pass(&mut stream, &mut set, &self.scene, &self.bvh);
-            if !(pass.is_power_of_two() || pass == o.passes) {
-                continue;
-            }
-            let drawn: Vec<Photon> = set.photons().collect();
-            let (errors, image) = self.client_errors(raster, &drawn, o)?;
-            let splatted = cloudlight_render::photon::merge::merge(&drawn, o.splat_merge).len();
-            eprintln!(
-                "{pass} passes: {} photons ({splatted} splatted), relMSE {:.4}, energy {:.3}, worst 1% of pixels {:.0}% of it",
-                drawn.len(),
-                errors.relmse,
-                errors.energy_ratio,
-                errors.worst_share * 100.0
-            );
-            let point = ProgressivePoint {
-                passes: pass,
-                scene_time_s: pass as f64 / o.rate_hz,
-                photons: drawn.len(),
-                splatted,
-                kbytes: bytes as f64 / 1e3,
-                errors,
-            };
-            points.push((point, image));
+        stream
+    }
+
+    /// What a client holding `set` draws, against the reference: `count` (passes or
+    /// generations, as `what` says) drawn, over `scene_time_s`, `bytes` sent.
+    fn drawn(
+        &self,
+        raster: &Raster,
+        set: &PhotonSet,
+        o: &QualityOptions,
+        (count, what): (u32, &str),
+        scene_time_s: f64,
+        bytes: usize,
+    ) -> anyhow::Result<(ProgressivePoint, Vec<Vec3>)> {
+        let drawn: Vec<Photon> = set.photons().collect();
+        let (errors, image) = self.client_errors(raster, &drawn, o)?;
+        let splatted = cloudlight_render::photon::merge::merge(&drawn, o.splat_merge).len();
+        eprintln!(
+            "{count} {what}: {} photons ({splatted} splatted), relMSE {:.4}, energy {:.3}, worst 1% of pixels {:.0}% of it",
+            drawn.len(),
+            errors.relmse,
+            errors.energy_ratio,
+            errors.worst_share * 100.0
+        );
+        let point = ProgressivePoint {
+            passes: count,
+            scene_time_s,
+            photons: drawn.len(),
+            splatted,
+            kbytes: bytes as f64 / 1e3,
+            errors,
+        };
+        Ok((point, image))
+    }
+}
+
+impl QualityView {
+    /// Light that changes every iteration (the paper's continuous stream, `retrace =
+    /// "always"`; the scene's own animation moves its lights), `photons` per iteration: the
+    /// `o.window` iterations up to time 0, one `1 / rate_hz` apart, each into clients that
+    /// draw their last 1, 2, 4, … `o.window` generations together; each one's error at time
+    /// 0 against the reference (`passes` counts the generations drawn, `scene_time_s` the
+    /// span they were traced over, `kbytes` one update's).
+    pub fn window(
+        &self,
+        raster: &Raster,
+        photons: u64,
+        o: &QualityOptions,
+    ) -> anyhow::Result<Vec<(ProgressivePoint, Vec<Vec3>)>> {
+        let mut stream = self.stream(photons, o, 1, Retrace::Always);
+        let windows: Vec<u32> = (1..=o.window)
+            .filter(|k| k.is_power_of_two() || *k == o.window)
+            .collect();
+        let mut sets: Vec<PhotonSet> = windows.iter().map(|&k| PhotonSet::with_window(k)).collect();
+        let bytes = generations(
+            &mut stream,
+            &mut sets,
+            &self.scene,
+            &self.bvh,
+            o.window,
+            o.rate_hz,
+        );
+        let mut points = Vec::new();
+        for (&generations, set) in windows.iter().zip(&sets) {
+            let span = f64::from(generations - 1) / o.rate_hz;
+            points.push(self.drawn(raster, set, o, (generations, "generations"), span, bytes)?);
         }
         Ok(points)
     }
+}
+
+/// `count` iterations of `stream` (`bvh` the scene's at time 0) up to time 0, `1 / rate_hz`
+/// apart, each into every one of `sets` as a client holds it (the batches, then the
+/// manifest): a moving light's generations. The last update's bytes.
+fn generations(
+    stream: &mut PhotonStream,
+    sets: &mut [PhotonSet],
+    scene: &Scene,
+    bvh: &SceneBvh,
+    count: u32,
+    rate_hz: f64,
+) -> usize {
+    let mut bytes = 0;
+    for k in 0..count {
+        let t = -f64::from(count - 1 - k) / rate_hz;
+        let moved;
+        let bvh = if scene.has_moving_geometry() {
+            moved = SceneBvh::at(scene, t, BvhKind::default());
+            &moved
+        } else {
+            bvh
+        };
+        let it = stream.iterate(scene, bvh, t);
+        bytes = it.data_bytes();
+        let manifest = stream.manifest(t);
+        for set in sets.iter_mut() {
+            for b in &it.batches {
+                set.insert(b);
+            }
+            set.apply_manifest(manifest.clone());
+        }
+    }
+    bytes
 }
 
 /// One more iteration of `stream` over a still scene (time 0) into `set`, as a client holds
@@ -948,14 +1072,14 @@ fn still_pass(
     it.data_bytes()
 }
 
-/// The progressive table.
-pub fn progressive_markdown(points: &[ProgressivePoint], photons: u64) -> String {
+/// A table of [`ProgressivePoint`]s under `title`, its first two columns named `first`.
+fn points_markdown(points: &[ProgressivePoint], title: &str, first: [&str; 3]) -> String {
     let mut t = Markdown::new(&[
-        "passes",
-        "scene time s",
+        first[0],
+        first[1],
         "photons drawn",
         "splatted (merged)",
-        "KB sent",
+        first[2],
         "relMSE",
         "HDR-FLIP",
         "energy ours / reference",
@@ -974,9 +1098,27 @@ pub fn progressive_markdown(points: &[ProgressivePoint], photons: u64) -> String
             format!("{:.2}", p.errors.worst_share),
         ]);
     }
-    format!(
-        "Still scene, {photons} photons an iteration (progressive photon mapping):\n\n{}",
-        t.render()
+    format!("{title}:\n\n{}", t.render())
+}
+
+/// The moving light's window table.
+pub fn window_markdown(points: &[ProgressivePoint], photons: u64) -> String {
+    points_markdown(
+        points,
+        &format!(
+            "Light that changes every iteration, {photons} photons an iteration, the client drawing its last \
+             generations together (`window`)"
+        ),
+        ["generations drawn", "traced over s", "KB an update"],
+    )
+}
+
+/// The progressive table.
+pub fn progressive_markdown(points: &[ProgressivePoint], photons: u64) -> String {
+    points_markdown(
+        points,
+        &format!("Still scene, {photons} photons an iteration (progressive photon mapping)"),
+        ["passes", "scene time s", "KB sent"],
     )
 }
 
@@ -1050,19 +1192,44 @@ pub fn quality(
         rows.push(row);
     }
     println!("{}", quality_markdown(&rows, o.rate_hz));
-    let progressive = match (o.passes > 1, o.budgets.first()) {
-        (true, Some(&photons)) => {
-            let mut points = Vec::new();
-            for (point, image) in view.progressive(raster, photons, o)? {
+    // Each point's image written beside the reference, named `{name}_{photons}_{count}`.
+    let written = |name: &str,
+                   what: &str,
+                   photons: u64,
+                   points: Vec<(ProgressivePoint, Vec<Vec3>)>|
+     -> anyhow::Result<Vec<ProgressivePoint>> {
+        points
+            .into_iter()
+            .map(|(point, image)| {
+                let label = format!("{photons} photons, {} {what}", point.passes);
                 view.write_image(
                     out,
-                    &format!("progressive_{photons}_{}", point.passes),
+                    &format!("{name}_{photons}_{}", point.passes),
                     &image,
-                    &format!("{photons} photons, {} passes", point.passes),
+                    &label,
                 )?;
-                points.push(point);
-            }
+                Ok(point)
+            })
+            .collect()
+    };
+    let progressive = match (o.passes > 1, o.budgets.first()) {
+        (true, Some(&photons)) => {
+            let points = view.progressive(raster, photons, o)?;
+            let points = written("progressive", "passes", photons, points)?;
             println!("{}", progressive_markdown(&points, photons));
+            points
+        }
+        _ => Vec::new(),
+    };
+    let window = match (o.window > 1, o.budgets.first()) {
+        (true, Some(&photons)) => {
+            let points = written(
+                "window",
+                "generations",
+                photons,
+                view.window(raster, photons, o)?,
+            )?;
+            println!("{}", window_markdown(&points, photons));
             points
         }
         _ => Vec::new(),
@@ -1083,7 +1250,7 @@ pub fn quality(
         paper::PHOTON_OPERATING_POINT.1
     );
     let report = serde_json::json!({ "technique": "photons", "scene": scene_spec, "options": o,
-        "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "sampling_floor": view.sampling_floor, "rows": rows, "progressive": progressive });
+        "reference_seconds": view.reference_s, "reference_noise": view.reference_noise, "sampling_floor": view.sampling_floor, "rows": rows, "progressive": progressive, "window": window });
     let json = out.join("quality.json");
     std::fs::write(&json, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("writing {}", json.display()))?;

@@ -12,6 +12,15 @@
 //! pass of fresh photons per iteration. [`PhotonSet::photons`] draws a light's complete
 //! passes together, each photon's power divided by their number P and its radius scaled
 //! by [`progressive_radius_scale`]`(P)`, so the light's estimate converges as passes come.
+//!
+//! **A moving light's window** ([`PhotonSet::with_window`]): a light that changes every
+//! iteration never gets a second pass, so each frame shows one generation's noise and the
+//! bias of its radius. With a window of W, the set keeps the light's last W − 1 complete
+//! generations beside the newest and draws them together as passes (power / G, radius ×
+//! [`progressive_radius_scale`]`(G)` for the G drawn): the same bytes on the wire, the
+//! estimate of G passes, lagging the light by (G − 1)/2 iterations on average. A light
+//! that a manifest lists at the generation the one before it listed stands still, and its
+//! older generations go.
 
 use std::collections::BTreeMap;
 use std::sync::OnceLock;
@@ -62,6 +71,7 @@ pub enum Inserted {
     Rejected(PackError),
 }
 
+#[derive(Clone)]
 struct Held {
     generation: u64,
     scene_time_s: f64,
@@ -104,6 +114,11 @@ pub struct SetStats {
 pub struct PhotonSet {
     /// By (light, pass, slot).
     held: BTreeMap<(u32, u32, u32), Held>,
+    /// Generations of each light drawn at most (0 and 1: the newest only).
+    window: u32,
+    /// Per light, its older complete generations' first-pass batches, newest first (at most
+    /// `window − 1`).
+    previous: BTreeMap<u32, std::collections::VecDeque<Vec<Held>>>,
     manifest: Option<Manifest>,
     valid_as_of: Option<f64>,
     stats: SetStats,
@@ -114,6 +129,15 @@ impl PhotonSet {
     /// An empty set.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// An empty set that draws each light's last `window` generations together while it
+    /// has one pass (a moving light: see the module's documentation; 1: the newest only).
+    pub fn with_window(window: u32) -> Self {
+        PhotonSet {
+            window,
+            ..Self::default()
+        }
     }
 
     /// Takes a batch: kept unless it is invalid (header, lengths, checksum) or older than
@@ -140,6 +164,9 @@ impl PhotonSet {
             return Inserted::Stale;
         }
         let key = (h.light, h.pass, h.slot);
+        if self.window > 1 && light_gen.is_some_and(|g| g < h.generation) {
+            self.keep_previous(h.light);
+        }
         // A batch sent again unchanged (the batcher's `resend_s`, for clients that joined
         // late) changes nothing: the set keeps its version, so a client's still view keeps
         // accumulating.
@@ -195,9 +222,42 @@ impl PhotonSet {
         if self.held.len() != before {
             self.version += 1;
         }
+        // A light's older generations are drawn only while it keeps changing: one listed
+        // at the generation the last manifest listed stands still (or is gone), and they go.
+        let before = self.previous.len();
+        let last = self.manifest.as_ref();
+        self.previous.retain(|&l, _| {
+            let now = manifest.lights.iter().find(|m| m.light == l);
+            let then = last.and_then(|m| m.lights.iter().find(|m| m.light == l));
+            now.is_some_and(|n| then.is_none_or(|t| t.generation != n.generation))
+        });
+        if self.previous.len() != before {
+            self.version += 1;
+        }
         self.manifest = Some(manifest);
         self.stats.manifests += 1;
         self.refresh_validity();
+    }
+
+    /// Before `light`'s first batch of a newer generation replaces any of its slots: its
+    /// first pass, when complete and of one generation, joins its older generations.
+    fn keep_previous(&mut self, light: u32) {
+        let first: Vec<&Held> = self
+            .held
+            .range((light, 0, 0)..=(light, 0, u32::MAX))
+            .map(|(_, h)| h)
+            .collect();
+        let complete = first.first().is_some_and(|h0| {
+            first.len() as u32 == h0.batch.header.slots
+                && first.iter().all(|h| h.generation == h0.generation)
+        });
+        if !complete {
+            return;
+        }
+        let generation: Vec<Held> = first.into_iter().cloned().collect();
+        let previous = self.previous.entry(light).or_default();
+        previous.push_front(generation);
+        previous.truncate(self.window.saturating_sub(1) as usize);
     }
 
     fn refresh_validity(&mut self) {
@@ -240,10 +300,28 @@ impl PhotonSet {
         })
     }
 
-    /// Per light: its drawn passes and their batches.
+    /// Per light: its drawn passes and their batches (a one-pass light's window of
+    /// generations counted as passes).
     fn drawn(&self) -> impl Iterator<Item = (u32, Vec<&Held>)> + '_ {
         let lights: std::collections::BTreeSet<u32> = self.held.keys().map(|k| k.0).collect();
-        lights.into_iter().filter_map(|light| self.drawn_of(light))
+        lights.into_iter().filter_map(|light| {
+            let (passes, mut batches) = self.drawn_of(light)?;
+            let older = self.previous.get(&light).filter(|_| passes == 1);
+            let Some(older) = older else {
+                return Some((passes, batches));
+            };
+            batches.extend(older.iter().flatten());
+            Some((1 + older.len() as u32, batches))
+        })
+    }
+
+    /// Generations drawn for `light` (its window; 0: nothing held).
+    pub fn generations_of(&self, light: u32) -> u32 {
+        match self.drawn_of(light) {
+            Some((1, _)) => 1 + self.previous.get(&light).map_or(0, |p| p.len() as u32),
+            Some(_) => 1,
+            None => 0,
+        }
     }
 
     /// `light`'s drawn passes (its first, then each complete one up to the first that is

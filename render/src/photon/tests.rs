@@ -1404,3 +1404,56 @@ fn the_batcher_sends_merged_photons_with_their_power_and_refinement_passes_finer
     );
     assert!(kept(&second) > 1.5 * kept(&first) && kept(&second) < 1.0);
 }
+
+#[test]
+fn a_moving_lights_window_draws_its_last_generations_together_until_it_stands_still() {
+    // A window of 3 over a light of two slots that changes every iteration: after four
+    // generations the set draws the last three (the newest and two complete older ones),
+    // each photon's power a third and its radius scaled as three passes'; the total power
+    // is one generation's. A manifest that lists the light at the generation before drops
+    // the older ones: it stands still.
+    let mut set = PhotonSet::with_window(3);
+    let total = |set: &PhotonSet| set.photons().map(|p| p.power.x as f64).sum::<f64>();
+    for g in 1..=4u64 {
+        let t = g as f64 * 0.1;
+        set.insert(&batch(0, 0, 2, g, t));
+        set.insert(&batch(0, 1, 2, g, t));
+        set.apply_manifest(manifest(g, t, &[(0, g, 2)]));
+        assert_eq!(set.generations_of(0), g.min(3) as u32, "generation {g}");
+    }
+    let newest: Vec<Photon> = [batch(0, 0, 2, 4, 0.4), batch(0, 1, 2, 4, 0.4)]
+        .iter()
+        .flat_map(|b| b.unpack().unwrap())
+        .collect();
+    let drawn: Vec<Photon> = set.photons().collect();
+    assert_eq!(drawn.len(), 3 * newest.len());
+    let one: f64 = newest.iter().map(|p| p.power.x as f64).sum();
+    let older: f64 = [2u64, 3]
+        .iter()
+        .flat_map(|&g| [batch(0, 0, 2, g, 0.0), batch(0, 1, 2, g, 0.0)])
+        .flat_map(|b| b.unpack().unwrap())
+        .map(|p| p.power.x as f64)
+        .sum();
+    assert!((total(&set) - (one + older) / 3.0).abs() < 1e-6 * one);
+    let scale = crate::photon::progressive_radius_scale(3);
+    assert!((drawn[0].radius - newest[0].radius * scale).abs() < 1e-6);
+    // Half of generation 5 arrived: generation 4 joins the older ones, 2 leaves; until
+    // the rest arrives, the newest generation's other half is generation 4's (drawn twice,
+    // so the light keeps its power).
+    set.insert(&batch(0, 0, 2, 5, 0.5));
+    assert_eq!(set.generations_of(0), 3);
+    assert_eq!(set.photons().count(), 3 * newest.len());
+    set.insert(&batch(0, 1, 2, 5, 0.5));
+    set.apply_manifest(manifest(5, 0.5, &[(0, 5, 2)]));
+    // The light stands still: the next manifest lists generation 5 again.
+    set.apply_manifest(manifest(6, 0.6, &[(0, 5, 2)]));
+    assert_eq!(set.generations_of(0), 1);
+    assert_eq!(set.photons().count(), newest.len());
+    // Without a window, one generation.
+    let mut plain = PhotonSet::new();
+    for g in 1..=3u64 {
+        plain.insert(&batch(0, 0, 1, g, 0.0));
+        plain.apply_manifest(manifest(g, g as f64, &[(0, g, 1)]));
+    }
+    assert_eq!(plain.generations_of(0), 1);
+}
