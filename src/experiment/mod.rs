@@ -522,6 +522,11 @@ impl Experiment {
             p.insert("height".into(), i64::from(m.height).into());
             p.insert("fps".into(), m.fps.into());
             p.insert("render".into(), true.into());
+            // Every cut shows frames as they come: a client accumulating a still view's
+            // frames (`accumulate`) would gain on the cuts whose frames are rendered in the
+            // cloud, and more the sooner its light arrived (a longer link would read worse
+            // for how long the view had been still, not for its light).
+            p.insert("accumulate".into(), false.into());
             match exposure {
                 Some(stops) => p.insert("exposure_stops".into(), f64::from(stops).into()),
                 None => p.remove("exposure_stops"),
