@@ -91,8 +91,9 @@ impl Accumulation {
         self.current = next;
     }
 
-    /// The newest mean of image `i` (in the order given to [`Accumulation::new`]).
-    pub(crate) fn mean(&self, i: usize) -> &Target {
-        &self.images[i].means[self.current]
+    /// The newest mean of image `i` (in the order given to [`Accumulation::new`]), if it is
+    /// accumulated.
+    pub(crate) fn mean(&self, i: usize) -> Option<&Target> {
+        self.images.get(i).map(|image| &image.means[self.current])
     }
 }

@@ -528,18 +528,8 @@ impl FrameRenderer {
         // A still view's images are its running means (composed first, then direct and
         // indirect where they are accumulated).
         let means = self.still.as_ref().filter(|_| still);
-        fn mean<'a>(
-            means: Option<&'a Accumulation>,
-            all: bool,
-            i: usize,
-            own: &'a Target,
-        ) -> &'a wgpu::Texture {
-            match means {
-                Some(m) if i == 0 || all => &m.mean(i).texture,
-                _ => &own.texture,
-            }
-        }
-        let all = self.still_all;
+        let own = [&t.composed, &t.direct, &t.indirect];
+        let mean = |i: usize| &means.and_then(|m| m.mean(i)).unwrap_or(own[i]).texture;
         let g = &t.gbuffer;
         let gbuffer = [
             (&g.position.texture, Layout::Exact4),
@@ -548,9 +538,9 @@ impl FrameRenderer {
             (&g.lightmap_uv.texture, Layout::Exact2),
         ];
         let radiance = [
-            (mean(means, all, 1, &t.direct), Layout::Exact4),
-            (mean(means, all, 2, &t.indirect), Layout::Exact4),
-            (mean(means, all, 0, &t.composed), Layout::Exact4),
+            (mean(1), Layout::Exact4),
+            (mean(2), Layout::Exact4),
+            (mean(0), Layout::Exact4),
         ];
         let list: Vec<(&wgpu::Texture, Layout)> = match which {
             Readback::Nothing => Vec::new(),
@@ -601,21 +591,18 @@ impl Raster {
         view: &OneFrame<'_>,
         indirect: &mut dyn IndirectPass,
     ) -> Result<ReadFrame, RasterError> {
-        if view.samples <= 1 {
-            let images = self.render_once(view, indirect, Readback::Everything)?;
-            return ReadFrame::from_images(images);
-        }
         let mut frame = FrameRenderer::new(self, view.width, view.height, view.shadows)?;
         frame.set_geometry(self, view.scene, view.triangles)?;
-        frame.accumulate_every_image(true);
+        let still = view.samples > 1;
+        frame.accumulate_every_image(still);
         let mut images = FrameImages::default();
-        for k in 0..view.samples {
+        for k in 0..view.samples.max(1) {
             let inputs = FrameInputs {
                 camera: view.camera,
                 lights: view.lights,
-                still: Some(k),
+                still: still.then_some(k),
             };
-            let last = k + 1 == view.samples;
+            let last = k + 1 >= view.samples;
             let readback = if last {
                 Readback::Everything
             } else {
