@@ -182,7 +182,7 @@ fn shadow_views(lights: &[LightState], lo: Vec3, hi: Vec3) -> (Vec<Mat4>, Vec<Li
                 intensity,
             } => {
                 // Shadow views from just in front of the emitter, over the whole sphere.
-                let eye = position + normal * radius * 1e-3;
+                let eye = surface_eye(position, normal, lo, hi);
                 cube(&mut views, eye);
                 gpu.push(light_gpu(eye, 3.0, normal, 0.0, intensity, first));
             }
@@ -301,6 +301,114 @@ fn view_count(light: &LightState) -> usize {
     }
 }
 
+/// What of a shadow view is drawn: a surface emitter lights only the half-space in front of
+/// it (direct.wgsl's `unshadowed` is zero behind it), so of its cube faces only the part
+/// that looks into that half-space matters — one face of six for an emitter facing along an
+/// axis, half of four others. The rest of a face keeps whatever depth it held, which
+/// nothing reads with a weight.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Drawn {
+    Whole,
+    /// Texels `x..x + w`, rows `y..y + h` (the scissor of the view's pass).
+    Rect {
+        x: u32,
+        y: u32,
+        w: u32,
+        h: u32,
+    },
+    Nothing,
+}
+
+/// Texels around the part of a view in front of an emitter that are drawn too: the direct
+/// pass's comparison sampler filters a 2×2 footprint.
+const FRONT_MARGIN_TEXELS: f32 = 2.0;
+
+/// The part of view `clip_from_world` (a perspective view from `eye`, `size`² texels) that
+/// looks into the half-space in front of the plane through `eye` with normal `normal`.
+fn front_part(clip_from_world: Mat4, eye: Vec3, normal: Vec3, size: u32) -> Drawn {
+    let world_from_clip = clip_from_world.inverse();
+    // At one NDC depth a perspective view's points are affine in NDC x and y, so the plane's
+    // side is too: clip the view's square by it along its edges.
+    let corners = [(-1.0f32, -1.0f32), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)];
+    let side =
+        |(u, v): (f32, f32)| normal.dot(world_from_clip.project_point3(Vec3::new(u, v, 0.5)) - eye);
+    let g = corners.map(side);
+    if g.iter().all(|g| *g > 0.0) {
+        return Drawn::Whole;
+    }
+    let (mut lo, mut hi) = (
+        glam::Vec2::splat(f32::INFINITY),
+        glam::Vec2::splat(f32::NEG_INFINITY),
+    );
+    for i in 0..4 {
+        let (a, b) = (corners[i], corners[(i + 1) % 4]);
+        let (ga, gb) = (g[i], g[(i + 1) % 4]);
+        let mut take = |p: glam::Vec2| {
+            lo = lo.min(p);
+            hi = hi.max(p);
+        };
+        if ga > 0.0 {
+            take(glam::Vec2::new(a.0, a.1));
+        }
+        if (ga > 0.0) != (gb > 0.0) {
+            let t = ga / (ga - gb);
+            take(glam::Vec2::new(
+                a.0 + (b.0 - a.0) * t,
+                a.1 + (b.1 - a.1) * t,
+            ));
+        }
+    }
+    if lo.x > hi.x {
+        return Drawn::Nothing;
+    }
+    // NDC to texels: x right, rows down (direct.wgsl's `lit`).
+    let texels = size as f32;
+    let margin = FRONT_MARGIN_TEXELS;
+    let x0 = ((lo.x + 1.0) * 0.5 * texels - margin)
+        .floor()
+        .clamp(0.0, texels) as u32;
+    let x1 = ((hi.x + 1.0) * 0.5 * texels + margin)
+        .ceil()
+        .clamp(0.0, texels) as u32;
+    let y0 = ((1.0 - hi.y) * 0.5 * texels - margin)
+        .floor()
+        .clamp(0.0, texels) as u32;
+    let y1 = ((1.0 - lo.y) * 0.5 * texels + margin)
+        .ceil()
+        .clamp(0.0, texels) as u32;
+    if x0 == 0 && y0 == 0 && x1 == size && y1 == size {
+        return Drawn::Whole;
+    }
+    Drawn::Rect {
+        x: x0,
+        y: y0,
+        w: x1 - x0,
+        h: y1 - y0,
+    }
+}
+
+/// What of each of a light's views (`views`, its own) is drawn.
+fn drawn_parts(light: &LightState, views: &[Mat4], lo: Vec3, hi: Vec3, size: u32) -> Vec<Drawn> {
+    match *light {
+        LightState::Surface {
+            position, normal, ..
+        } => {
+            let eye = surface_eye(position, normal, lo, hi);
+            views
+                .iter()
+                .map(|v| front_part(*v, eye, normal, size))
+                .collect()
+        }
+        _ => vec![Drawn::Whole; views.len()],
+    }
+}
+
+/// Where a surface emitter's shadow views look from: just in front of it.
+fn surface_eye(position: Vec3, normal: Vec3, lo: Vec3, hi: Vec3) -> Vec3 {
+    let radius = ((hi - lo).length() * 0.5).max(1e-3);
+    position + normal * radius * 1e-3
+}
+
 /// The shadow maps of one client, kept between frames: each light's views are rendered again
 /// only when that light moved (by half a texel or more) or the geometry changed.
 pub struct ShadowMaps {
@@ -310,6 +418,8 @@ pub struct ShadowMaps {
     rendered: Vec<Option<LightState>>,
     /// The view matrices the maps hold, per layer.
     views: Vec<Mat4>,
+    /// What of each layer was drawn last (its pass's scissor).
+    drawn: Vec<Drawn>,
     /// Geometry version and bounds the maps were rendered with.
     geometry: Option<(u64, Vec3, Vec3)>,
     params: wgpu::Buffer,
@@ -328,6 +438,7 @@ impl ShadowMaps {
             resources: None,
             rendered: Vec::new(),
             views: Vec::new(),
+            drawn: Vec::new(),
             geometry: None,
             params: raster.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("direct params"),
@@ -398,6 +509,7 @@ impl ShadowMaps {
         if recreated || layout_changed || self.geometry != Some((geometry_version, lo, hi)) {
             self.rendered = vec![None; lights.len()];
             self.views = views.clone();
+            self.drawn = vec![Drawn::Whole; views.len()];
             self.geometry = Some((geometry_version, lo, hi));
         }
         let texel = 0.5 / self.settings.size.max(1) as f32;
@@ -411,6 +523,14 @@ impl ShadowMaps {
                 .is_none_or(|r| moved(r, light, tol_m, tol_rad))
             {
                 self.views[first..first + n].copy_from_slice(&views[first..first + n]);
+                let size = self.resources.as_ref().map_or(1, |r| r.size);
+                self.drawn[first..first + n].copy_from_slice(&drawn_parts(
+                    light,
+                    &views[first..first + n],
+                    lo,
+                    hi,
+                    size,
+                ));
                 self.rendered[i] = Some(*light);
                 dirty.extend(first..first + n);
             }
@@ -435,6 +555,9 @@ impl ShadowMaps {
             return;
         };
         for &layer in layers {
+            if self.drawn[layer] == Drawn::Nothing {
+                continue;
+            }
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("shadow"),
                 color_attachments: &[],
@@ -443,6 +566,9 @@ impl ShadowMaps {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
+            if let Drawn::Rect { x, y, w, h } = self.drawn[layer] {
+                pass.set_scissor_rect(x, y, w, h);
+            }
             if let Some((vbuf, chunks)) = vertices {
                 pass.set_pipeline(&raster.pipelines.shadow);
                 pass.set_bind_group(0, &r.view_bind, &[(layer as u64 * VIEW_STRIDE) as u32]);
@@ -556,5 +682,81 @@ impl ShadowResources {
             view_bind,
             lights,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_surface_emitters_cube_faces_are_drawn_only_where_they_look_in_front_of_it() {
+        let (lo, hi) = (Vec3::ZERO, Vec3::ONE);
+        let size = 256;
+        let down = LightState::Surface {
+            position: Vec3::new(0.5, 0.9, 0.5),
+            normal: Vec3::NEG_Y,
+            intensity: Vec3::ONE,
+        };
+        let (views, _) = shadow_views(&[down], lo, hi);
+        let drawn = drawn_parts(&down, &views, lo, hi, size);
+        // +x, −x, +y, −y, +z, −z: the face looking up sees only behind the emitter, the one
+        // looking down only in front; each side face (whose up is −y) is drawn above its
+        // middle row.
+        assert_eq!(drawn[2], Drawn::Nothing);
+        assert_eq!(drawn[3], Drawn::Whole);
+        for face in [0, 1, 4, 5] {
+            let Drawn::Rect { x, y, w, h } = drawn[face] else {
+                panic!("face {face}: {:?}", drawn[face]);
+            };
+            assert_eq!((x, w), (0, size), "face {face}");
+            // Rows from the top to the middle (and the margin).
+            assert!(y == 0 && (128..=130).contains(&h), "face {face}: {y}+{h}");
+        }
+        // A tilted emitter: every face is drawn where, and only where, it looks in front.
+        let normal = Vec3::new(0.3, -0.6, -0.7).normalize();
+        let tilted = LightState::Surface {
+            position: Vec3::new(0.5, 0.9, 0.5),
+            normal,
+            intensity: Vec3::ONE,
+        };
+        let (views, _) = shadow_views(&[tilted], lo, hi);
+        let eye = surface_eye(Vec3::new(0.5, 0.9, 0.5), normal, lo, hi);
+        for (face, (view, part)) in views
+            .iter()
+            .zip(drawn_parts(&tilted, &views, lo, hi, size))
+            .enumerate()
+        {
+            let world_from_clip = view.inverse();
+            for ty in 0..size {
+                for tx in 0..size {
+                    let ndc = Vec3::new(
+                        (tx as f32 + 0.5) / size as f32 * 2.0 - 1.0,
+                        1.0 - (ty as f32 + 0.5) / size as f32 * 2.0,
+                        0.5,
+                    );
+                    let front = normal.dot(world_from_clip.project_point3(ndc) - eye) > 0.0;
+                    let inside = match part {
+                        Drawn::Whole => true,
+                        Drawn::Nothing => false,
+                        Drawn::Rect { x, y, w, h } => {
+                            (x..x + w).contains(&tx) && (y..y + h).contains(&ty)
+                        }
+                    };
+                    assert!(!front || inside, "face {face}: texel {tx},{ty} in front");
+                }
+            }
+        }
+        // Point lights and a light in front of the whole view are drawn whole.
+        let point = LightState::Point {
+            position: Vec3::splat(0.5),
+            intensity: Vec3::ONE,
+        };
+        let (views, _) = shadow_views(&[point], lo, hi);
+        assert!(
+            drawn_parts(&point, &views, lo, hi, size)
+                .iter()
+                .all(|d| *d == Drawn::Whole)
+        );
     }
 }

@@ -304,21 +304,17 @@ fn upsample_from(
         let o = vec2<i32>(i32(k & 1u), i32(k >> 1u));
         let t = clamp(base + o, vec2<i32>(0), low);
         let tap = surface_of(textureLoad(guide, t, 0));
-        if (!tap.covered) {
-            continue;
-        }
         let e = textureLoad(accum, t, 0).rgb;
         let plane = abs(dot(tap.position - g, n));
         let cosine = max(dot(n, tap.normal), 0.0);
         let bw = select(1.0 - f.x, f.x, o.x == 1) * select(1.0 - f.y, f.y, o.y == 1);
-        let w = bw * exp(-plane / params.settings.z) * cosine_power(cosine);
+        let w = select(0.0, bw * exp(-plane / params.settings.z) * cosine_power(cosine), tap.covered);
         sum += w * e;
         wsum += w;
-        let d = plane + (1.0 - cosine);
-        if (d < best_d) {
-            best_d = d;
-            best = e;
-        }
+        let d = select(1e30, plane + (1.0 - cosine), tap.covered);
+        let closer = d < best_d;
+        best_d = select(best_d, d, closer);
+        best = select(best, e, closer);
     }
     if (wsum > 1e-4) {
         return sum / wsum;
