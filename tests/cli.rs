@@ -1803,3 +1803,80 @@ fn the_container_image_installs_the_packages_of_the_one_list_and_runs_cloudlight
         assert!(ignore.lines().any(|l| l.trim() == path), "{ignore}");
     }
 }
+
+#[test]
+fn bench_fronts_draws_saved_quality_runs_together_old_and_swept() {
+    let dir = tempfile::tempdir().unwrap();
+    let point = |photons: u64, mbps: f64, ms: f64, relmse: f64| {
+        serde_json::json!({ "photons": photons, "mbps": mbps, "update_ms": ms,
+            "errors": { "relmse": relmse } })
+    };
+    // A run from before the 8-byte packing (its rows hold 12- and 20-byte points) and a
+    // sweep of today's (each variant's rows hold an 8-byte point).
+    let before = serde_json::json!({ "technique": "photons", "scene": "cornell", "rows": [
+        { "photons": 2500, "twelve": point(2500, 7.2, 3.0, 0.108), "twenty": point(2500, 12.0, 3.0, 0.107) },
+        { "photons": 10000, "twelve": point(10000, 28.6, 5.0, 0.079), "twenty": point(10000, 47.0, 5.0, 0.078) },
+    ]});
+    let after = serde_json::json!({ "technique": "photons", "scene": "cornell", "swept": ["window"],
+    "variants": [
+        { "label": "window=1", "rows": [{ "photons": 10000, "eight": point(10000, 6.5, 9.0, 0.0464) }] },
+        { "label": "window=4", "rows": [{ "photons": 10000, "eight": point(10000, 6.5, 9.0, 0.0258) }] },
+    ]});
+    std::fs::create_dir_all(dir.path().join("old")).unwrap();
+    let (b, a) = (
+        dir.path().join("old/quality.json"),
+        dir.path().join("new.json"),
+    );
+    std::fs::write(&b, before.to_string()).unwrap();
+    std::fs::write(&a, after.to_string()).unwrap();
+    let png = dir.path().join("fronts.png");
+    let out = cloudlight()
+        .args(["bench", "fronts"])
+        .arg(&b)
+        .arg(format!("{}=after", a.display()))
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    ok(&out);
+    let text = String::from_utf8_lossy(&out.stdout);
+    for row in [
+        "| old | 2500 | 7.20 | 3.00 | 0.1080 |",
+        "| old | 10000 | 28.60 | 5.00 | 0.0790 |",
+        "| after: window=1 | 10000 | 6.50 | 9.00 | 0.0464 |",
+        "| after: window=4 | 10000 | 6.50 | 9.00 | 0.0258 |",
+    ] {
+        assert!(text.contains(row), "{row} not in:\n{text}");
+    }
+    let image = image::open(&png).unwrap();
+    assert!(image.width() > 400 && image.height() > 200);
+    // What is not a photon quality run is refused, naming the file and the reason.
+    let wrong = dir.path().join("wrong.json");
+    std::fs::write(&wrong, r#"{ "technique": "irradiance", "rows": [] }"#).unwrap();
+    let broken = dir.path().join("broken.json");
+    std::fs::write(
+        &broken,
+        serde_json::json!({ "technique": "photons", "rows": [{ "eight": { "photons": 1, "errors": { "relmse": 0.1 } } }] })
+            .to_string(),
+    )
+    .unwrap();
+    for (file, says) in [
+        (&wrong, "not \"photons\""),
+        (&broken, "`mbps` is not a number"),
+        (&dir.path().join("missing.json"), "reading"),
+    ] {
+        let out = cloudlight()
+            .args(["bench", "fronts"])
+            .arg(file)
+            .arg("--out")
+            .arg(dir.path().join("x.png"))
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            err.contains(&*file.to_string_lossy()) && err.contains(says),
+            "{err}"
+        );
+    }
+}

@@ -1270,9 +1270,14 @@ fn variants_plot(
     scene: &str,
     fronts: &[(String, Vec<QualityRow>)],
 ) -> anyhow::Result<std::path::PathBuf> {
-    let sets: Vec<(String, Vec<&QualityPoint>)> = fronts
+    let sets: Vec<Front> = fronts
         .iter()
-        .map(|(label, rows)| (label.clone(), rows.iter().map(|r| &r.eight).collect()))
+        .map(|(label, rows)| {
+            (
+                label.clone(),
+                rows.iter().map(|r| (&r.eight).into()).collect(),
+            )
+        })
         .collect();
     fronts_plot(
         path,
@@ -1295,9 +1300,14 @@ fn quality_plot(
         ("12-byte photons", |r| &r.twelve),
         ("20-byte photons", |r| &r.twenty),
     ];
-    let sets: Vec<(String, Vec<&QualityPoint>)> = pick
+    let sets: Vec<Front> = pick
         .iter()
-        .map(|(label, f)| (label.to_string(), rows.iter().map(f).collect()))
+        .map(|(label, f)| {
+            (
+                label.to_string(),
+                rows.iter().map(|r| f(r).into()).collect(),
+            )
+        })
         .collect();
     fronts_plot(
         path,
@@ -1307,22 +1317,141 @@ fn quality_plot(
     )
 }
 
+/// What a Pareto plot shows of one point: where it lies (bandwidth, update time, error) and
+/// its budget.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrontPoint {
+    /// Photons emitted per update (the point's label in the plot).
+    pub photons: u64,
+    /// Server-to-client Mbit/s at the run's update rate.
+    pub mbps: f64,
+    /// Trace + pack time of one update, ms.
+    pub update_ms: f64,
+    /// Scale-invariant relMSE of the client's indirect light.
+    pub relmse: f64,
+}
+
+impl From<&QualityPoint> for FrontPoint {
+    fn from(p: &QualityPoint) -> Self {
+        FrontPoint {
+            photons: p.photons,
+            mbps: p.mbps,
+            update_ms: p.update_ms,
+            relmse: p.errors.relmse,
+        }
+    }
+}
+
+/// A labelled set of points drawn as one series.
+pub type Front = (String, Vec<FrontPoint>);
+
+/// The fronts of photon `bench quality` runs (their `quality.json`, each with a label),
+/// drawn together in one plot at `out`: before and after a change made anywhere — another
+/// commit's build, other knobs, another seed. A run's front is its 8-byte photons (the
+/// 12-byte ones for a run from before the 8-byte packing existed); a sweep gives one front
+/// per combination. Returns the fronts and the plot's path.
+pub fn fronts(
+    runs: &[(std::path::PathBuf, String)],
+    out: &Path,
+) -> anyhow::Result<(Vec<Front>, std::path::PathBuf)> {
+    let mut sets = Vec::new();
+    let mut scenes: Vec<String> = Vec::new();
+    for (path, label) in runs {
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let json: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not JSON", path.display()))?;
+        let found = run_fronts(&json, label)
+            .with_context(|| format!("{}: not a photon `bench quality` run", path.display()))?;
+        if let Some(scene) = json.get("scene").and_then(|s| s.as_str())
+            && !scenes.iter().any(|s| s == scene)
+        {
+            scenes.push(scene.to_string());
+        }
+        sets.extend(found);
+    }
+    let title = format!(
+        "Photons, {}: error against bandwidth and update time",
+        if scenes.is_empty() {
+            "?".to_string()
+        } else {
+            scenes.join(" / ")
+        }
+    );
+    let png = fronts_plot(out, &title, &sets, None)?;
+    Ok((sets, png))
+}
+
+/// The fronts of one photon `bench quality` report: its rows, or each variant's of a sweep.
+fn run_fronts(json: &serde_json::Value, label: &str) -> anyhow::Result<Vec<Front>> {
+    let technique = json.get("technique").and_then(|t| t.as_str());
+    anyhow::ensure!(
+        technique == Some("photons"),
+        "its technique is {technique:?}, not \"photons\""
+    );
+    let points = |rows: &serde_json::Value| -> anyhow::Result<Vec<FrontPoint>> {
+        let rows = rows.as_array().context("`rows` is not a list")?;
+        rows.iter()
+            .enumerate()
+            .map(|(i, row)| {
+                let p = row
+                    .get("eight")
+                    .or_else(|| row.get("twelve"))
+                    .with_context(|| format!("row {i} has no 8- or 12-byte point"))?;
+                let number = |key: &str| {
+                    p.get(key)
+                        .and_then(|v| v.as_f64())
+                        .filter(|v| v.is_finite() && *v >= 0.0)
+                        .with_context(|| format!("row {i}: `{key}` is not a number >= 0"))
+                };
+                let relmse = p
+                    .get("errors")
+                    .and_then(|e| e.get("relmse"))
+                    .and_then(|v| v.as_f64())
+                    .filter(|v| v.is_finite() && *v >= 0.0)
+                    .with_context(|| format!("row {i}: `errors.relmse` is not a number >= 0"))?;
+                Ok(FrontPoint {
+                    photons: number("photons")? as u64,
+                    mbps: number("mbps")?,
+                    update_ms: number("update_ms")?,
+                    relmse,
+                })
+            })
+            .collect()
+    };
+    if let Some(rows) = json.get("rows") {
+        return Ok(vec![(label.to_string(), points(rows)?)]);
+    }
+    let variants = json
+        .get("variants")
+        .and_then(|v| v.as_array())
+        .context("it has neither `rows` nor `variants`")?;
+    variants
+        .iter()
+        .map(|v| {
+            let name = v.get("label").and_then(|l| l.as_str()).unwrap_or("?");
+            let rows = v.get("rows").context("a variant has no `rows`")?;
+            Ok((format!("{label}: {name}"), points(rows)?))
+        })
+        .collect()
+}
+
 /// relMSE against Mbps and against update time, a series per labelled set of points, with
 /// the paper's operating point marked (and the view's sampling floor, where known).
 fn fronts_plot(
     path: &Path,
     title: &str,
-    sets: &[(String, Vec<&QualityPoint>)],
+    sets: &[Front],
     floor: Option<f64>,
 ) -> anyhow::Result<std::path::PathBuf> {
     use crate::plot::{Floor, Marker, ParetoPanel, Series};
-    let series = |x: fn(&QualityPoint) -> f64| -> Vec<Series> {
+    let series = |x: fn(&FrontPoint) -> f64| -> Vec<Series> {
         sets.iter()
             .map(|(label, points)| Series {
                 label: label.clone(),
                 points: points
                     .iter()
-                    .map(|p| (x(p), p.errors.relmse, short(p.photons as f64)))
+                    .map(|p| (x(p), p.relmse, short(p.photons as f64)))
                     .collect(),
             })
             .collect()

@@ -9,6 +9,7 @@ use clap::Subcommand;
 use crate::cli::ranges;
 
 mod client;
+mod fronts;
 mod lighting;
 mod raster;
 mod rays;
@@ -52,6 +53,10 @@ pub enum BenchCommand {
     /// ratio of the client's indirect light against the path tracer's indirect-only image of
     /// the same view and time, with update time and Mbps; a table, JSON and a Pareto plot.
     Quality(lighting::QualityArgs),
+    /// The Pareto fronts of saved photon `bench quality` runs (their quality.json) drawn
+    /// together in one plot, and their points as a table: before and after a change made
+    /// anywhere (another commit's build, other knobs, another seed).
+    Fronts(fronts::Args),
     /// H.264 video (openh264, one core): encode and decode ms per frame, Mbps at 30 Hz and
     /// PSNR for SDR client frames at 640x360 and 1280x720 under 3 bitrates and a fixed QP,
     /// and the relative luminance and chroma error of an HDR light map packed into 8-bit
@@ -92,6 +97,7 @@ pub fn run(what: BenchCommand) -> ExitCode {
         BenchCommand::Table2(a) => lighting::table2(a),
         BenchCommand::Scaling(a) => lighting::scaling(a),
         BenchCommand::Quality(a) => lighting::quality(a),
+        BenchCommand::Fronts(a) => fronts::run(a),
         BenchCommand::Video(a) => video::run(a),
         BenchCommand::Rays {
             scene,
