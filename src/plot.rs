@@ -308,20 +308,47 @@ pub fn pareto(path: &Path, title: &str, panels: &[ParetoPanel]) -> anyhow::Resul
             let xs: Vec<f64> = xs.chain(panel.marker.iter().map(|m| m.x)).collect();
             let widest = xs.iter().copied().fold(0.0f64, f64::max) * 1.6;
             let x_range = log_range(xs.into_iter().chain([widest]));
-            // Errors on a linear axis from 0 (their ticks at round steps), costs on a log one.
-            let top = panel
+            // Errors on a linear axis from 0 (their ticks at round steps), costs on a log one;
+            // errors spanning more than 20× (before and after a change that cut them by
+            // orders of magnitude) on a log axis too, or the small ones would lie flat on 0.
+            let ys: Vec<f64> = panel
                 .series
                 .iter()
                 .flat_map(|s| s.points.iter().map(|p| p.1))
                 .chain(panel.floor.iter().map(|f| f.y))
                 .filter(|y| y.is_finite())
-                .fold(0.0f64, f64::max);
+                .collect();
+            let top = ys.iter().copied().fold(0.0f64, f64::max);
+            let least = ys
+                .iter()
+                .copied()
+                .filter(|y| *y > 0.0)
+                .fold(f64::INFINITY, f64::min);
+            let builder = || {
+                let mut b = ChartBuilder::on(area);
+                b.margin(16).x_label_area_size(48).y_label_area_size(80);
+                b
+            };
+            if top > 20.0 * least {
+                let y_range = log_range(ys.iter().copied().chain([top * 1.5]));
+                let mut chart = builder()
+                    .build_cartesian_2d(x_range.clone().log_scale(), y_range.clone().log_scale())?;
+                chart
+                    .configure_mesh()
+                    .x_labels(12)
+                    .y_labels(12)
+                    .x_desc(panel.x_label.as_str())
+                    .y_desc(format!("{} (log)", panel.y_label))
+                    .x_label_formatter(&tick)
+                    .y_label_formatter(&tick)
+                    .label_style(("sans-serif", 14))
+                    .draw()?;
+                pareto_panel(&mut chart, panel, &x_range, &y_range)?;
+                continue;
+            }
             let y_range = 0.0..log_range([top * 1.1].into_iter()).end;
-            let mut chart = ChartBuilder::on(area)
-                .margin(16)
-                .x_label_area_size(48)
-                .y_label_area_size(80)
-                .build_cartesian_2d(x_range.clone().log_scale(), y_range.clone())?;
+            let mut chart =
+                builder().build_cartesian_2d(x_range.clone().log_scale(), y_range.clone())?;
             chart
                 .configure_mesh()
                 .x_labels(12)

@@ -1816,6 +1816,8 @@ fn bench_fronts_draws_saved_quality_runs_together_old_and_swept() {
     let before = serde_json::json!({ "technique": "photons", "scene": "cornell", "rows": [
         { "photons": 2500, "twelve": point(2500, 7.2, 3.0, 0.108), "twenty": point(2500, 12.0, 3.0, 0.107) },
         { "photons": 10000, "twelve": point(10000, 28.6, 5.0, 0.079), "twenty": point(10000, 47.0, 5.0, 0.078) },
+        // Errors over orders of magnitude: drawn on a log axis.
+        { "photons": 80000, "twelve": point(80000, 32.8, 31.3, 438.1) },
     ]});
     let after = serde_json::json!({ "technique": "photons", "scene": "cornell", "swept": ["window"],
     "variants": [
@@ -1829,11 +1831,24 @@ fn bench_fronts_draws_saved_quality_runs_together_old_and_swept() {
     );
     std::fs::write(&b, before.to_string()).unwrap();
     std::fs::write(&a, after.to_string()).unwrap();
+    // A moving light's runs, one per budget, under one label: one front, and one of what
+    // the client shows with its window (the window's last row).
+    let moving = |photons: u64, one: f64, four: f64| {
+        serde_json::json!({ "technique": "photons", "scene": "cornell-animated",
+            "rows": [{ "photons": photons, "eight": point(photons, photons as f64 / 1600.0, 9.0, one) }],
+            "window": [{ "passes": 1, "errors": { "relmse": one } },
+                       { "passes": 4, "errors": { "relmse": four } }] })
+    };
+    let (m1, m2) = (dir.path().join("m1.json"), dir.path().join("m2.json"));
+    std::fs::write(&m1, moving(20000, 0.0387, 0.0185).to_string()).unwrap();
+    std::fs::write(&m2, moving(10000, 0.0427, 0.0280).to_string()).unwrap();
     let png = dir.path().join("fronts.png");
     let out = cloudlight()
         .args(["bench", "fronts"])
         .arg(&b)
         .arg(format!("{}=after", a.display()))
+        .arg(format!("{}=moving", m1.display()))
+        .arg(format!("{}=moving", m2.display()))
         .arg("--out")
         .arg(&png)
         .output()
@@ -1843,8 +1858,11 @@ fn bench_fronts_draws_saved_quality_runs_together_old_and_swept() {
     for row in [
         "| old | 2500 | 7.20 | 3.00 | 0.1080 |",
         "| old | 10000 | 28.60 | 5.00 | 0.0790 |",
+        "| old | 80000 | 32.80 | 31.30 | 438.1000 |",
         "| after: window=1 | 10000 | 6.50 | 9.00 | 0.0464 |",
         "| after: window=4 | 10000 | 6.50 | 9.00 | 0.0258 |",
+        "| moving | 10000 | 6.25 | 9.00 | 0.0427 |\n| moving | 20000 | 12.50 | 9.00 | 0.0387 |",
+        "| moving, window of 4 | 10000 | 6.25 | 9.00 | 0.0280 |\n| moving, window of 4 | 20000 | 12.50 | 9.00 | 0.0185 |",
     ] {
         assert!(text.contains(row), "{row} not in:\n{text}");
     }

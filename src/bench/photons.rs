@@ -1349,7 +1349,9 @@ pub type Front = (String, Vec<FrontPoint>);
 /// drawn together in one plot at `out`: before and after a change made anywhere — another
 /// commit's build, other knobs, another seed. A run's front is its 8-byte photons (the
 /// 12-byte ones for a run from before the 8-byte packing existed); a sweep gives one front
-/// per combination. Returns the fronts and the plot's path.
+/// per combination, a run with a moving light's window another front of its first budget
+/// as the client shows it with that window, and runs of one label one front (a run per
+/// budget). Returns the fronts and the plot's path.
 pub fn fronts(
     runs: &[(std::path::PathBuf, String)],
     out: &Path,
@@ -1368,7 +1370,16 @@ pub fn fronts(
         {
             scenes.push(scene.to_string());
         }
-        sets.extend(found);
+        // Runs of one label make one front (e.g. a run per budget).
+        for (label, points) in found {
+            match sets.iter_mut().find(|(l, _): &&mut Front| *l == label) {
+                Some((_, have)) => have.extend(points),
+                None => sets.push((label, points)),
+            }
+        }
+    }
+    for (_, points) in &mut sets {
+        points.sort_by_key(|p| p.photons);
     }
     let title = format!(
         "Photons, {}: error against bandwidth and update time",
@@ -1420,7 +1431,30 @@ fn run_fronts(json: &serde_json::Value, label: &str) -> anyhow::Result<Vec<Front
             .collect()
     };
     if let Some(rows) = json.get("rows") {
-        return Ok(vec![(label.to_string(), points(rows)?)]);
+        let points = points(rows)?;
+        let mut fronts = vec![(label.to_string(), points.clone())];
+        // A moving light's window (its first budget's generations drawn together): what
+        // the client shows for the same bytes an update, as a point of its own front.
+        let last = json
+            .get("window")
+            .and_then(|w| w.as_array())
+            .and_then(|w| w.last());
+        if let (Some(first), Some(last)) = (points.first(), last) {
+            let generations = last.get("passes").and_then(|p| p.as_u64()).unwrap_or(1);
+            let relmse = last
+                .get("errors")
+                .and_then(|e| e.get("relmse"))
+                .and_then(|v| v.as_f64())
+                .filter(|v| v.is_finite() && *v >= 0.0)
+                .context("the window's last row has no `errors.relmse` >= 0")?;
+            if generations > 1 {
+                fronts.push((
+                    format!("{label}, window of {generations}"),
+                    vec![FrontPoint { relmse, ..*first }],
+                ));
+            }
+        }
+        return Ok(fronts);
     }
     let variants = json
         .get("variants")
