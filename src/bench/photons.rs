@@ -1393,6 +1393,15 @@ pub fn fronts(
     Ok((sets, png))
 }
 
+/// A point's `errors.relmse`, where it is a number >= 0.
+fn relmse_of(point: &serde_json::Value) -> Option<f64> {
+    point
+        .get("errors")
+        .and_then(|e| e.get("relmse"))
+        .and_then(|v| v.as_f64())
+        .filter(|v| v.is_finite() && *v >= 0.0)
+}
+
 /// The fronts of one photon `bench quality` report: its rows, or each variant's of a sweep.
 fn run_fronts(json: &serde_json::Value, label: &str) -> anyhow::Result<Vec<Front>> {
     let technique = json.get("technique").and_then(|t| t.as_str());
@@ -1415,11 +1424,7 @@ fn run_fronts(json: &serde_json::Value, label: &str) -> anyhow::Result<Vec<Front
                         .filter(|v| v.is_finite() && *v >= 0.0)
                         .with_context(|| format!("row {i}: `{key}` is not a number >= 0"))
                 };
-                let relmse = p
-                    .get("errors")
-                    .and_then(|e| e.get("relmse"))
-                    .and_then(|v| v.as_f64())
-                    .filter(|v| v.is_finite() && *v >= 0.0)
+                let relmse = relmse_of(p)
                     .with_context(|| format!("row {i}: `errors.relmse` is not a number >= 0"))?;
                 Ok(FrontPoint {
                     photons: number("photons")? as u64,
@@ -1441,12 +1446,8 @@ fn run_fronts(json: &serde_json::Value, label: &str) -> anyhow::Result<Vec<Front
             .and_then(|w| w.last());
         if let (Some(first), Some(last)) = (points.first(), last) {
             let generations = last.get("passes").and_then(|p| p.as_u64()).unwrap_or(1);
-            let relmse = last
-                .get("errors")
-                .and_then(|e| e.get("relmse"))
-                .and_then(|v| v.as_f64())
-                .filter(|v| v.is_finite() && *v >= 0.0)
-                .context("the window's last row has no `errors.relmse` >= 0")?;
+            let relmse =
+                relmse_of(last).context("the window's last row has no `errors.relmse` >= 0")?;
             if generations > 1 {
                 fronts.push((
                     format!("{label}, window of {generations}"),
