@@ -11,7 +11,7 @@
 use wgpu::util::DeviceExt;
 
 use super::Raster;
-use super::targets::{Target, clear_pass};
+use super::targets::{Target, overwrite_pass};
 
 /// One image's running mean: two targets (the mean so far and the next one) and the bind
 /// group that reads each.
@@ -83,7 +83,7 @@ impl Accumulation {
             .write_buffer(&self.params, 0, bytemuck::cast_slice(&params));
         let next = 1 - self.current;
         for image in &self.images {
-            let mut pass = clear_pass(enc, "accumulate", &image.means[next].view);
+            let mut pass = overwrite_pass(enc, "accumulate", &image.means[next].view);
             pass.set_pipeline(&raster.pipelines.accumulate);
             pass.set_bind_group(0, &image.reads[self.current], &[]);
             pass.draw(0..3, 0..1);

@@ -1,7 +1,7 @@
 //! The compose pass: the frame's radiance, direct + the technique's indirect.
 
 use super::Raster;
-use super::targets::{Target, clear_pass};
+use super::targets::{Target, overwrite_pass};
 
 /// The compose pass of one client: its bind group over the direct and indirect targets.
 pub(crate) struct ComposePass {
@@ -34,7 +34,7 @@ impl ComposePass {
         enc: &mut wgpu::CommandEncoder,
         out: &wgpu::TextureView,
     ) {
-        let mut pass = clear_pass(enc, "compose", out);
+        let mut pass = overwrite_pass(enc, "compose", out);
         pass.set_pipeline(&raster.pipelines.compose);
         pass.set_bind_group(0, &self.bind, &[]);
         pass.draw(0..3, 0..1);

@@ -73,7 +73,7 @@ impl DirectPass {
             self.bind = Some((shadows.generation, group));
         }
         let (_, group) = self.bind.as_ref().expect("just made");
-        let mut pass = super::targets::clear_pass(enc, "direct", out);
+        let mut pass = super::targets::overwrite_pass(enc, "direct", out);
         pass.set_pipeline(&raster.pipelines.direct);
         pass.set_bind_group(0, group, &[]);
         pass.draw(0..3, 0..1);

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use glam::Mat4;
 
-use super::targets::{GBufferTargets, clear_pass};
+use super::targets::{GBufferTargets, clear_pass, overwrite_pass};
 use super::{Raster, RasterError};
 
 /// What a technique's indirect pass sees of the frame.
@@ -103,7 +103,7 @@ impl CachedBindGroup {
     }
 }
 
-/// Clears `ctx.indirect` and draws the full-screen triangle with `pipeline` and `group`.
+/// Overwrites `ctx.indirect` whole with the full-screen triangle of `pipeline` and `group`.
 pub(crate) fn draw_fullscreen(
     enc: &mut wgpu::CommandEncoder,
     label: &str,
@@ -111,7 +111,7 @@ pub(crate) fn draw_fullscreen(
     pipeline: &wgpu::RenderPipeline,
     group: &wgpu::BindGroup,
 ) {
-    let mut pass = clear_pass(enc, label, ctx.indirect);
+    let mut pass = overwrite_pass(enc, label, ctx.indirect);
     pass.set_pipeline(pipeline);
     pass.set_bind_group(0, group, &[]);
     pass.draw(0..3, 0..1);

@@ -100,6 +100,34 @@ pub(crate) fn clear_pass<'e>(
     })
 }
 
+/// A pass that writes every pixel of `view` with one full-screen triangle and no blending:
+/// what the target held is neither cleared nor read (`LoadOp::Load` on a target that is
+/// overwritten whole). llvmpipe clears a target by writing it in full before the triangle
+/// writes it again: the Cornell frame at 640×360 on lavapipe (`bench client`, six interleaved
+/// runs each) 31.1 → 29.0 ms p50, its full-screen passes 0.3–1.2 ms faster each.
+pub(crate) fn overwrite_pass<'e>(
+    enc: &'e mut wgpu::CommandEncoder,
+    label: &str,
+    view: &wgpu::TextureView,
+) -> wgpu::RenderPass<'e> {
+    enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some(label),
+        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+            view,
+            depth_slice: None,
+            resolve_target: None,
+            ops: wgpu::Operations {
+                load: wgpu::LoadOp::Load,
+                store: wgpu::StoreOp::Store,
+            },
+        })],
+        depth_stencil_attachment: None,
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    })
+}
+
 /// A bind group of the `view` layout over `buffer` (matrices at [`VIEW_STRIDE`]).
 pub(crate) fn view_bind_group(
     raster: &Raster,

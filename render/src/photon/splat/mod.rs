@@ -33,7 +33,7 @@ use crate::raster::pipelines::{
     D2, FRAGMENT, UINT, blended_fullscreen_pipeline, buffer_entry, fullscreen_pipeline, layout,
     pipeline_layout, texture_entry,
 };
-use crate::raster::targets::clear_pass;
+use crate::raster::targets::{clear_pass, overwrite_pass};
 use crate::raster::{
     IndirectContext, IndirectPass, OneFrame, Raster, RasterError, ShadowSettings, Target,
 };
@@ -806,7 +806,7 @@ impl PhotonSplatPass {
         ctx.step_done(raster, enc, "splat")?;
         for level in (0..t.levels).rev() {
             let l = level as usize;
-            let mut pass = clear_pass(enc, "splat resolve", &t.accum[l].view);
+            let mut pass = overwrite_pass(enc, "splat resolve", &t.accum[l].view);
             pass.set_pipeline(&compute.resolve);
             // Level l + 1's buffer and guide and l's guide; the coarsest level folds nothing.
             let group = t.collapse.get(l).unwrap_or(&t.splat[l]);
@@ -928,7 +928,7 @@ impl IndirectPass for PhotonSplatPass {
         // Vertices 3·l .. 3·l + 3 of a full-screen pass (4·l .. 4·l + 4 of a splat) tell the
         // shader which level it works on.
         for level in 0..t.levels {
-            let mut pass = clear_pass(enc, "splat guide", &t.guides[level as usize].view);
+            let mut pass = overwrite_pass(enc, "splat guide", &t.guides[level as usize].view);
             pass.set_pipeline(&self.pipelines.guide);
             pass.set_bind_group(0, &t.guide, &[]);
             pass.draw(3 * level..3 * level + 3, 0..1);
@@ -939,7 +939,7 @@ impl IndirectPass for PhotonSplatPass {
             None => self.splat_raster(raster, ctx, enc)?,
         }
         ctx.step_done(raster, enc, "resolve")?;
-        let mut pass = clear_pass(enc, "upsample", ctx.indirect);
+        let mut pass = overwrite_pass(enc, "upsample", ctx.indirect);
         pass.set_pipeline(match compute {
             Some((compute, _)) if edges => &compute.upsample,
             _ => &self.pipelines.upsample,
