@@ -18,7 +18,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use cloudlight_scenes::{Camera, LightState, Scene, WorldTriangle};
-use glam::{Mat4, Vec2, Vec3};
+use glam::{Mat4, Vec2, Vec3, Vec4};
 use wgpu::util::DeviceExt;
 
 use super::accumulate::Accumulation;
@@ -557,13 +557,24 @@ impl FrameRenderer {
         let mut images = FrameImages::default();
         if matches!(which, Readback::GBuffer | Readback::Everything) {
             let mut next = || planes.next().unwrap_or_default();
+            let position = next();
+            // The pass clears only the position: elsewhere a pixel that sees no surface
+            // holds what an earlier frame left there.
+            let seen = |plane: Vec<Vec4>| -> Vec<Vec4> {
+                plane
+                    .into_iter()
+                    .zip(&position)
+                    .map(|(v, p)| if p.w > 0.5 { v } else { Vec4::ZERO })
+                    .collect()
+            };
+            let (normal, albedo, uv) = (seen(next()), seen(next()), seen(next()));
             images.gbuffer = Some(GBuffer {
                 width: w,
                 height: h,
-                position: next(),
-                normal: rgb(&next()),
-                albedo: rgb(&next()),
-                lightmap_uv: next().iter().map(|p| p.truncate().truncate()).collect(),
+                normal: rgb(&normal),
+                albedo: rgb(&albedo),
+                lightmap_uv: uv.iter().map(|p| p.truncate().truncate()).collect(),
+                position,
             });
         }
         if which == Readback::Everything {

@@ -70,6 +70,22 @@ pub(crate) fn cleared_colour(
     })
 }
 
+/// A colour attachment whose content is kept (`LoadOp::Load`), then stored: for a target
+/// its pass overwrites wherever a reader will look.
+pub(crate) fn loaded_colour(
+    view: &wgpu::TextureView,
+) -> Option<wgpu::RenderPassColorAttachment<'_>> {
+    Some(wgpu::RenderPassColorAttachment {
+        view,
+        depth_slice: None,
+        resolve_target: None,
+        ops: wgpu::Operations {
+            load: wgpu::LoadOp::Load,
+            store: wgpu::StoreOp::Store,
+        },
+    })
+}
+
 /// A depth attachment cleared to the far plane, then stored.
 pub(crate) fn cleared_depth(
     view: &wgpu::TextureView,
@@ -112,15 +128,7 @@ pub(crate) fn overwrite_pass<'e>(
 ) -> wgpu::RenderPass<'e> {
     enc.begin_render_pass(&wgpu::RenderPassDescriptor {
         label: Some(label),
-        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-            view,
-            depth_slice: None,
-            resolve_target: None,
-            ops: wgpu::Operations {
-                load: wgpu::LoadOp::Load,
-                store: wgpu::StoreOp::Store,
-            },
-        })],
+        color_attachments: &[loaded_colour(view)],
         depth_stencil_attachment: None,
         timestamp_writes: None,
         occlusion_query_set: None,

@@ -964,3 +964,89 @@ fn a_still_views_jittered_frames_average_each_pixel_over_its_area() {
         assert!(partly > 0, "a silhouette's pixels are partly covered");
     });
 }
+
+#[test]
+fn a_frame_shows_nothing_where_it_sees_no_surface_whatever_the_frame_before_drew_there() {
+    // Full-screen passes load their targets instead of clearing them and the G-buffer pass
+    // clears only its positions: a pixel that saw a surface last frame and sees none now
+    // must still read back as nothing (G-buffer, direct, indirect, composed), as a fresh
+    // renderer draws it.
+    on_every_backend(|raster| {
+        let scene = lit_scene();
+        let tris = scene.triangles_at(0.0);
+        let lights: Vec<_> = scene.lights.iter().map(|l| l.at(0.0)).collect();
+        // Looking down on the ground and the block: nearly every pixel sees a surface.
+        let on_ground = cloudlight_scenes::Camera {
+            position: Vec3::new(0.5, 6.0, 0.8),
+            target: Vec3::new(0.0, 0.0, 0.0),
+            ..scene.cameras[0].camera
+        };
+        // Looking up from above the ground: only a sliver of the block at the bottom.
+        let at_sky = cloudlight_scenes::Camera {
+            position: Vec3::new(3.0, 0.5, 3.0),
+            target: Vec3::new(3.0, 5.0, 2.0),
+            ..on_ground
+        };
+        let (w, h) = (48u32, 32u32);
+        let render = |frame: &mut FrameRenderer, camera| {
+            let inputs = FrameInputs {
+                camera,
+                lights: &lights,
+                still: None,
+            };
+            frame
+                .render(
+                    raster,
+                    &inputs,
+                    &mut NoIndirect,
+                    Readback::Everything,
+                    false,
+                )
+                .unwrap()
+        };
+        let mut frame = FrameRenderer::new(raster, w, h, ShadowSettings::default()).unwrap();
+        frame.set_geometry(raster, &scene, &tris).unwrap();
+        let first = render(&mut frame, on_ground);
+        let g0 = first.gbuffer.unwrap();
+        let seen = g0.covered_pixels().len();
+        assert!(
+            seen * 20 >= (w * h) as usize * 19,
+            "the ground fills the view: {seen}"
+        );
+        let second = render(&mut frame, at_sky);
+        let mut fresh = FrameRenderer::new(raster, w, h, ShadowSettings::default()).unwrap();
+        fresh.set_geometry(raster, &scene, &tris).unwrap();
+        let alone = render(&mut fresh, at_sky);
+        let (g, ga) = (
+            second.gbuffer.clone().unwrap(),
+            alone.gbuffer.clone().unwrap(),
+        );
+        let empty = (0..(w * h) as usize).filter(|&i| !g.covered(i)).count();
+        assert!(
+            empty > (w * h) as usize / 2,
+            "the sky fills most of the view: {empty}"
+        );
+        let differ = |a: &[Vec3], b: &[Vec3]| a.iter().zip(b).filter(|(x, y)| x != y).count();
+        let images = |f: &FrameImages| {
+            [&f.direct, &f.indirect, &f.composed].map(|i| i.clone().unwrap_or_default())
+        };
+        assert_eq!(g.position, ga.position);
+        for (name, a, b) in [
+            ("normal", &g.normal, &ga.normal),
+            ("albedo", &g.albedo, &ga.albedo),
+        ] {
+            assert_eq!(differ(a, b), 0, "{name}: pixels unlike a fresh renderer's");
+        }
+        for (name, (a, b)) in ["direct", "indirect", "composed"]
+            .iter()
+            .zip(images(&second).iter().zip(&images(&alone)))
+        {
+            assert!(!a.is_empty(), "{name} read back");
+            assert_eq!(differ(a, b), 0, "{name}: pixels unlike a fresh renderer's");
+        }
+        for i in (0..(w * h) as usize).filter(|&i| !g.covered(i)) {
+            assert_eq!(g.normal[i], Vec3::ZERO);
+            assert_eq!(second.direct.as_ref().unwrap()[i], Vec3::ZERO);
+        }
+    });
+}
