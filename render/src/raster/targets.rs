@@ -55,19 +55,27 @@ pub struct GBufferTargets {
     pub depth: Target,
 }
 
-/// A colour attachment cleared to zero, then stored.
-pub(crate) fn cleared_colour(
+/// A colour attachment loaded as `load` says, then stored.
+fn colour(
     view: &wgpu::TextureView,
+    load: wgpu::LoadOp<wgpu::Color>,
 ) -> Option<wgpu::RenderPassColorAttachment<'_>> {
     Some(wgpu::RenderPassColorAttachment {
         view,
         depth_slice: None,
         resolve_target: None,
         ops: wgpu::Operations {
-            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+            load,
             store: wgpu::StoreOp::Store,
         },
     })
+}
+
+/// A colour attachment cleared to zero, then stored.
+pub(crate) fn cleared_colour(
+    view: &wgpu::TextureView,
+) -> Option<wgpu::RenderPassColorAttachment<'_>> {
+    colour(view, wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT))
 }
 
 /// A colour attachment whose content is kept (`LoadOp::Load`), then stored: for a target
@@ -75,15 +83,7 @@ pub(crate) fn cleared_colour(
 pub(crate) fn loaded_colour(
     view: &wgpu::TextureView,
 ) -> Option<wgpu::RenderPassColorAttachment<'_>> {
-    Some(wgpu::RenderPassColorAttachment {
-        view,
-        depth_slice: None,
-        resolve_target: None,
-        ops: wgpu::Operations {
-            load: wgpu::LoadOp::Load,
-            store: wgpu::StoreOp::Store,
-        },
-    })
+    colour(view, wgpu::LoadOp::Load)
 }
 
 /// A depth attachment cleared to the far plane, then stored.
@@ -106,14 +106,7 @@ pub(crate) fn clear_pass<'e>(
     label: &str,
     view: &wgpu::TextureView,
 ) -> wgpu::RenderPass<'e> {
-    enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-        label: Some(label),
-        color_attachments: &[cleared_colour(view)],
-        depth_stencil_attachment: None,
-        timestamp_writes: None,
-        occlusion_query_set: None,
-        multiview_mask: None,
-    })
+    colour_pass(enc, label, cleared_colour(view))
 }
 
 /// A pass that writes every pixel of `view` with one full-screen triangle and no blending:
@@ -126,9 +119,18 @@ pub(crate) fn overwrite_pass<'e>(
     label: &str,
     view: &wgpu::TextureView,
 ) -> wgpu::RenderPass<'e> {
+    colour_pass(enc, label, loaded_colour(view))
+}
+
+/// A render pass into one colour attachment, without depth.
+fn colour_pass<'e>(
+    enc: &'e mut wgpu::CommandEncoder,
+    label: &str,
+    attachment: Option<wgpu::RenderPassColorAttachment<'_>>,
+) -> wgpu::RenderPass<'e> {
     enc.begin_render_pass(&wgpu::RenderPassDescriptor {
         label: Some(label),
-        color_attachments: &[loaded_colour(view)],
+        color_attachments: &[attachment],
         depth_stencil_attachment: None,
         timestamp_writes: None,
         occlusion_query_set: None,

@@ -638,6 +638,30 @@ fn wgpu_validation_errors_are_error_values_and_the_device_keeps_working() {
     });
 }
 
+/// One frame of `frame` (no technique, not still) through `camera` under `lights`, every
+/// image read back.
+fn everything(
+    raster: &Raster,
+    frame: &mut FrameRenderer,
+    camera: cloudlight_scenes::Camera,
+    lights: &[cloudlight_scenes::LightState],
+) -> FrameImages {
+    let inputs = FrameInputs {
+        camera,
+        lights,
+        still: None,
+    };
+    frame
+        .render(
+            raster,
+            &inputs,
+            &mut NoIndirect,
+            Readback::Everything,
+            false,
+        )
+        .unwrap()
+}
+
 /// `light` with its power multiplied by `k` (its position and direction unchanged).
 fn brighter(light: &cloudlight_scenes::LightState, k: f32) -> cloudlight_scenes::LightState {
     use cloudlight_scenes::LightState as L;
@@ -696,21 +720,7 @@ fn a_frame_renderer_keeps_its_shadow_maps_until_a_light_moves() {
         let mut frame = FrameRenderer::new(raster, 48, 32, shadows).unwrap();
         frame.set_geometry(raster, &scene, &tris).unwrap();
         let render = |frame: &mut FrameRenderer, lights: &[LightState]| {
-            let inputs = FrameInputs {
-                camera,
-                lights,
-                still: None,
-            };
-            let images = frame
-                .render(
-                    raster,
-                    &inputs,
-                    &mut NoIndirect,
-                    Readback::Everything,
-                    false,
-                )
-                .unwrap();
-            images.direct.unwrap()
+            everything(raster, frame, camera, lights).direct.unwrap()
         };
         let lights: Vec<LightState> = scene.lights.iter().map(|l| l.at(0.0)).collect();
         let first = render(&mut frame, &lights);
@@ -988,22 +998,7 @@ fn a_frame_shows_nothing_where_it_sees_no_surface_whatever_the_frame_before_drew
             ..on_ground
         };
         let (w, h) = (48u32, 32u32);
-        let render = |frame: &mut FrameRenderer, camera| {
-            let inputs = FrameInputs {
-                camera,
-                lights: &lights,
-                still: None,
-            };
-            frame
-                .render(
-                    raster,
-                    &inputs,
-                    &mut NoIndirect,
-                    Readback::Everything,
-                    false,
-                )
-                .unwrap()
-        };
+        let render = |frame: &mut FrameRenderer, camera| everything(raster, frame, camera, &lights);
         let mut frame = FrameRenderer::new(raster, w, h, ShadowSettings::default()).unwrap();
         frame.set_geometry(raster, &scene, &tris).unwrap();
         let first = render(&mut frame, on_ground);
