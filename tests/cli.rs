@@ -617,7 +617,20 @@ fn photon_quality_benchmark_writes_its_table_json_and_pareto_plot() {
             let worst = p["errors"]["worst_share"].as_f64().unwrap();
             assert!((0.0..=1.0).contains(&worst), "{packing}: {row}");
         }
+        // The box's one light, an emissive surface: what it emitted and stored.
+        let lights = row["eight"]["lights"].as_array().unwrap();
+        assert_eq!(lights.len(), 1, "{row}");
+        assert_eq!(lights[0]["kind"], "surface");
+        assert_eq!(lights[0]["stored"], row["eight"]["stored"]);
+        let emitted = lights[0]["emitted"].as_f64().unwrap();
+        let budget = row["photons"].as_f64().unwrap();
+        assert!((emitted / budget - 1.0).abs() < 0.01, "{row}");
     }
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        table.contains("Photons stored per photon emitted") && table.contains("surface lights"),
+        "{table}"
+    );
     // The reference's own noise (64 spp: small, but not nothing), and each image beside it.
     let noise = report["reference_noise"].as_f64().unwrap();
     assert!(noise > 0.0 && noise < 0.5, "{noise}");

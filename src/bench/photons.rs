@@ -13,7 +13,8 @@ use cloudlight_actors::wire::PhotonMsg;
 use cloudlight_render::metrics::{ImageErrors, compare};
 use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings};
 use cloudlight_render::photon::{
-    PackFormat, Photon, PhotonSet, PhotonSettings, PhotonStream, Receive, View, trace_iteration,
+    LightYield, PackFormat, Photon, PhotonSet, PhotonSettings, PhotonStream, Receive, View,
+    trace_iteration,
 };
 use cloudlight_render::raster::{OneFrame, Raster, ShadowSettings};
 use cloudlight_render::{BvhKind, SceneBvh};
@@ -749,6 +750,9 @@ pub struct QualityPoint {
     pub mbps: f64,
     /// Errors of the client's indirect light against the reference.
     pub errors: ImageErrors,
+    /// Photons each light emitted and stored.
+    #[serde(default)]
+    pub lights: Vec<LightYield>,
 }
 
 /// One budget in the three packings (the same photons: each packing's own error and bytes).
@@ -812,6 +816,7 @@ impl QualityView {
             bytes_per_photon: bytes / it.sent.max(1) as f64,
             mbps: bytes * 8.0 * rate / 1e6,
             errors,
+            lights: it.lights.clone(),
         };
         Ok((point, indirect))
     }
@@ -1160,6 +1165,49 @@ pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
     t.render()
 }
 
+/// Photons stored per photon emitted, budget by budget: over all lights and by kind of
+/// light (a sun's share shows what its emission over the footprint buys; lamps store most
+/// of what they emit anyway).
+pub fn yield_markdown(rows: &[QualityRow]) -> String {
+    const KINDS: [&str; 4] = ["directional", "point", "spot", "surface"];
+    let kinds: Vec<&str> = KINDS
+        .into_iter()
+        .filter(|k| {
+            rows.iter()
+                .any(|r| r.eight.lights.iter().any(|l| l.kind == *k))
+        })
+        .collect();
+    let mut header = vec!["photons".to_string(), "all lights".to_string()];
+    header.extend(kinds.iter().map(|k| format!("{k} lights")));
+    let header: Vec<&str> = header.iter().map(String::as_str).collect();
+    let mut t = Markdown::new(&header);
+    let cell = |lights: Vec<&LightYield>| {
+        let (emitted, stored) = lights
+            .iter()
+            .fold((0, 0), |(e, s), l| (e + l.emitted, s + l.stored));
+        if lights.is_empty() {
+            return "-".to_string();
+        }
+        format!(
+            "{:.1}% ({stored} of {emitted}; {} light{})",
+            100.0 * stored as f64 / emitted.max(1) as f64,
+            lights.len(),
+            if lights.len() == 1 { "" } else { "s" }
+        )
+    };
+    for r in rows {
+        let lights = &r.eight.lights;
+        let mut row = vec![r.photons.to_string(), cell(lights.iter().collect())];
+        row.extend(
+            kinds
+                .iter()
+                .map(|k| cell(lights.iter().filter(|l| l.kind == *k).collect())),
+        );
+        t.row(row);
+    }
+    format!("Photons stored per photon emitted:\n\n{}", t.render())
+}
+
 /// `cloudlight bench quality --technique photons`: the sweep over budgets on `scene`, with
 /// the table, `quality.json`, the Pareto plot `quality.png` and each image (EXR, and a PNG
 /// beside the reference with its error map: [`QualityView::write_image`]) written to `out`.
@@ -1192,6 +1240,7 @@ pub fn quality(
         rows.push(row);
     }
     println!("{}", quality_markdown(&rows, o.rate_hz));
+    println!("{}", yield_markdown(&rows));
     // Each point's image written beside the reference, named `{name}_{photons}_{count}`.
     let written = |name: &str,
                    what: &str,

@@ -55,7 +55,7 @@ pub mod stream;
 pub use pack::{BatchHeader, PackError, PackFormat, PackedBatch};
 pub use store::{Inserted, Manifest, ManifestLight, PhotonSet};
 pub use stream::{
-    BatchJob, Iteration, IterationPlan, LightSet, PhotonStream, Retrace, TracedBatch,
+    BatchJob, Iteration, IterationPlan, LightSet, LightYield, PhotonStream, Retrace, TracedBatch,
     trace_iteration,
 };
 
@@ -266,6 +266,18 @@ pub enum Emitter {
         /// Cumulative areas, m².
         cdf: Vec<f32>,
     },
+}
+
+impl Emitter {
+    /// `directional`, `point`, `spot` or `surface`: for reports.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Emitter::Punctual { cos_cone, .. } if *cos_cone <= -1.0 => "point",
+            Emitter::Punctual { .. } => "spot",
+            Emitter::Directional(_) => "directional",
+            Emitter::Surface { .. } => "surface",
+        }
+    }
 }
 
 /// One light as the photon tracer sees it at one scene time.

@@ -447,12 +447,23 @@ impl PhotonStream {
         let (mut stored, mut sent) = (0, 0);
         let mut per_light: BTreeMap<(usize, u64, u32), BTreeMap<u32, PackedBatch>> =
             BTreeMap::new();
+        let mut yields: BTreeMap<usize, LightYield> = BTreeMap::new();
         for job in &plan.jobs {
             let traced = Self::trace(scene, bvh, &plan, job, self.seed, self.format);
             trace_time += traced.trace_time;
             pack_time += traced.pack_time;
             stored += traced.stored;
             sent += traced.sent;
+            let light = &plan.lights[job.light];
+            let y = yields.entry(job.light).or_insert_with(|| LightYield {
+                id: light.id,
+                name: light.name.clone(),
+                kind: light.emitter.kind().to_string(),
+                emitted: 0,
+                stored: 0,
+            });
+            y.emitted += u64::from(plan.plan.photons_per_batch(light.id));
+            y.stored += traced.stored as u64;
             per_light
                 .entry((job.light, job.generation, job.pass))
                 .or_default()
@@ -469,6 +480,7 @@ impl PhotonStream {
             batches,
             stored,
             sent,
+            lights: yields.into_values().collect(),
             trace_time,
             pack_time,
         }
@@ -502,10 +514,35 @@ pub struct Iteration {
     pub stored: usize,
     /// Photons sent: those stored, merged ([`PhotonSettings::merge`]).
     pub sent: usize,
+    /// Photons emitted and stored by each light traced, in light order.
+    pub lights: Vec<LightYield>,
     /// Time spent tracing (and merging).
     pub trace_time: Duration,
     /// Time spent packing.
     pub pack_time: Duration,
+}
+
+/// What one light emitted and stored in an iteration: how much of its tracing lands where
+/// photons are kept (a sun's emission over its footprint, a lamp's over what is around it).
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct LightYield {
+    /// Light id.
+    pub id: u32,
+    /// Its name.
+    pub name: String,
+    /// What kind of emitter it is ([`Emitter::kind`]).
+    pub kind: String,
+    /// Photons emitted (every pass traced).
+    pub emitted: u64,
+    /// Photons stored.
+    pub stored: u64,
+}
+
+impl LightYield {
+    /// Photons stored per photon emitted (0 for a light that emitted none).
+    pub fn stored_per_emitted(&self) -> f64 {
+        self.stored as f64 / self.emitted.max(1) as f64
+    }
 }
 
 impl Iteration {

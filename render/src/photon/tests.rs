@@ -100,6 +100,28 @@ fn stored_power_is_the_emitted_power_times_the_bounce_albedo() {
 }
 
 #[test]
+fn an_iteration_counts_the_photons_each_light_stored_per_photon_emitted() {
+    // Closed box: every path goes on until roulette ends it (survival a) or it reaches the
+    // bounce cap, and is stored at hits 2 ..= bounces + 1: Σ_{k=1}^{B} a^k per emitted.
+    let (a, bounces) = (0.6f32, 8u32);
+    let scene = closed_box(a, 1.0);
+    let bvh = SceneBvh::at(&scene, 0.0, BvhKind::default());
+    let settings = PhotonSettings {
+        bounces,
+        ..PhotonSettings::for_budget(&scene, 40_000, 10_000)
+    };
+    let it = stream::trace_iteration(&scene, &bvh, 0.0, settings, 5, PackFormat::Compact12);
+    assert_eq!(it.lights.len(), 1);
+    let bulb = &it.lights[0];
+    assert_eq!((bulb.name.as_str(), bulb.kind.as_str()), ("bulb", "point"));
+    assert_eq!(bulb.emitted, it.plan.total_photons());
+    assert_eq!(bulb.stored, it.stored as u64);
+    let expect: f64 = (1..=bounces).map(|k| f64::from(a).powi(k as i32)).sum();
+    let got = bulb.stored_per_emitted();
+    assert!((got / expect - 1.0).abs() < 0.03, "{got} vs {expect}");
+}
+
+#[test]
 fn each_light_budget_follows_its_power_and_batches_are_deterministic() {
     let scene = cloudlight_scenes::builtin("city:2000").unwrap();
     let mut lights = photon_lights(&scene, 0.0);
@@ -843,6 +865,14 @@ fn a_stream_traces_again_only_the_lights_that_changed() {
     let first = stream.iterate(&scene, &bvh, 0.0);
     assert_eq!(first.batches.len() as u64, first.plan.total_batches());
     assert_eq!(stream.sets().len(), 2);
+    // Each light's photons are counted: the lamp and the ceiling's emitter.
+    let kinds: Vec<&str> = first.lights.iter().map(|l| l.kind.as_str()).collect();
+    assert_eq!(kinds, vec!["point", "surface"]);
+    for l in &first.lights {
+        assert_eq!(l.emitted, first.plan.photons_of(l.id), "{l:?}");
+    }
+    let stored: u64 = first.lights.iter().map(|l| l.stored).sum();
+    assert_eq!(stored, first.stored as u64);
     assert!(stream.sets().values().all(|s| s.generation == 1));
     // Nothing changed: a refinement pass of every light per iteration (fresh photons, same
     // generation and budget), until each holds `passes`; then nothing is traced.
@@ -868,6 +898,8 @@ fn a_stream_traces_again_only_the_lights_that_changed() {
     let moved = stream.iterate(&scene, &bvh, 1.0);
     let lamp_id = 0;
     assert!(!moved.batches.is_empty());
+    let traced: Vec<u32> = moved.lights.iter().map(|l| l.id).collect();
+    assert_eq!(traced, vec![lamp_id], "only the lamp was traced");
     assert!(
         moved
             .batches
