@@ -118,7 +118,7 @@ pub fn footprint(
     let photons = || match (float("photons_per_watt"), int("photons")) {
         (Some(per_watt), _) => {
             let settings = PlanSettings {
-                photons_per_watt: per_watt,
+                photons_per_watt: Some(per_watt),
                 ..PlanSettings::default()
             };
             plan(scene, &settings)
@@ -128,7 +128,7 @@ pub fn footprint(
                 .sum()
         }
         (None, Some(n)) => n,
-        (None, None) => 10_000,
+        (None, None) => cloudlight_render::photon::DEFAULT_PHOTONS,
     };
     let voxels = || {
         let settings = PlanSettings {

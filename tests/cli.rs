@@ -452,6 +452,7 @@ fn plan_describes_the_scene_and_the_allocations() {
     assert!(text.contains("32 triangles"), "{text}");
     assert!(text.contains("0.7290 / 0.5146 / 0.1715 W"), "{text}");
     assert!(text.contains("512³"), "{text}");
+    assert!(text.contains("10000 an iteration"), "{text}");
     assert!(
         text.contains("128×128 atlas") && text.contains("45 bases"),
         "{text}"

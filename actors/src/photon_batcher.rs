@@ -54,7 +54,8 @@ pub const TECHNIQUE: &str = "photons";
 #[serde(deny_unknown_fields)]
 pub struct BatcherParams {
     /// Photons per iteration over all lights (sets photons per watt from the scene's power
-    /// at time 0). Default 10,000 when `photons_per_watt` is absent.
+    /// at time 0). Default [`cloudlight_render::photon::DEFAULT_PHOTONS`] (10,000) when
+    /// `photons_per_watt` is absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub photons: Option<u64>,
     /// Photons per emitted watt (summed over channels); overrides `photons`.
@@ -567,16 +568,12 @@ impl BatcherParams {
     /// `photons_per_watt` and the scene's lights, which must come to at most [`MAX_PHOTONS`]
     /// per iteration.
     pub fn settings_for(&self, scene: &cloudlight_scenes::Scene) -> Result<PhotonSettings, String> {
-        let mut settings = match (self.photons_per_watt, self.photons) {
-            (Some(ppw), _) => PhotonSettings {
-                photons_per_watt: ppw,
-                batch_size: self.batch_size,
-                ..Default::default()
-            },
-            (None, photons) => {
-                PhotonSettings::for_budget(scene, photons.unwrap_or(10_000), self.batch_size)
-            }
-        };
+        let mut settings = PhotonSettings::for_stage_budget(
+            scene,
+            self.photons,
+            self.photons_per_watt,
+            self.batch_size,
+        );
         settings.bounces = self.bounces;
         settings.photons_per_disk = self.photons_per_disk;
         settings.radius_m = self.radius_m;

@@ -12,8 +12,11 @@ use glam::Vec3;
 /// Technique settings the plan uses.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PlanSettings {
-    /// Photons emitted per watt (summed over channels).
-    pub photons_per_watt: f64,
+    /// Photons per iteration, spread over the lights by power (the batcher's `photons`).
+    pub photons: u64,
+    /// Photons emitted per watt (summed over channels), instead of `photons` (the
+    /// batcher's `photons_per_watt`).
+    pub photons_per_watt: Option<f64>,
     /// Photons per batch.
     pub batch_size: u64,
     /// Octree levels; the leaf grid is 2^levels per axis over the scene's largest extent.
@@ -26,9 +29,11 @@ pub struct PlanSettings {
 
 impl Default for PlanSettings {
     fn default() -> Self {
-        // Cornell box: 1.415 W summed over channels → 10k photons; 2.0 m² → 128² texels; 50 bases.
+        // The batcher's defaults (10k photons an iteration, however many watts the scene's
+        // lights emit); Cornell box: 2.0 m² → 128² texels, 50 bases.
         PlanSettings {
-            photons_per_watt: 7_066.0,
+            photons: crate::photon::DEFAULT_PHOTONS,
+            photons_per_watt: None,
             batch_size: 10_000,
             octree_levels: 9,
             texels_per_m2: 8_200.0,
@@ -42,10 +47,10 @@ impl Default for PlanSettings {
 pub struct LightPlan {
     /// Light name.
     pub name: String,
-    /// Watts summed over channels (directional: irradiance × the disk the photon tracer
-    /// emits from, which covers the scene).
+    /// Watts summed over channels (directional: irradiance × its footprint, the area of
+    /// the scene it lights as it sees it).
     pub power_w: f64,
-    /// Photons per iteration (whole batches, at least one).
+    /// Photons per iteration (none for a light whose share rounds to no photon).
     pub photons: u64,
     /// Batches per iteration.
     pub batches: u64,
@@ -66,6 +71,8 @@ pub struct ScenePlan {
     pub emitted_w: Vec3,
     /// Photon budget per light (each emissive object counts as one light).
     pub lights: Vec<LightPlan>,
+    /// Photons emitted per watt (summed over channels) at that budget.
+    pub photons_per_watt: f64,
     /// Occupied voxels per octree level, root (level 0) first.
     pub voxels_per_level: Vec<u64>,
     /// Leaf voxel size, meters.
@@ -86,14 +93,13 @@ pub fn plan(scene: &Scene, s: &PlanSettings) -> ScenePlan {
         .sum();
     // Photon budget: the photon tracer's own lights and batch plan.
     let photon_lights = crate::photon::photon_lights_in(scene, 0.0, &tris);
-    let batch_plan = crate::photon::BatchPlan::new(
-        &photon_lights,
-        &crate::photon::PhotonSettings {
-            photons_per_watt: s.photons_per_watt,
-            batch_size: s.batch_size.clamp(1, crate::photon::MAX_BATCH_SIZE as u64) as u32,
-            ..Default::default()
-        },
+    let settings = crate::photon::PhotonSettings::for_stage_budget(
+        scene,
+        Some(s.photons),
+        s.photons_per_watt,
+        s.batch_size.clamp(1, crate::photon::MAX_BATCH_SIZE as u64) as u32,
     );
+    let batch_plan = crate::photon::BatchPlan::new(&photon_lights, &settings);
     let lights: Vec<LightPlan> = photon_lights
         .iter()
         .map(|l| {
@@ -124,6 +130,7 @@ pub fn plan(scene: &Scene, s: &PlanSettings) -> ScenePlan {
         animated: scene.is_animated(),
         emitted_w: scene.emitted_power_w(),
         lights,
+        photons_per_watt: settings.photons_per_watt,
         voxels_per_level,
         leaf_voxel_m: leaf,
         lightmap_texels: texels,
@@ -164,6 +171,41 @@ mod tests {
         // Surfaces are 2D: occupied leaves grow about 4× per level, far below the 8× of a volume.
         let (a, b) = (p.voxels_per_level[8] as f64, p.voxels_per_level[9] as f64);
         assert!((3.0..5.0).contains(&(b / a)), "{a} → {b}");
+    }
+
+    #[test]
+    fn photons_follow_the_batchers_budget_whatever_the_scenes_watts() {
+        // A town under a sun of megawatts and lamps of 245 W: the batcher's 10k photons an
+        // iteration, nearly all the sun's (the rate of the Cornell box, 7k per watt, would
+        // give it billions).
+        let city = cloudlight_scenes::builtin("city:2000").unwrap();
+        let p = plan(&city, &PlanSettings::default());
+        let total: u64 = p.lights.iter().map(|l| l.photons).sum();
+        assert!(
+            total.abs_diff(crate::photon::DEFAULT_PHOTONS) <= 100,
+            "{total}"
+        );
+        let sun = &p.lights[0];
+        assert_eq!(sun.name, "sun");
+        assert!(sun.photons as f64 >= 0.99 * total as f64, "{:?}", p.lights);
+        assert!(
+            p.lights.len() > 1,
+            "the lamps are listed, with their shares"
+        );
+        // Photons per watt, when given, set the rate instead.
+        let per_watt = PlanSettings {
+            photons_per_watt: Some(2.0 * p.photons_per_watt),
+            ..PlanSettings::default()
+        };
+        let doubled: u64 = plan(&city, &per_watt)
+            .lights
+            .iter()
+            .map(|l| l.photons)
+            .sum();
+        assert!(
+            doubled.abs_diff(2 * total) <= 100,
+            "{doubled} vs 2 × {total}"
+        );
     }
 
     #[test]

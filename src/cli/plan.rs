@@ -2,6 +2,8 @@
 
 use std::process::ExitCode;
 
+use cloudlight::runtime::stage::show_number;
+
 /// Options of `plan`.
 #[derive(clap::Args)]
 pub struct Args {
@@ -55,9 +57,11 @@ pub fn run(args: Args) -> ExitCode {
             l.batches.to_string(),
         ]);
     }
+    let total: u64 = p.lights.iter().map(|l| l.photons).sum();
     println!(
-        "photons ({} per W, {} per batch):\n{t}",
-        settings.photons_per_watt, settings.batch_size
+        "photons ({total} an iteration, the batcher's default: {} per W, at most {} per batch):\n{t}",
+        show_number(three_digits(p.photons_per_watt)),
+        settings.batch_size
     );
     let mut v = crate::cli::table(["voxels: level", "grid", "occupied", "of grid", "MiB"]);
     let per_voxel = cloudlight::render::voxel::BYTES_PER_VOXEL;
@@ -115,4 +119,13 @@ fn print_lightmap(
         }
         Err(e) => println!("irradiance maps: n/a: {e} (estimate from the area: {estimate})"),
     }
+}
+
+/// `v` rounded to three significant digits.
+fn three_digits(v: f64) -> f64 {
+    if v == 0.0 || !v.is_finite() {
+        return v;
+    }
+    let scale = 10f64.powi(2 - v.abs().log10().floor() as i32);
+    (v * scale).round() / scale
 }

@@ -228,7 +228,30 @@ impl Default for PhotonSettings {
     }
 }
 
+/// Photons per iteration when a stage names neither `photons` nor `photons_per_watt`: the
+/// paper's Cornell box budget, spread over any scene's lights by their power.
+pub const DEFAULT_PHOTONS: u64 = 10_000;
+
 impl PhotonSettings {
+    /// Settings for `scene` from a budget as a stage takes it: `photons_per_watt` when given,
+    /// else `photons` per iteration ([`DEFAULT_PHOTONS`] when absent) spread over the
+    /// lights by power ([`Self::for_budget`]).
+    pub fn for_stage_budget(
+        scene: &Scene,
+        photons: Option<u64>,
+        photons_per_watt: Option<f64>,
+        batch_size: u32,
+    ) -> Self {
+        match photons_per_watt {
+            Some(photons_per_watt) => PhotonSettings {
+                photons_per_watt,
+                batch_size,
+                ..Default::default()
+            },
+            None => Self::for_budget(scene, photons.unwrap_or(DEFAULT_PHOTONS), batch_size),
+        }
+    }
+
     /// Settings whose photons per watt give about `photons` photons per iteration in `scene`.
     pub fn for_budget(scene: &Scene, photons: u64, batch_size: u32) -> Self {
         let watts: f64 = photon_lights(scene, 0.0).iter().map(|l| l.watts()).sum();
