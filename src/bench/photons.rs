@@ -13,8 +13,8 @@ use cloudlight_actors::wire::PhotonMsg;
 use cloudlight_render::metrics::{ImageErrors, compare};
 use cloudlight_render::photon::splat::{PhotonSplatPass, SplatSettings};
 use cloudlight_render::photon::{
-    LightYield, PackFormat, Photon, PhotonSet, PhotonSettings, PhotonStream, Receive, View,
-    trace_iteration,
+    Emitter, LightYield, PackFormat, Photon, PhotonSet, PhotonSettings, PhotonStream, Receive,
+    View, trace_iteration,
 };
 use cloudlight_render::raster::{OneFrame, Raster, ShadowSettings};
 use cloudlight_render::{BvhKind, SceneBvh};
@@ -1158,11 +1158,9 @@ pub fn quality_markdown(rows: &[QualityRow], rate_hz: f64) -> String {
 }
 
 /// Photons stored per photon emitted, budget by budget: over all lights and by kind of
-/// light (a sun's share shows what its emission over the footprint buys; lamps store most
-/// of what they emit anyway).
+/// light (what a sun's emission over its footprint buys shows apart from its lamps').
 pub fn yield_markdown(rows: &[QualityRow]) -> String {
-    const KINDS: [&str; 4] = ["directional", "point", "spot", "surface"];
-    let kinds: Vec<&str> = KINDS
+    let kinds: Vec<&str> = Emitter::KINDS
         .into_iter()
         .filter(|k| {
             rows.iter()

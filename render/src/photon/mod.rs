@@ -292,7 +292,10 @@ pub enum Emitter {
 }
 
 impl Emitter {
-    /// `directional`, `point`, `spot` or `surface`: for reports.
+    /// Every [`Self::kind`], in the order reports list them.
+    pub const KINDS: [&'static str; 4] = ["directional", "point", "spot", "surface"];
+
+    /// `directional`, `point`, `spot` or `surface` ([`Self::KINDS`]): for reports.
     pub fn kind(&self) -> &'static str {
         match self {
             Emitter::Punctual { cos_cone, .. } if *cos_cone <= -1.0 => "point",
